@@ -1,0 +1,17 @@
+//! Shared vocabulary of the multi-robot VIO system.
+//!
+//! * [`conventions`]: frames, rotation directions, error-state definition and
+//!   file quaternion orders, stated once for the whole workspace.
+//! * [`so3`]: SO(3)/SE(3) math (`exp`, `log`, right Jacobians, skew).
+//! * [`camera`]: pinhole + radtan / equidistant models with Jacobians.
+//! * [`trajectory`]: TUM / EuRoC ground-truth readers and a TUM writer.
+//! * [`metrics`]: ATE, RPE and NEES.
+//! * [`summary`]: the `summary.json` schema shared by the agent and the fleet tools.
+#![warn(missing_docs)]
+
+pub mod camera;
+pub mod conventions;
+pub mod metrics;
+pub mod so3;
+pub mod summary;
+pub mod trajectory;

@@ -1,0 +1,2 @@
+//! The fleet simulator.
+#![warn(missing_docs)]
