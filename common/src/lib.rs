@@ -4,13 +4,19 @@
 //!   file quaternion orders, stated once for the whole workspace.
 //! * [`so3`]: SO(3)/SE(3) math (`exp`, `log`, right Jacobians, skew).
 //! * [`camera`]: pinhole + radtan / equidistant models with Jacobians.
+//! * [`calibration`]: a camera's intrinsics, camera-IMU extrinsics and time offset.
+//! * [`descriptor`]: 256-bit binary descriptors.
+//! * [`measurement`]: IMU samples and camera feature frames.
 //! * [`trajectory`]: TUM / EuRoC ground-truth readers and a TUM writer.
 //! * [`metrics`]: ATE, RPE and NEES.
 //! * [`summary`]: the `summary.json` schema shared by the agent and the fleet tools.
 #![warn(missing_docs)]
 
+pub mod calibration;
 pub mod camera;
 pub mod conventions;
+pub mod descriptor;
+pub mod measurement;
 pub mod metrics;
 pub mod so3;
 pub mod summary;

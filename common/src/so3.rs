@@ -150,9 +150,7 @@ pub fn xyzw_from_rot(r: &Matrix3<f64>) -> [f64; 4] {
 
 /// Re-orthonormalize a rotation matrix (after many compositions).
 pub fn orthonormalize(r: &Matrix3<f64>) -> Matrix3<f64> {
-    quat_from_rot(r)
-        .to_rotation_matrix()
-        .into_inner()
+    quat_from_rot(r).to_rotation_matrix().into_inner()
 }
 
 /// A rigid transform `T_AtoB = (R_AtoB, p_AinB)` mapping points of frame `A` into `B`.
@@ -250,7 +248,10 @@ mod tests {
             for _ in 0..50 {
                 let w = random_vec(&mut rng, scale);
                 let back = log_so3(&exp_so3(&w));
-                assert!((back - w).norm() < 1e-10 * (1.0 + w.norm()), "{w} -> {back}");
+                assert!(
+                    (back - w).norm() < 1e-10 * (1.0 + w.norm()),
+                    "{w} -> {back}"
+                );
             }
         }
         let near_pi = Vector3::new(0.0, 0.0, std::f64::consts::PI - 1e-9);

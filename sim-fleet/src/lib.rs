@@ -1,2 +1,7 @@
-//! Fleet tools: evaluation, reports and (later) the launcher and Monte-Carlo runner.
+//! Fleet tools: simulation to files, evaluation, reports and (later) the launcher
+//! and Monte-Carlo runner.
 #![warn(missing_docs)]
+
+pub mod eval;
+pub mod plots;
+pub mod simulate;

@@ -1,1 +1,36 @@
-fn main() {}
+//! `sim-fleet`: simulate a fleet, evaluate estimates (and, later, launch agents).
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+use sim_fleet::eval::{run_eval, EvalArgs};
+use sim_fleet::simulate::{run_simulate, SimulateArgs};
+
+/// Fleet tools of the distributed multi-robot VIO system.
+#[derive(Parser, Debug)]
+#[command(name = "sim-fleet", version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Simulate every robot of a scenario: IMU and feature measurements (MCAP),
+    /// ground truth (TUM) and a run summary.
+    Simulate(SimulateArgs),
+    /// Evaluate an estimate against ground truth: ATE, RPE, NEES and plots.
+    Eval(EvalArgs),
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().command {
+        Command::Simulate(args) => run_simulate(&args),
+        Command::Eval(args) => run_eval(&args),
+    }
+}

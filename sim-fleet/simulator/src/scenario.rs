@@ -1,0 +1,450 @@
+//! Scenario files (YAML): the robots, their sensors, the shared world and the
+//! estimator settings. Units are in the key names. Unknown keys are errors.
+//!
+//! Trajectory paths are resolved relative to the scenario file. Each robot's
+//! trajectory is re-timed onto the fleet clock: its first pose is at fleet time
+//! `start_time_s` (default 0), so recordings made at different times fly together.
+
+use common::calibration::CameraCalibration;
+use common::camera::{CameraModel, Distortion};
+use nalgebra::{Matrix3, Vector3, Vector4};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+
+/// Why a scenario could not be loaded.
+#[derive(Debug, Error)]
+pub enum ScenarioError {
+    /// The scenario file could not be read.
+    #[error("cannot read scenario {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The YAML is malformed or has unknown/missing keys.
+    #[error("invalid scenario {path}: {source}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The cause, with line and column.
+        source: serde_yaml::Error,
+    },
+    /// A referenced trajectory file does not exist.
+    #[error("scenario {path}: robot {robot}: trajectory file {trajectory} not found")]
+    MissingTrajectory {
+        /// The scenario file.
+        path: PathBuf,
+        /// The robot index.
+        robot: usize,
+        /// The resolved trajectory path.
+        trajectory: PathBuf,
+    },
+    /// A value is out of its valid range.
+    #[error("scenario {path}: {what}")]
+    Invalid {
+        /// The scenario file.
+        path: PathBuf,
+        /// What is wrong.
+        what: String,
+    },
+}
+
+/// A whole fleet scenario.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    /// Human-readable name, used in reports.
+    pub name: String,
+    /// Default seed of every random draw (overridable on the command line).
+    #[serde(default = "default_seed")]
+    pub seed: u64,
+    /// The robots, in index order.
+    pub robots: Vec<RobotSpec>,
+    /// Sensor models shared by all robots.
+    #[serde(default)]
+    pub sensors: SensorSpec,
+    /// The shared landmark world.
+    #[serde(default)]
+    pub world: WorldSpec,
+    /// Estimator settings (used by the agents).
+    #[serde(default)]
+    pub estimator: EstimatorSpec,
+    /// Folder the scenario file was in (paths are relative to it); not in the file.
+    #[serde(skip)]
+    pub base_dir: PathBuf,
+}
+
+fn default_seed() -> u64 {
+    1
+}
+
+/// One robot of the scenario.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RobotSpec {
+    /// Trajectory file (TUM text or EuRoC CSV), relative to the scenario file.
+    pub trajectory: PathBuf,
+    /// Fleet time of the trajectory's first pose, in seconds.
+    #[serde(default)]
+    pub start_time_s: f64,
+    /// Optional name; defaults to the trajectory file stem.
+    #[serde(default)]
+    pub name: Option<String>,
+}
+
+/// Sensor settings.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SensorSpec {
+    /// IMU model.
+    pub imu: ImuSpec,
+    /// Camera model.
+    pub camera: CameraSpec,
+    /// Perturbation of the estimator's initial calibration.
+    pub calibration_perturbation: CalibrationPerturbation,
+}
+
+/// IMU noise model (thesis Table 5.1 defaults).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ImuSpec {
+    /// Sample rate in Hz.
+    pub rate_hz: f64,
+    /// Gyroscope white noise density, rad/s/√Hz.
+    pub gyro_noise_density: f64,
+    /// Gyroscope bias random walk, rad/s²/√Hz.
+    pub gyro_random_walk: f64,
+    /// Accelerometer white noise density, m/s²/√Hz.
+    pub accel_noise_density: f64,
+    /// Accelerometer bias random walk, m/s³/√Hz.
+    pub accel_random_walk: f64,
+    /// Gravity magnitude in m/s² (world z up).
+    pub gravity_mps2: f64,
+}
+
+impl Default for ImuSpec {
+    fn default() -> Self {
+        Self {
+            rate_hz: 400.0,
+            gyro_noise_density: 1.6968e-04,
+            gyro_random_walk: 1.9393e-05,
+            accel_noise_density: 2.0e-3,
+            accel_random_walk: 3.0e-3,
+            gravity_mps2: common::conventions::GRAVITY_MPS2,
+        }
+    }
+}
+
+/// Monocular camera settings (EuRoC cam0 defaults).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraSpec {
+    /// Frame rate in Hz.
+    pub rate_hz: f64,
+    /// Distortion model: `radtan` or `equidistant`.
+    pub model: Distortion,
+    /// Image width in pixels.
+    pub width_px: u32,
+    /// Image height in pixels.
+    pub height_px: u32,
+    /// `[fx, fy, cx, cy]` in pixels.
+    pub intrinsics_px: [f64; 4],
+    /// radtan `[k1, k2, p1, p2]` or equidistant `[k1, k2, k3, k4]` (unitless).
+    pub distortion: [f64; 4],
+    /// `T_imu_cam` = `[R_CtoI | p_CinI]`, 3 rows of 4 (rotation, metres).
+    pub t_imu_cam: [[f64; 4]; 3],
+    /// True camera-IMU time offset `t_d` in seconds (`t_imu = t_cam + t_d`).
+    pub time_offset_s: f64,
+    /// Standard deviation of the pixel noise, in pixels.
+    pub pixel_noise_px: f64,
+    /// At most this many features per frame.
+    pub max_features: usize,
+    /// Landmarks nearer than this are not seen, metres.
+    pub min_depth_m: f64,
+    /// Landmarks farther than this are not seen, metres.
+    pub max_depth_m: f64,
+}
+
+impl Default for CameraSpec {
+    fn default() -> Self {
+        let c = CameraCalibration::euroc_cam0();
+        let r = c.rot_c_to_i;
+        let p = c.p_c_in_i;
+        Self {
+            rate_hz: 10.0,
+            model: Distortion::RadTan,
+            width_px: c.camera.width,
+            height_px: c.camera.height,
+            intrinsics_px: c.camera.intrinsics.into(),
+            distortion: c.camera.distortion.into(),
+            t_imu_cam: [
+                [r[(0, 0)], r[(0, 1)], r[(0, 2)], p.x],
+                [r[(1, 0)], r[(1, 1)], r[(1, 2)], p.y],
+                [r[(2, 0)], r[(2, 1)], r[(2, 2)], p.z],
+            ],
+            time_offset_s: 0.0,
+            pixel_noise_px: 1.0,
+            max_features: 100,
+            min_depth_m: 0.1,
+            max_depth_m: 7.0,
+        }
+    }
+}
+
+impl CameraSpec {
+    /// The true calibration this spec describes (rotation re-orthonormalized).
+    pub fn calibration(&self) -> CameraCalibration {
+        let m = &self.t_imu_cam;
+        let rot = Matrix3::new(
+            m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
+        );
+        CameraCalibration {
+            camera: CameraModel {
+                model: self.model,
+                width: self.width_px,
+                height: self.height_px,
+                intrinsics: Vector4::from(self.intrinsics_px),
+                distortion: Vector4::from(self.distortion),
+            },
+            rot_c_to_i: common::so3::orthonormalize(&rot),
+            p_c_in_i: Vector3::new(m[0][3], m[1][3], m[2][3]),
+            time_offset_s: self.time_offset_s,
+        }
+    }
+}
+
+/// Standard deviations of the perturbation applied to the estimator's initial
+/// calibration (OpenVINS simulator defaults). All zero means "true calibration".
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CalibrationPerturbation {
+    /// Apply the perturbation at all.
+    pub enabled: bool,
+    /// Time offset, seconds.
+    pub time_offset_s: f64,
+    /// Focal lengths and principal point, pixels.
+    pub intrinsics_px: f64,
+    /// Distortion coefficients (unitless).
+    pub distortion: f64,
+    /// Extrinsic rotation, radians per axis.
+    pub extrinsic_rot_rad: f64,
+    /// Extrinsic position, metres per axis.
+    pub extrinsic_pos_m: f64,
+}
+
+impl Default for CalibrationPerturbation {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            time_offset_s: 0.01,
+            intrinsics_px: 1.0,
+            distortion: 0.005,
+            extrinsic_rot_rad: 0.001,
+            extrinsic_pos_m: 0.01,
+        }
+    }
+}
+
+/// The shared landmark world (OpenVINS-style generation along every trajectory).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WorldSpec {
+    /// New landmarks are made when fewer than this many are visible.
+    pub min_visible: usize,
+    /// Depth range of new landmarks, metres `[min, max]`.
+    pub new_point_depth_m: [f64; 2],
+    /// How often visibility is checked while building the world, seconds.
+    pub check_interval_s: f64,
+    /// Probability that each descriptor bit is flipped in one observation.
+    pub descriptor_bit_flip_prob: f64,
+    /// Probability that an observation's pixel belongs to another place (a wrong
+    /// track association): the pixel is drawn uniformly over the image.
+    pub outlier_pixel_prob: f64,
+    /// Probability that an observation carries another landmark's descriptor (a
+    /// wrong descriptor association, which misleads matching and loop closure).
+    pub outlier_descriptor_prob: f64,
+}
+
+impl Default for WorldSpec {
+    fn default() -> Self {
+        Self {
+            min_visible: 100,
+            new_point_depth_m: [5.0, 7.0],
+            check_interval_s: 0.25,
+            descriptor_bit_flip_prob: 0.03,
+            outlier_pixel_prob: 0.0,
+            outlier_descriptor_prob: 0.0,
+        }
+    }
+}
+
+/// Estimator settings (consumed by the agents; defaults follow thesis Table 5.1 and
+/// OpenVINS's simulation setup).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EstimatorSpec {
+    /// Sliding window size (number of clones).
+    pub max_clones: usize,
+    /// Maximum SLAM features in the state (0 = MSCKF only).
+    pub max_slam_features: usize,
+    /// Maximum SLAM features initialized or updated per frame.
+    pub max_slam_in_update: usize,
+    /// Maximum MSCKF features per update.
+    pub max_msckf_in_update: usize,
+    /// First-Estimates Jacobians on.
+    pub use_fej: bool,
+    /// Online calibration of the camera-IMU extrinsics.
+    pub calib_extrinsics: bool,
+    /// Online calibration of intrinsics and distortion.
+    pub calib_intrinsics: bool,
+    /// Online calibration of the camera-IMU time offset.
+    pub calib_time_offset: bool,
+    /// Zero-velocity updates on standstill.
+    pub zero_velocity_update: bool,
+    /// Initial standard deviation of orientation, radians.
+    pub init_sigma_ori_rad: f64,
+    /// Initial standard deviation of position, metres.
+    pub init_sigma_pos_m: f64,
+    /// Initial standard deviation of velocity, m/s.
+    pub init_sigma_vel_mps: f64,
+    /// Initial standard deviation of each bias axis (rad/s and m/s²).
+    pub init_sigma_bias: f64,
+    /// Distance the robot must have moved before the filter starts, metres.
+    pub start_after_motion_m: f64,
+}
+
+impl Default for EstimatorSpec {
+    fn default() -> Self {
+        Self {
+            max_clones: 11,
+            max_slam_features: 50,
+            max_slam_in_update: 25,
+            max_msckf_in_update: 40,
+            use_fej: true,
+            calib_extrinsics: true,
+            calib_intrinsics: true,
+            calib_time_offset: true,
+            zero_velocity_update: false,
+            init_sigma_ori_rad: 0.017,
+            init_sigma_pos_m: 0.05,
+            init_sigma_vel_mps: 0.01,
+            init_sigma_bias: 0.02,
+            start_after_motion_m: 1.1,
+        }
+    }
+}
+
+impl Scenario {
+    /// Reads and validates a scenario file; trajectory paths become absolute.
+    pub fn load(path: &Path) -> Result<Self, ScenarioError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let mut sc: Scenario =
+            serde_yaml::from_str(&text).map_err(|source| ScenarioError::Parse {
+                path: path.to_path_buf(),
+                source,
+            })?;
+        sc.base_dir = path
+            .parent()
+            .map(Path::to_path_buf)
+            .unwrap_or_else(|| PathBuf::from("."));
+        sc.validate(path)?;
+        Ok(sc)
+    }
+
+    /// The absolute (or scenario-relative resolved) path of robot `i`'s trajectory.
+    pub fn trajectory_path(&self, robot: usize) -> Option<PathBuf> {
+        self.robots.get(robot).map(|r| {
+            if r.trajectory.is_absolute() {
+                r.trajectory.clone()
+            } else {
+                self.base_dir.join(&r.trajectory)
+            }
+        })
+    }
+
+    /// Display name of robot `i`.
+    pub fn robot_name(&self, robot: usize) -> String {
+        match self.robots.get(robot) {
+            Some(RobotSpec { name: Some(n), .. }) => n.clone(),
+            Some(r) => r
+                .trajectory
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| format!("robot{robot}")),
+            None => format!("robot{robot}"),
+        }
+    }
+
+    fn validate(&self, path: &Path) -> Result<(), ScenarioError> {
+        let invalid = |what: String| ScenarioError::Invalid {
+            path: path.to_path_buf(),
+            what,
+        };
+        if self.robots.is_empty() {
+            return Err(invalid("no robots".into()));
+        }
+        for i in 0..self.robots.len() {
+            let Some(t) = self.trajectory_path(i) else {
+                continue;
+            };
+            if !t.is_file() {
+                return Err(ScenarioError::MissingTrajectory {
+                    path: path.to_path_buf(),
+                    robot: i,
+                    trajectory: t,
+                });
+            }
+            if !self.robots[i].start_time_s.is_finite() {
+                return Err(invalid(format!("robot {i}: start_time_s is not finite")));
+            }
+        }
+        let s = &self.sensors;
+        let positive = [
+            ("sensors.imu.rate_hz", s.imu.rate_hz),
+            ("sensors.camera.rate_hz", s.camera.rate_hz),
+            ("sensors.camera.max_depth_m", s.camera.max_depth_m),
+            ("world.check_interval_s", self.world.check_interval_s),
+        ];
+        for (k, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(invalid(format!("{k} must be positive, got {v}")));
+            }
+        }
+        if s.camera.rate_hz > s.imu.rate_hz {
+            return Err(invalid("camera rate above IMU rate".into()));
+        }
+        let [dmin, dmax] = self.world.new_point_depth_m;
+        if !(dmin > 0.0 && dmax >= dmin) {
+            return Err(invalid(format!(
+                "world.new_point_depth_m must be 0 < min <= max, got [{dmin}, {dmax}]"
+            )));
+        }
+        for (k, p) in [
+            (
+                "descriptor_bit_flip_prob",
+                self.world.descriptor_bit_flip_prob,
+            ),
+            ("outlier_pixel_prob", self.world.outlier_pixel_prob),
+            (
+                "outlier_descriptor_prob",
+                self.world.outlier_descriptor_prob,
+            ),
+        ] {
+            if !(0.0..=1.0).contains(&p) {
+                return Err(invalid(format!("world.{k} must be in [0, 1], got {p}")));
+            }
+        }
+        self.sensors
+            .camera
+            .calibration()
+            .camera
+            .validate()
+            .map_err(|e| invalid(format!("sensors.camera: {e}")))?;
+        Ok(())
+    }
+}

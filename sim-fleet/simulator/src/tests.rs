@@ -1,0 +1,275 @@
+//! Tests of the whole simulator on a small synthetic scenario written to a temp dir.
+
+use crate::fleet::{Fleet, SimEvent};
+use crate::scenario::{Scenario, ScenarioError};
+use common::so3::exp_so3;
+use common::trajectory::{write_tum, StampedPose};
+use nalgebra::{Vector2, Vector3};
+use std::collections::HashSet;
+use std::path::Path;
+
+/// A 30 s loop at walking speed with varying attitude, TUM format, 20 Hz.
+fn write_loop(path: &Path, duration: f64) {
+    let poses: Vec<StampedPose> = (0..=(duration * 20.0) as usize)
+        .map(|k| {
+            let t = 1000.0 + k as f64 / 20.0;
+            let s = t - 1000.0;
+            StampedPose {
+                t,
+                pos: Vector3::new(
+                    3.0 * (0.25 * s).cos(),
+                    3.0 * (0.25 * s).sin(),
+                    1.0 + 0.2 * (0.5 * s).sin(),
+                ),
+                rot: exp_so3(&Vector3::new(
+                    0.1 * (0.3 * s).sin(),
+                    0.1 * (0.2 * s).cos(),
+                    0.25 * s + 1.57,
+                )),
+            }
+        })
+        .collect();
+    write_tum(path, &poses).unwrap();
+}
+
+fn scenario(dir: &Path, extra: &str) -> Scenario {
+    write_loop(&dir.join("loop.txt"), 30.0);
+    let text = format!(
+        "name: loop\nseed: 7\nrobots:\n  - trajectory: loop.txt\n  - trajectory: loop.txt\n    start_time_s: 5.0\n{extra}"
+    );
+    let path = dir.join("scenario.yaml");
+    std::fs::write(&path, text).unwrap();
+    Scenario::load(&path).unwrap()
+}
+
+fn collect(fleet: &Fleet, robot: usize) -> Vec<String> {
+    fleet
+        .stream(robot)
+        .unwrap()
+        .map(|e| format!("{e:?}"))
+        .collect()
+}
+
+#[test]
+fn a_robot_stream_is_a_pure_function_of_scenario_robot_and_seed() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), "");
+    let a = Fleet::build(&sc, 3).unwrap();
+    let b = Fleet::build(&sc, 3).unwrap();
+    let stream_a = collect(&a, 1);
+    // Consuming robot 0 first does not change robot 1.
+    let _ = collect(&b, 0);
+    assert_eq!(stream_a, collect(&b, 1));
+    assert_eq!(a.initial_calibration(1), b.initial_calibration(1));
+    let c = Fleet::build(&sc, 4).unwrap();
+    assert_ne!(stream_a, collect(&c, 1));
+}
+
+#[test]
+fn robots_on_the_same_path_see_the_same_landmarks() {
+    let dir = tempfile::tempdir().unwrap();
+    let fleet = Fleet::build(&scenario(dir.path(), ""), 1).unwrap();
+    let seen = |r: usize| -> HashSet<u64> {
+        fleet
+            .stream(r)
+            .unwrap()
+            .filter_map(|e| match e {
+                SimEvent::Camera(c) => Some(c.landmark_ids),
+                SimEvent::Imu(_) => None,
+            })
+            .flatten()
+            .collect()
+    };
+    let (a, b) = (seen(0), seen(1));
+    let shared = a.intersection(&b).count();
+    assert!(
+        shared as f64 > 0.8 * b.len() as f64,
+        "{shared} of {}",
+        b.len()
+    );
+}
+
+#[test]
+fn features_are_noisy_projections_of_their_landmarks_within_the_image() {
+    let dir = tempfile::tempdir().unwrap();
+    let fleet = Fleet::build(&scenario(dir.path(), ""), 2).unwrap();
+    let calib = &fleet.true_calibration;
+    let (mut sum2, mut n, mut frames) = (0.0, 0usize, 0usize);
+    for ev in fleet.stream(0).unwrap() {
+        let SimEvent::Camera(c) = ev else { continue };
+        frames += 1;
+        assert!(c.frame.features.len() <= 100);
+        assert!(
+            c.frame.features.len() >= 60,
+            "only {} features",
+            c.frame.features.len()
+        );
+        let ids: Vec<u64> = c.frame.features.iter().map(|f| f.id).collect();
+        assert_eq!(
+            ids.iter().collect::<HashSet<_>>().len(),
+            ids.len(),
+            "duplicate track ids"
+        );
+        let t_c_to_g = common::so3::Se3::new(c.truth.rot, c.truth.pos).compose(&calib.t_c_to_i());
+        for (f, lm) in c.frame.features.iter().zip(&c.landmark_ids) {
+            let p_c = t_c_to_g
+                .inverse()
+                .transform_point(&fleet.world.landmarks[*lm as usize].p_in_g);
+            assert!(p_c.z > 0.1 && p_c.z <= 7.0);
+            let uv = calib.camera.project(&p_c).unwrap();
+            let e: Vector2<f64> = f.uv - uv;
+            sum2 += e.norm_squared();
+            n += 2;
+        }
+    }
+    assert!(frames > 250);
+    let sigma = (sum2 / n as f64).sqrt();
+    assert!((sigma - 1.0).abs() < 0.03, "pixel noise sigma {sigma}");
+}
+
+#[test]
+fn imu_noise_matches_the_configured_densities() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(
+        dir.path(),
+        "sensors:\n  imu:\n    gyro_random_walk: 0.0\n    accel_random_walk: 0.0\n",
+    );
+    let fleet = Fleet::build(&sc, 5).unwrap();
+    let truth = &fleet.truths[0];
+    let g = Vector3::new(0.0, 0.0, 9.81);
+    let (mut sg, mut sa, mut n) = (0.0, 0.0, 0.0);
+    for ev in fleet.stream(0).unwrap() {
+        let SimEvent::Imu(s) = ev else { continue };
+        let st = truth.state(s.t).unwrap();
+        sg += (s.gyro - st.omega).norm_squared();
+        sa += (s.accel - st.rot.transpose() * (st.acc + g)).norm_squared();
+        n += 3.0;
+    }
+    let sqrt_rate = 400f64.sqrt();
+    let (gyro, accel) = ((sg / n).sqrt() / sqrt_rate, (sa / n).sqrt() / sqrt_rate);
+    assert!(
+        (gyro / 1.6968e-04 - 1.0).abs() < 0.02,
+        "gyro density {gyro}"
+    );
+    assert!((accel / 2.0e-3 - 1.0).abs() < 0.02, "accel density {accel}");
+}
+
+#[test]
+fn track_ids_persist_while_a_landmark_stays_in_view() {
+    let dir = tempfile::tempdir().unwrap();
+    let fleet = Fleet::build(&scenario(dir.path(), ""), 1).unwrap();
+    let mut last: std::collections::HashMap<u64, u64> = Default::default();
+    let mut continued = 0usize;
+    for ev in fleet.stream(0).unwrap() {
+        let SimEvent::Camera(c) = ev else { continue };
+        let mut now = std::collections::HashMap::new();
+        for (f, lm) in c.frame.features.iter().zip(&c.landmark_ids) {
+            if let Some(&id) = last.get(lm) {
+                assert_eq!(id, f.id, "a continuing track changed id");
+                continued += 1;
+            }
+            now.insert(*lm, f.id);
+        }
+        last = now;
+    }
+    assert!(continued > 10_000);
+}
+
+#[test]
+fn injected_outliers_are_marked_and_move_the_pixel() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(
+        dir.path(),
+        "world:\n  outlier_pixel_prob: 0.1\n  outlier_descriptor_prob: 0.05\n",
+    );
+    let fleet = Fleet::build(&sc, 1).unwrap();
+    let (mut outliers, mut total) = (0usize, 0usize);
+    for ev in fleet.stream(0).unwrap() {
+        let SimEvent::Camera(c) = ev else { continue };
+        total += c.outlier.len();
+        outliers += c.outlier.iter().filter(|o| **o).count();
+    }
+    let rate = outliers as f64 / total as f64;
+    assert!((rate - 0.145).abs() < 0.02, "outlier rate {rate}");
+}
+
+#[test]
+fn unknown_keys_and_missing_files_are_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let _ = scenario(dir.path(), "");
+    let bad = dir.path().join("bad.yaml");
+    std::fs::write(
+        &bad,
+        "name: x\nrobots:\n  - trajectory: loop.txt\nsensor: {}\n",
+    )
+    .unwrap();
+    let e = Scenario::load(&bad).unwrap_err();
+    assert!(matches!(e, ScenarioError::Parse { .. }));
+    assert!(e.to_string().contains("unknown field `sensor`"), "{e}");
+    std::fs::write(&bad, "name: x\nrobots:\n  - trajectory: nowhere.txt\n").unwrap();
+    let e = Scenario::load(&bad).unwrap_err();
+    assert!(matches!(e, ScenarioError::MissingTrajectory { .. }), "{e}");
+    assert!(e.to_string().contains("nowhere.txt"));
+}
+
+#[test]
+fn perturbed_calibration_differs_from_the_truth_by_the_configured_spread() {
+    let dir = tempfile::tempdir().unwrap();
+    let fleet = Fleet::build(&scenario(dir.path(), ""), 1).unwrap();
+    let truth = &fleet.true_calibration;
+    let mut s2 = 0.0;
+    for r in 0..2 {
+        for seed in 0..200 {
+            let f = Fleet {
+                seed,
+                ..fleet.clone()
+            };
+            let c = f.initial_calibration(r);
+            s2 += (c.camera.intrinsics - truth.camera.intrinsics).norm_squared();
+        }
+    }
+    let sigma = (s2 / (2.0 * 200.0 * 4.0)).sqrt();
+    assert!(
+        (sigma - 1.0).abs() < 0.1,
+        "intrinsics perturbation sigma {sigma}"
+    );
+}
+
+#[test]
+fn measurements_survive_an_mcap_round_trip() {
+    let dir = tempfile::tempdir().unwrap();
+    let fleet = Fleet::build(&scenario(dir.path(), ""), 1).unwrap();
+    let path = dir.path().join("r0.mcap");
+    let events: Vec<SimEvent> = fleet.stream(0).unwrap().take(3000).collect();
+    let n = crate::mcap_io::write_stream(&path, events.clone()).unwrap();
+    let back = crate::mcap_io::read_stream(&path).unwrap();
+    assert_eq!(back.len(), events.len());
+    let frames = events
+        .iter()
+        .filter(|e| matches!(e, SimEvent::Camera(_)))
+        .count();
+    assert_eq!(n as usize, events.len() + frames);
+    for (a, b) in events.iter().zip(&back) {
+        match (a, b) {
+            (SimEvent::Imu(x), SimEvent::Imu(y)) => assert_eq!(x, y),
+            (SimEvent::Camera(x), SimEvent::Camera(y)) => {
+                assert_eq!(x.frame, y.frame);
+                assert_eq!(x.landmark_ids, y.landmark_ids);
+                assert!((x.truth.pos - y.truth.pos).norm() < 1e-12);
+                assert!((x.truth.rot - y.truth.rot).norm() < 1e-12);
+            }
+            _ => panic!("event kinds differ"),
+        }
+    }
+}
+
+#[test]
+fn a_truncated_mcap_file_is_an_error_not_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let fleet = Fleet::build(&scenario(dir.path(), ""), 1).unwrap();
+    let path = dir.path().join("r0.mcap");
+    crate::mcap_io::write_stream(&path, fleet.stream(0).unwrap().take(500)).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+    assert!(crate::mcap_io::read_stream(&path).is_err());
+}

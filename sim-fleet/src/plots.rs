@@ -1,0 +1,307 @@
+//! SVG plots of an [`EvalReport`]: trajectory, errors with ±3σ, NEES.
+//!
+//! Text is written as SVG `<text>` elements, so no font files are needed.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use common::metrics::{CHI2_3DOF_95_HIGH, CHI2_3DOF_95_LOW};
+use plotters::coord::Shift;
+use plotters::prelude::*;
+
+use crate::eval::{EvalReport, PoseError};
+
+/// Why a plot could not be written.
+#[derive(Debug, thiserror::Error)]
+pub enum PlotError {
+    /// The output folder could not be created.
+    #[error("cannot create the plot folder {}", path.display())]
+    Folder {
+        /// The folder.
+        path: PathBuf,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// Drawing or writing an SVG file failed.
+    #[error("cannot draw {}", path.display())]
+    Draw {
+        /// The SVG file.
+        path: PathBuf,
+        /// The drawing error.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+}
+
+type DrawResult = Result<(), Box<dyn std::error::Error + Send + Sync>>;
+type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
+/// Name, mean and per-pose value of one NEES panel.
+type NeesPanel = (&'static str, Option<f64>, fn(&PoseError) -> Option<f64>);
+
+const SIZE: (u32, u32) = (1000, 800);
+const AXES: [&str; 3] = ["x", "y", "z"];
+const COLORS: [RGBColor; 3] = [
+    RGBColor(200, 30, 30),
+    RGBColor(30, 140, 30),
+    RGBColor(30, 60, 200),
+];
+
+/// Writes `trajectory_xy.svg`, `error_pos.svg`, `error_ori.svg` and (when the
+/// report has NEES values) `nees.svg` into `dir`, creating it; returns the files.
+pub fn write_plots(report: &EvalReport, dir: &Path) -> Result<Vec<PathBuf>, PlotError> {
+    std::fs::create_dir_all(dir).map_err(|source| PlotError::Folder {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let poses = &report.per_pose;
+    let t0 = poses.first().map_or(0.0, |p| p.t);
+    let mut written = Vec::new();
+    let mut draw = |name: &str, size: (u32, u32), f: &dyn Fn(&Area) -> DrawResult| {
+        let path = dir.join(name);
+        let result = {
+            let root = SVGBackend::new(&path, size).into_drawing_area();
+            root.fill(&WHITE)
+                .map_err(Into::into)
+                .and_then(|()| f(&root))
+                .and_then(|()| root.present().map_err(Into::into))
+        };
+        result.map_err(|source| PlotError::Draw {
+            path: path.clone(),
+            source,
+        })?;
+        written.push(path);
+        Ok::<(), PlotError>(())
+    };
+    draw("trajectory_xy.svg", (900, 900), &|root| {
+        trajectory_xy(root, report)
+    })?;
+    draw("error_pos.svg", SIZE, &|root| {
+        errors(root, poses, t0, "position error", "m", |p| {
+            (p.pos_err, p.pos_sigma)
+        })
+    })?;
+    draw("error_ori.svg", SIZE, &|root| {
+        errors(root, poses, t0, "orientation error", "deg", |p| {
+            (p.ori_err_deg, p.ori_sigma_deg)
+        })
+    })?;
+    if poses
+        .iter()
+        .any(|p| p.nees_ori.is_some() || p.nees_pos.is_some())
+    {
+        draw("nees.svg", SIZE, &|root| nees(root, report, t0))?;
+    }
+    Ok(written)
+}
+
+/// Top-down view of the aligned estimate and the ground truth, equal axes.
+fn trajectory_xy(root: &Area, report: &EvalReport) -> DrawResult {
+    let gt: Vec<(f64, f64)> = report
+        .per_pose
+        .iter()
+        .map(|p| (p.gt_pos[0], p.gt_pos[1]))
+        .collect();
+    let est: Vec<(f64, f64)> = report
+        .per_pose
+        .iter()
+        .map(|p| (p.est_pos[0], p.est_pos[1]))
+        .collect();
+    let xs = range(gt.iter().chain(&est).map(|p| p.0));
+    let ys = range(gt.iter().chain(&est).map(|p| p.1));
+    let half = 0.5 * (xs.end - xs.start).max(ys.end - ys.start);
+    let (cx, cy) = (0.5 * (xs.start + xs.end), 0.5 * (ys.start + ys.end));
+    let mut chart = ChartBuilder::on(root)
+        .caption(
+            format!("trajectory x-y (alignment {})", report.align),
+            ("sans-serif", 24),
+        )
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(60)
+        .build_cartesian_2d(cx - half..cx + half, cy - half..cy + half)?;
+    chart
+        .configure_mesh()
+        .label_style(("sans-serif", 15))
+        .x_desc("x [m]")
+        .y_desc("y [m]")
+        .draw()?;
+    chart
+        .draw_series(LineSeries::new(gt, BLACK.stroke_width(2)))?
+        .label("ground truth")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
+    chart
+        .draw_series(LineSeries::new(est, COLORS[2].stroke_width(2)))?
+        .label("estimate")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], COLORS[2]));
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()?;
+    Ok(())
+}
+
+/// One panel per axis: the error and, where known, ±3σ.
+fn errors(
+    root: &Area,
+    poses: &[PoseError],
+    t0: f64,
+    what: &str,
+    unit: &str,
+    get: impl Fn(&PoseError) -> ([f64; 3], Option<[f64; 3]>),
+) -> DrawResult {
+    let panels = root.split_evenly((3, 1));
+    let t_range = range(poses.iter().map(|p| p.t - t0));
+    for (k, panel) in panels.iter().enumerate() {
+        let err: Vec<(f64, f64)> = poses.iter().map(|p| (p.t - t0, get(p).0[k])).collect();
+        let bound: Vec<(f64, f64)> = poses
+            .iter()
+            .filter_map(|p| get(p).1.map(|s| (p.t - t0, 3.0 * s[k])))
+            .collect();
+        let y = range(
+            err.iter()
+                .map(|e| e.1)
+                .chain(bound.iter().flat_map(|b| [b.1, -b.1])),
+        );
+        let mut chart = ChartBuilder::on(panel)
+            .caption(format!("{what} {}", AXES[k]), ("sans-serif", 18))
+            .margin(8)
+            .x_label_area_size(35)
+            .y_label_area_size(70)
+            .build_cartesian_2d(t_range.clone(), y)?;
+        chart
+            .configure_mesh()
+            .label_style(("sans-serif", 15))
+            .x_desc("time [s]")
+            .y_desc(format!("{} [{unit}]", AXES[k]))
+            .draw()?;
+        chart
+            .draw_series(LineSeries::new(err, COLORS[k].stroke_width(2)))?
+            .label("error")
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], COLORS[k]));
+        if !bound.is_empty() {
+            let lower: Vec<(f64, f64)> = bound.iter().map(|&(t, b)| (t, -b)).collect();
+            chart
+                .draw_series(LineSeries::new(bound, BLACK.mix(0.6)))?
+                .label("±3σ")
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.mix(0.6)));
+            chart.draw_series(LineSeries::new(lower, BLACK.mix(0.6)))?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()?;
+    }
+    Ok(())
+}
+
+/// NEES of orientation and position over time with the 95 % single-run bounds.
+fn nees(root: &Area, report: &EvalReport, t0: f64) -> DrawResult {
+    let panels = root.split_evenly((2, 1));
+    let t_range = range(report.per_pose.iter().map(|p| p.t - t0));
+    let series: [NeesPanel; 2] = [
+        ("orientation", report.nees_ori, |p| p.nees_ori),
+        ("position", report.nees_pos, |p| p.nees_pos),
+    ];
+    for (panel, (name, mean, get)) in panels.iter().zip(series) {
+        let values: Vec<(f64, f64)> = report
+            .per_pose
+            .iter()
+            .filter_map(|p| get(p).map(|v| (p.t - t0, v)))
+            .collect();
+        // Clip rare huge values so the bounds stay visible.
+        let top = (1.1 * percentile(values.iter().map(|v| v.1), 0.99)).max(1.2 * CHI2_3DOF_95_HIGH);
+        let values: Vec<(f64, f64)> = values.into_iter().map(|(t, v)| (t, v.min(top))).collect();
+        let mean_text = mean.map_or_else(|| "-".to_string(), |m| format!("{m:.3}"));
+        let mut chart = ChartBuilder::on(panel)
+            .caption(
+                format!("{name} NEES (mean {mean_text}, 3 DoF)"),
+                ("sans-serif", 18),
+            )
+            .margin(8)
+            .x_label_area_size(35)
+            .y_label_area_size(60)
+            .build_cartesian_2d(t_range.clone(), 0.0..top)?;
+        chart
+            .configure_mesh()
+            .label_style(("sans-serif", 15))
+            .x_desc("time [s]")
+            .y_desc("NEES")
+            .draw()?;
+        chart
+            .draw_series(LineSeries::new(values, COLORS[2].stroke_width(2)))?
+            .label("NEES")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], COLORS[2]));
+        for (i, level) in [CHI2_3DOF_95_LOW, CHI2_3DOF_95_HIGH]
+            .into_iter()
+            .enumerate()
+        {
+            let line = [(t_range.start, level), (t_range.end, level)];
+            let series = chart.draw_series(LineSeries::new(line, COLORS[0]))?;
+            if i == 0 {
+                series
+                    .label(format!(
+                        "95% bounds {CHI2_3DOF_95_LOW}, {CHI2_3DOF_95_HIGH}"
+                    ))
+                    .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], COLORS[0]));
+            }
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()?;
+    }
+    Ok(())
+}
+
+/// The `q` quantile (0..=1, nearest rank) of the finite values, 0 without any.
+fn percentile(values: impl Iterator<Item = f64>, q: f64) -> f64 {
+    let mut v: Vec<f64> = values.filter(|v| v.is_finite()).collect();
+    v.sort_by(f64::total_cmp);
+    let rank = (q * v.len() as f64).ceil() as usize;
+    v.get(rank.saturating_sub(1)).copied().unwrap_or(0.0)
+}
+
+/// The range of the finite values with 5 % padding (`-1..1` when empty,
+/// widened around a single value).
+fn range(values: impl Iterator<Item = f64>) -> Range<f64> {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        });
+    if lo > hi {
+        return -1.0..1.0;
+    }
+    let pad = if hi - lo > 1e-12 {
+        0.05 * (hi - lo)
+    } else {
+        1e-3_f64.max(0.05 * lo.abs())
+    };
+    lo - pad..hi + pad
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ranges_pad_the_data_and_survive_empty_or_constant_input() {
+        let r = range([0.0, 10.0].into_iter());
+        assert!((r.start + 0.5).abs() < 1e-12 && (r.end - 10.5).abs() < 1e-12);
+        assert_eq!(range(std::iter::empty()), -1.0..1.0);
+        let c = range([2.0, 2.0, f64::NAN].into_iter());
+        assert!(c.start < 2.0 && c.end > 2.0);
+    }
+
+    #[test]
+    fn the_percentile_uses_the_nearest_rank() {
+        let values = (1..=100).map(f64::from);
+        assert_eq!(percentile(values.clone(), 0.99), 99.0);
+        assert_eq!(percentile(values, 1.0), 100.0);
+        assert_eq!(percentile(std::iter::empty(), 0.5), 0.0);
+    }
+}
