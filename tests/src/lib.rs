@@ -1,1 +1,55 @@
-//! Integration tests live in `tests/tests/`; they start the real binaries.
+//! Helpers for the integration tests in `tests/tests/`, which start the real
+//! binaries. Build them first: `cargo build --release --workspace --bins`.
+
+use std::path::{Path, PathBuf};
+
+/// Path of a workspace binary built in the same profile as the running test.
+///
+/// # Panics
+/// If the binary is missing, with the command that builds it.
+pub fn bin(name: &str) -> PathBuf {
+    // target/<profile>/deps/<test-exe>: the binaries sit in target/<profile>/.
+    let exe = std::env::current_exe().unwrap_or_default();
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .map(Path::to_path_buf)
+        .unwrap_or_default();
+    let path = dir.join(name);
+    assert!(
+        path.is_file(),
+        "{} not found: run `cargo build --release --workspace --bins` (same profile as the tests) first",
+        path.display()
+    );
+    path
+}
+
+/// The workspace root.
+pub fn workspace_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_default()
+}
+
+/// Writes a smooth 30 s loop trajectory (TUM format, 20 Hz) to `path`.
+pub fn write_loop_trajectory(path: &Path, duration_s: f64) -> std::io::Result<()> {
+    let mut text = String::from("# timestamp tx ty tz qx qy qz qw\n");
+    let n = (duration_s * 20.0) as usize;
+    for k in 0..=n {
+        let s = k as f64 / 20.0;
+        let (x, y, z) = (
+            3.0 * (0.25 * s).cos(),
+            3.0 * (0.25 * s).sin(),
+            1.0 + 0.2 * (0.5 * s).sin(),
+        );
+        // Yaw about z following the loop: q = (0, 0, sin(yaw/2), cos(yaw/2)).
+        let yaw = 0.25 * s + 1.57;
+        let (qz, qw) = ((yaw / 2.0).sin(), (yaw / 2.0).cos());
+        text.push_str(&format!(
+            "{:.6} {x:.6} {y:.6} {z:.6} 0 0 {qz:.9} {qw:.9}\n",
+            100.0 + s
+        ));
+    }
+    std::fs::write(path, text)
+}
