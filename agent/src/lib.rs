@@ -1,7 +1,10 @@
-//! The agent library: one robot's estimator and, later, its peers, histories and transport.
+//! The agent library: one robot's estimator and, later, its peers, histories and
+//! transport.
 //!
-//! The estimator lives in [`estimator`] and is free of I/O: a state machine driven by
-//! IMU samples and camera feature frames.
+//! * [`estimator`]: the filter, free of I/O: a state machine driven by IMU samples
+//!   and camera feature frames.
+//! * [`runner`]: one robot of a simulated scenario through its estimator.
 #![warn(missing_docs)]
 
 pub mod estimator;
+pub mod runner;

@@ -1,2 +1,23 @@
-//! Home of the single-robot sliding-window estimator (MSCKF + SLAM features, FEJ,
-//! online calibration). It takes no I/O: see the estimator issue for its contents.
+//! The single-robot sliding-window estimator: an OpenVINS-class MSCKF with SLAM
+//! features, First-Estimates Jacobians and online camera calibration.
+//!
+//! It does no I/O: [`Estimator`] is a state machine fed with IMU samples and camera
+//! feature frames, returning the estimate and its covariance after each frame.
+//! The flow of one camera frame is `Estimator::process_frame` in [`vio`].
+
+pub mod chi2;
+pub mod feature_db;
+pub mod feature_system;
+pub mod linalg;
+pub mod options;
+pub mod projection;
+pub mod propagator;
+pub mod state;
+pub mod static_init;
+pub mod triangulation;
+pub mod updater_msckf;
+pub mod updater_slam;
+pub mod vio;
+
+pub use options::EstimatorOptions;
+pub use vio::{Estimator, FrameError, FrameOutput, InitialState, InputError};

@@ -1,0 +1,125 @@
+//! The linearized measurement system of one feature over the window:
+//! `r = H_x δx + H_f δp_F + n` (thesis Section 2.3.3.2), shared by the MSCKF
+//! update and the delayed initialization of SLAM features.
+
+use super::feature_db::Feature;
+use super::projection::{predict, project};
+use super::state::{State, Var};
+use super::triangulation::{triangulate, CameraObservation, TriangulationOptions};
+use nalgebra::{DMatrix, DVector, Vector3};
+
+/// Column layout of a stacked Jacobian over the window: calibration variables
+/// (when estimated) then every clone, oldest first.
+#[derive(Clone, Debug)]
+pub struct Columns {
+    /// The variables in column order.
+    pub vars: Vec<Var>,
+    offsets: Vec<usize>,
+    /// Total number of columns.
+    pub dim: usize,
+}
+
+impl Columns {
+    /// The window layout of `state`.
+    pub fn window(state: &State) -> Self {
+        let mut vars = Vec::with_capacity(2 + state.clones.len());
+        for v in [Var::Extrinsic, Var::Intrinsics] {
+            if state.has(v) {
+                vars.push(v);
+            }
+        }
+        vars.extend(state.clones.keys().map(|k| Var::Clone(*k)));
+        Self::of(vars)
+    }
+
+    /// A layout of the given variables.
+    pub fn of(vars: Vec<Var>) -> Self {
+        let mut offsets = Vec::with_capacity(vars.len());
+        let mut dim = 0;
+        for v in &vars {
+            offsets.push(dim);
+            dim += v.size();
+        }
+        Self { vars, offsets, dim }
+    }
+
+    /// Column offset of `var`.
+    pub fn col(&self, var: Var) -> Option<usize> {
+        self.vars
+            .iter()
+            .position(|v| *v == var)
+            .map(|i| self.offsets[i])
+    }
+}
+
+/// One feature's stacked system.
+#[derive(Clone, Debug)]
+pub struct FeatureSystem {
+    /// Jacobian w.r.t. the window variables (`2n x cols.dim`).
+    pub h_x: DMatrix<f64>,
+    /// Jacobian w.r.t. the feature position (`2n x 3`).
+    pub h_f: DMatrix<f64>,
+    /// Residuals `z − h(x̂)` (`2n`).
+    pub res: DVector<f64>,
+    /// The triangulated `p_FinG`.
+    pub p_f: Vector3<f64>,
+}
+
+/// Triangulates `feature` from the clones still in the window (current estimates)
+/// and stacks its measurements. Jacobians use the clones' first estimates when
+/// `use_fej`. `None` when the feature cannot be triangulated or projected.
+pub fn build(
+    state: &State,
+    feature: &Feature,
+    cols: &Columns,
+    use_fej: bool,
+    tri: &TriangulationOptions,
+) -> Option<FeatureSystem> {
+    let calib = &state.calib;
+    let meas: Vec<_> = feature
+        .measurements
+        .iter()
+        .filter_map(|m| state.clones.get(&m.clone_key).map(|c| (m, c)))
+        .collect();
+    if meas.len() < 2 {
+        return None;
+    }
+    let obs: Vec<CameraObservation> = meas
+        .iter()
+        .map(|(m, c)| CameraObservation {
+            r_c_to_g: c.rot * calib.rot_c_to_i,
+            p_c_in_g: c.pos + c.rot * calib.p_c_in_i,
+            uvn: m.uvn,
+        })
+        .collect();
+    let p_f = triangulate(&obs, tri).ok()?;
+    let rows = 2 * meas.len();
+    let mut h_x = DMatrix::zeros(rows, cols.dim);
+    let mut h_f = DMatrix::zeros(rows, 3);
+    let mut res = DVector::zeros(rows);
+    let ext = cols.col(Var::Extrinsic);
+    let intr = cols.col(Var::Intrinsics);
+    for (i, (m, c)) in meas.iter().enumerate() {
+        let (rot, pos) = if use_fej {
+            (&c.rot_fej, &c.pos_fej)
+        } else {
+            (&c.rot, &c.pos)
+        };
+        let proj = project(rot, pos, &p_f, calib)?;
+        let z_hat = predict(&c.rot, &c.pos, &p_f, calib)?;
+        let r = 2 * i;
+        let e = m.uv - z_hat;
+        res[r] = e.x;
+        res[r + 1] = e.y;
+        let cc = cols.col(Var::Clone(m.clone_key))?;
+        h_x.fixed_view_mut::<2, 6>(r, cc).copy_from(&proj.h_clone);
+        if let Some(o) = ext {
+            h_x.fixed_view_mut::<2, 6>(r, o).copy_from(&proj.h_extrinsic);
+        }
+        if let Some(o) = intr {
+            h_x.fixed_view_mut::<2, 8>(r, o).copy_from(&proj.h_intrinsics);
+        }
+        h_f.fixed_view_mut::<2, 3>(r, 0).copy_from(&proj.h_feature);
+    }
+    Some(FeatureSystem { h_x, h_f, res, p_f })
+}

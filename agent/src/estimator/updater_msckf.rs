@@ -1,0 +1,82 @@
+//! MSCKF update (thesis Section 2.3.3.2): each feature's measurements over the
+//! window are projected onto the left nullspace of its Jacobian (Givens, no dense
+//! SVD), gated with a chi-square test, stacked, compressed when tall, and used in
+//! one EKF update. The features themselves never enter the state.
+
+use super::chi2::Chi2Table;
+use super::feature_db::FeatureDb;
+use super::feature_system::{build, Columns};
+use super::linalg::{compress_in_place, nullspace_project_in_place};
+use super::options::EstimatorOptions;
+use super::state::State;
+use super::triangulation::TriangulationOptions;
+use nalgebra::{DMatrix, DVector};
+
+/// What one MSCKF update did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct MsckfStats {
+    /// Features used in the update.
+    pub used: usize,
+    /// Features rejected by the chi-square gate.
+    pub rejected_chi2: usize,
+    /// Features that could not be triangulated or projected.
+    pub failed: usize,
+}
+
+/// Updates `state` with the features `ids` of `db`.
+pub fn update(
+    state: &mut State,
+    db: &FeatureDb,
+    ids: &[u64],
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+    tri: &TriangulationOptions,
+) -> MsckfStats {
+    let mut stats = MsckfStats::default();
+    let cols = Columns::window(state);
+    let sigma2 = opts.pixel_sigma_px * opts.pixel_sigma_px;
+    let mut blocks: Vec<(DMatrix<f64>, DVector<f64>)> = Vec::with_capacity(ids.len());
+    let mut rows = 0;
+    for id in ids {
+        let Some(feature) = db.get(*id) else { continue };
+        let Some(mut sys) = build(state, feature, &cols, opts.use_fej, tri) else {
+            stats.failed += 1;
+            continue;
+        };
+        nullspace_project_in_place(&mut sys.h_f, &mut sys.h_x, &mut sys.res);
+        if sys.res.is_empty() {
+            stats.failed += 1;
+            continue;
+        }
+        let r = DMatrix::identity(sys.res.len(), sys.res.len()) * sigma2;
+        let Ok(d2) = state.mahalanobis(&cols.vars, &sys.h_x, &sys.res, &r) else {
+            stats.failed += 1;
+            continue;
+        };
+        if d2 > opts.chi2_multiplier * chi2.get(sys.res.len()) {
+            stats.rejected_chi2 += 1;
+            continue;
+        }
+        rows += sys.res.len();
+        blocks.push((sys.h_x, sys.res));
+        stats.used += 1;
+    }
+    if rows == 0 {
+        return stats;
+    }
+    let mut h = DMatrix::zeros(rows, cols.dim);
+    let mut res = DVector::zeros(rows);
+    let mut r0 = 0;
+    for (hx, rs) in &blocks {
+        h.view_mut((r0, 0), (hx.nrows(), cols.dim)).copy_from(hx);
+        res.rows_mut(r0, rs.len()).copy_from(rs);
+        r0 += rs.len();
+    }
+    compress_in_place(&mut h, &mut res);
+    let r = DMatrix::identity(res.len(), res.len()) * sigma2;
+    if state.ekf_update(&cols.vars, &h, &res, &r).is_err() {
+        stats.failed += stats.used;
+        stats.used = 0;
+    }
+    stats
+}

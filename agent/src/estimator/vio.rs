@@ -1,0 +1,459 @@
+//! [`Estimator`]: the per-robot filter as a state machine. IMU samples and feature
+//! frames go in (validated; bad input is rejected with a reason and changes
+//! nothing); after each processed frame the estimate and its covariance come out.
+
+use super::chi2::Chi2Table;
+use super::feature_db::{FeatureDb, FeatureMeasurement};
+use super::options::EstimatorOptions;
+use super::propagator::{propagate, PropagateError};
+use super::state::{ClonePose, ImuState, State, Var};
+use super::triangulation::TriangulationOptions;
+use super::{updater_msckf, updater_slam};
+use common::calibration::CameraCalibration;
+use common::measurement::{FeatureFrame, ImuSample};
+use nalgebra::{DMatrix, Matrix3, Vector3};
+use std::collections::VecDeque;
+use std::time::Instant;
+use thiserror::Error;
+
+/// Why an input was rejected. The estimator's state is unchanged.
+#[derive(Debug, Error, PartialEq)]
+pub enum InputError {
+    /// A value is NaN or infinite.
+    #[error("{what} at t={t} has a non-finite value")]
+    NonFinite {
+        /// Which input.
+        what: &'static str,
+        /// Its time stamp.
+        t: f64,
+    },
+    /// Time went backwards (or stood still).
+    #[error("{what} at t={t} is not after the previous one at t={previous}")]
+    TimeBackwards {
+        /// Which input.
+        what: &'static str,
+        /// Its time.
+        t: f64,
+        /// The previous time.
+        previous: f64,
+    },
+    /// A gap in the IMU stream larger than allowed.
+    #[error("IMU gap of {gap_s:.3} s before t={t} (max {max_s} s)")]
+    ImuGap {
+        /// The gap.
+        gap_s: f64,
+        /// Time of the sample after the gap.
+        t: f64,
+        /// The limit.
+        max_s: f64,
+    },
+    /// A frame without features.
+    #[error("frame at t={t} has no features")]
+    EmptyFrame {
+        /// Its time.
+        t: f64,
+    },
+    /// The same track id twice in one frame.
+    #[error("frame at t={t} repeats feature id {id}")]
+    DuplicateId {
+        /// Frame time.
+        t: f64,
+        /// The repeated id.
+        id: u64,
+    },
+}
+
+/// Why a queued frame could not be processed (it is dropped).
+#[derive(Debug, Error, PartialEq)]
+pub enum FrameError {
+    /// Propagation failed.
+    #[error(transparent)]
+    Propagate(#[from] PropagateError),
+    /// The filter is not initialized yet.
+    #[error("frame at t={0} arrived before initialization")]
+    NotInitialized(f64),
+}
+
+/// The initial state and its standard deviations.
+#[derive(Clone, Debug)]
+pub struct InitialState {
+    /// IMU time, s.
+    pub t: f64,
+    /// `R_ItoG`.
+    pub rot: Matrix3<f64>,
+    /// `p_IinG`, m.
+    pub pos: Vector3<f64>,
+    /// `v_IinG`, m/s.
+    pub vel: Vector3<f64>,
+    /// Gyroscope bias, rad/s.
+    pub bias_gyro: Vector3<f64>,
+    /// Accelerometer bias, m/s².
+    pub bias_accel: Vector3<f64>,
+    /// Orientation σ, rad.
+    pub sigma_ori_rad: f64,
+    /// Position σ, m.
+    pub sigma_pos_m: f64,
+    /// Velocity σ, m/s.
+    pub sigma_vel_mps: f64,
+    /// Bias σ (both), rad/s and m/s².
+    pub sigma_bias: f64,
+}
+
+/// Wall-clock cost of one frame, in milliseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FrameTiming {
+    /// Propagation and cloning.
+    pub propagate_ms: f64,
+    /// MSCKF update.
+    pub msckf_ms: f64,
+    /// SLAM update.
+    pub slam_update_ms: f64,
+    /// SLAM delayed initialization.
+    pub slam_init_ms: f64,
+    /// Marginalization and clean-up.
+    pub marginalize_ms: f64,
+    /// Everything.
+    pub total_ms: f64,
+}
+
+/// The estimate after one frame.
+#[derive(Clone, Debug)]
+pub struct FrameOutput {
+    /// IMU time of the estimate, s.
+    pub t: f64,
+    /// `R_ItoG`.
+    pub rot: Matrix3<f64>,
+    /// `p_IinG`, m.
+    pub pos: Vector3<f64>,
+    /// `v_IinG`, m/s.
+    pub vel: Vector3<f64>,
+    /// Orientation covariance (local error, rad²).
+    pub cov_ori: Matrix3<f64>,
+    /// Position covariance (m²).
+    pub cov_pos: Matrix3<f64>,
+    /// Features used in the MSCKF update.
+    pub msckf_features: usize,
+    /// SLAM features in the state.
+    pub slam_features: usize,
+    /// Cost of the frame.
+    pub timing: FrameTiming,
+}
+
+/// The single-robot filter.
+#[derive(Debug)]
+pub struct Estimator {
+    opts: EstimatorOptions,
+    calib: CameraCalibration,
+    state: Option<State>,
+    imu: VecDeque<ImuSample>,
+    frames: VecDeque<FeatureFrame>,
+    features: FeatureDb,
+    seq: u64,
+    last_frame_t: Option<f64>,
+    chi2: Chi2Table,
+    tri: TriangulationOptions,
+}
+
+fn ms(since: Instant) -> f64 {
+    since.elapsed().as_secs_f64() * 1e3
+}
+
+impl Estimator {
+    /// A filter with options and the initial calibration guess.
+    pub fn new(opts: EstimatorOptions, calib: CameraCalibration) -> Self {
+        Self {
+            opts,
+            calib,
+            state: None,
+            imu: VecDeque::new(),
+            frames: VecDeque::new(),
+            features: FeatureDb::default(),
+            seq: 0,
+            last_frame_t: None,
+            chi2: Chi2Table::new(0.95, 1000),
+            tri: TriangulationOptions::default(),
+        }
+    }
+
+    /// The options.
+    pub fn options(&self) -> &EstimatorOptions {
+        &self.opts
+    }
+
+    /// The state, once initialized.
+    pub fn state(&self) -> Option<&State> {
+        self.state.as_ref()
+    }
+
+    /// Starts the filter at a given state (e.g. ground truth in simulation, or the
+    /// static initializer's result) with a diagonal prior covariance.
+    pub fn initialize(&mut self, init: &InitialState) {
+        let mut cov = DMatrix::zeros(15, 15);
+        let sig = [
+            init.sigma_ori_rad,
+            init.sigma_pos_m,
+            init.sigma_vel_mps,
+            init.sigma_bias,
+            init.sigma_bias,
+        ];
+        for (b, s) in sig.iter().enumerate() {
+            for i in 0..3 {
+                cov[(3 * b + i, 3 * b + i)] = s * s;
+            }
+        }
+        let p = &self.opts.calib_prior;
+        let mut calib_vars = Vec::new();
+        if self.opts.calib_time_offset {
+            calib_vars.push((Var::TimeOffset, DMatrix::from_element(1, 1, p.time_offset_s.powi(2))));
+        }
+        if self.opts.calib_extrinsics {
+            let mut c = DMatrix::zeros(6, 6);
+            for i in 0..3 {
+                c[(i, i)] = p.extrinsic_rot_rad.powi(2);
+                c[(3 + i, 3 + i)] = p.extrinsic_pos_m.powi(2);
+            }
+            calib_vars.push((Var::Extrinsic, c));
+        }
+        if self.opts.calib_intrinsics {
+            let mut c = DMatrix::zeros(8, 8);
+            for i in 0..4 {
+                c[(i, i)] = p.intrinsics_px.powi(2);
+                c[(4 + i, 4 + i)] = p.distortion.powi(2);
+            }
+            calib_vars.push((Var::Intrinsics, c));
+        }
+        let imu = ImuState {
+            rot: init.rot,
+            pos: init.pos,
+            vel: init.vel,
+            bias_gyro: init.bias_gyro,
+            bias_accel: init.bias_accel,
+        };
+        self.state = Some(State::new(init.t, imu, cov, self.calib.clone(), &calib_vars));
+        // Frames before the start are not used.
+        self.frames.retain(|f| f.t + self.calib.time_offset_s > init.t);
+    }
+
+    /// Adds an IMU sample (rejects NaN, time going backwards and gaps).
+    pub fn feed_imu(&mut self, s: ImuSample) -> Result<(), InputError> {
+        if !(s.t.is_finite() && s.gyro.iter().all(|v| v.is_finite()) && s.accel.iter().all(|v| v.is_finite())) {
+            return Err(InputError::NonFinite { what: "IMU sample", t: s.t });
+        }
+        if let Some(prev) = self.imu.back() {
+            if s.t <= prev.t {
+                return Err(InputError::TimeBackwards { what: "IMU sample", t: s.t, previous: prev.t });
+            }
+            if s.t - prev.t > self.opts.max_imu_gap_s {
+                return Err(InputError::ImuGap { gap_s: s.t - prev.t, t: s.t, max_s: self.opts.max_imu_gap_s });
+            }
+        }
+        self.imu.push_back(s);
+        Ok(())
+    }
+
+    /// Queues a feature frame (validated); it is processed by [`Estimator::poll`]
+    /// once the IMU covers its time.
+    pub fn feed_frame(&mut self, frame: FeatureFrame) -> Result<(), InputError> {
+        if !frame.t.is_finite()
+            || frame.features.iter().any(|f| !(f.uv.x.is_finite() && f.uv.y.is_finite()))
+        {
+            return Err(InputError::NonFinite { what: "frame", t: frame.t });
+        }
+        if let Some(prev) = self.frames.back().map(|f| f.t).or(self.last_frame_t) {
+            if frame.t <= prev {
+                return Err(InputError::TimeBackwards { what: "frame", t: frame.t, previous: prev });
+            }
+        }
+        if frame.features.is_empty() {
+            return Err(InputError::EmptyFrame { t: frame.t });
+        }
+        let mut ids: Vec<u64> = frame.features.iter().map(|f| f.id).collect();
+        ids.sort_unstable();
+        if let Some(w) = ids.windows(2).find(|w| w[0] == w[1]) {
+            return Err(InputError::DuplicateId { t: frame.t, id: w[0] });
+        }
+        self.frames.push_back(frame);
+        Ok(())
+    }
+
+    /// Processes every queued frame whose IMU time the IMU buffer covers.
+    pub fn poll(&mut self) -> Vec<Result<FrameOutput, FrameError>> {
+        let mut out = Vec::new();
+        while let Some(front) = self.frames.front() {
+            let td = self.state.as_ref().map(|s| s.calib.time_offset_s).unwrap_or(self.calib.time_offset_s);
+            let t_imu = front.t + td;
+            let covered = self.imu.back().is_some_and(|s| s.t >= t_imu);
+            if !covered {
+                break;
+            }
+            let Some(frame) = self.frames.pop_front() else { break };
+            self.last_frame_t = Some(frame.t);
+            if self.state.is_none() {
+                out.push(Err(FrameError::NotInitialized(frame.t)));
+                continue;
+            }
+            out.push(self.process_frame(&frame));
+        }
+        out
+    }
+
+    /// The flow of one camera frame: propagate and clone, sort the features into
+    /// classes, update each class, marginalize.
+    fn process_frame(&mut self, frame: &FeatureFrame) -> Result<FrameOutput, FrameError> {
+        let t_start = Instant::now();
+        let mut timing = FrameTiming::default();
+        let opts = self.opts.clone();
+        let Some(state) = self.state.as_mut() else {
+            return Err(FrameError::NotInitialized(frame.t));
+        };
+
+        // 1. Propagate to the image's IMU time and clone the pose there.
+        let t_imu = frame.t + state.calib.time_offset_s;
+        if t_imu <= state.t {
+            return Err(FrameError::Propagate(PropagateError::Backwards { from: state.t, to: t_imu }));
+        }
+        let buf = self.imu.make_contiguous();
+        let omega = propagate(state, buf, t_imu, &opts.imu)?;
+        self.seq += 1;
+        let key = self.seq;
+        augment_clone(state, key, &omega);
+        timing.propagate_ms = ms(t_start);
+
+        // 2. Record the measurements.
+        for f in &frame.features {
+            let Ok(uvn) = state.calib.camera.undistort(&f.uv) else { continue };
+            let m = FeatureMeasurement { clone_key: key, t: frame.t, uv: f.uv, uvn };
+            if self.features.insert(f.id, m).is_err() {
+                // An impossible jump: the track restarts from this observation.
+                self.features.remove(f.id);
+                let m = FeatureMeasurement { clone_key: key, t: frame.t, uv: f.uv, uvn };
+                let _ = self.features.insert(f.id, m);
+            }
+        }
+
+        // 3. Sort features into classes.
+        let oldest = state.clones.keys().next().copied().unwrap_or(key);
+        let window_full = state.clones.len() > opts.max_clones;
+        let lost: Vec<u64> = self.features.ids_not_seen_since(key);
+        let at_marg: Vec<u64> = if window_full { self.features.ids_with_measurement_at(oldest) } else { Vec::new() };
+        let slam_seen: Vec<u64> = state.features.keys().copied().filter(|id| {
+            self.features.get(*id).is_some_and(|f| f.measurements.iter().any(|m| m.clone_key == key))
+        }).collect();
+        let mut slam_candidates = Vec::new();
+        let mut msckf_ids = Vec::new();
+        let room = opts.max_slam_features.saturating_sub(state.features.len()).min(opts.max_slam_in_update);
+        for id in lost.iter().chain(at_marg.iter()) {
+            if state.features.contains_key(id) {
+                continue;
+            }
+            let Some(f) = self.features.get(*id) else { continue };
+            let spans = f.measurements.len() > opts.max_clones;
+            if spans && !lost.contains(id) && slam_candidates.len() < room {
+                slam_candidates.push(*id);
+            } else if !msckf_ids.contains(id) {
+                msckf_ids.push(*id);
+            }
+        }
+        // The longest tracks first, up to the limit.
+        msckf_ids.sort_by_key(|id| std::cmp::Reverse(self.features.get(*id).map(|f| f.measurements.len()).unwrap_or(0)));
+        let msckf_used: Vec<u64> = msckf_ids.iter().copied().take(opts.max_msckf_in_update).collect();
+
+        // 4. MSCKF update.
+        let t = Instant::now();
+        let msckf = updater_msckf::update(state, &self.features, &msckf_used, &opts, &self.chi2, &self.tri);
+        timing.msckf_ms = ms(t);
+
+        // 5. SLAM update with the features seen now.
+        let t = Instant::now();
+        let mut slam = updater_slam::SlamStats::default();
+        updater_slam::update(state, &self.features, &slam_seen, key, &opts, &self.chi2, &mut slam);
+        timing.slam_update_ms = ms(t);
+
+        // 6. Delayed initialization of new SLAM features.
+        let t = Instant::now();
+        for id in &slam_candidates {
+            if updater_slam::initialize(state, &self.features, *id, &opts, &self.chi2, &self.tri) {
+                slam.initialized += 1;
+            } else {
+                slam.init_failed += 1;
+                if !msckf_used.contains(id) {
+                    // Not initialized: its measurements are still useful, once.
+                    let _ = updater_msckf::update(state, &self.features, &[*id], &opts, &self.chi2, &self.tri);
+                }
+            }
+        }
+        timing.slam_init_ms = ms(t);
+
+        // 7. Clean up: used and lost features, lost SLAM features, oldest clone.
+        let t = Instant::now();
+        for id in msckf_ids.iter().chain(slam_candidates.iter()) {
+            if !state.features.contains_key(id) {
+                self.features.remove(*id);
+            }
+        }
+        for id in slam_seen.iter().chain(slam_candidates.iter()) {
+            if let Some(f) = self.features.get_mut(*id) {
+                f.measurements.clear();
+            }
+        }
+        let lost_slam: Vec<u64> = state.features.keys().copied().filter(|id| !slam_seen.contains(id) && !slam_candidates.contains(id)).collect();
+        for id in lost_slam {
+            let _ = state.marginalize(Var::Feature(id));
+            self.features.remove(id);
+        }
+        while state.clones.len() > opts.max_clones {
+            let Some(&old) = state.clones.keys().next() else { break };
+            let _ = state.marginalize(Var::Clone(old));
+            if let Some(&next) = state.clones.keys().next() {
+                self.features.remove_measurements_before(next);
+            }
+        }
+        // IMU readings older than the state are no longer needed.
+        while self.imu.len() > 2 && self.imu[1].t < state.t {
+            self.imu.pop_front();
+        }
+        timing.marginalize_ms = ms(t);
+        timing.total_ms = ms(t_start);
+
+        let p = state.cov();
+        let o = state.offset(Var::Imu).unwrap_or(0);
+        Ok(FrameOutput {
+            t: state.t,
+            rot: state.imu.rot,
+            pos: state.imu.pos,
+            vel: state.imu.vel,
+            cov_ori: p.fixed_view::<3, 3>(o, o).into_owned(),
+            cov_pos: p.fixed_view::<3, 3>(o + 3, o + 3).into_owned(),
+            msckf_features: msckf.used,
+            slam_features: state.features.len(),
+            timing,
+        })
+    }
+}
+
+/// Stochastic cloning of the IMU pose at the image time; with online time-offset
+/// calibration the clone also depends on `t_d` through `[ω; v]` (the pose moves
+/// with the estimated offset).
+fn augment_clone(state: &mut State, key: u64, omega: &Vector3<f64>) {
+    let mut j_imu = DMatrix::zeros(6, 15);
+    j_imu.view_mut((0, 0), (6, 6)).fill_with_identity();
+    let mut jac = vec![(Var::Imu, j_imu)];
+    if state.has(Var::TimeOffset) {
+        let mut j_td = DMatrix::zeros(6, 1);
+        j_td.view_mut((0, 0), (3, 1)).copy_from(omega);
+        j_td.view_mut((3, 0), (3, 1)).copy_from(&state.imu.vel);
+        jac.push((Var::TimeOffset, j_td));
+    }
+    if state.augment(Var::Clone(key), &jac, &DMatrix::zeros(6, 6)).is_ok() {
+        state.clones.insert(
+            key,
+            ClonePose {
+                t: state.t,
+                rot: state.imu.rot,
+                pos: state.imu.pos,
+                rot_fej: state.imu.rot,
+                pos_fej: state.imu.pos,
+            },
+        );
+    }
+}

@@ -1,0 +1,192 @@
+//! Runs one robot of a simulated scenario through its estimator, standalone (no
+//! peers): the agent reads its own robot's sensors from the simulator, as a real
+//! robot reads its own, and the result is scored against the simulator's truth.
+
+use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, InitialState};
+use common::metrics::{ate, nees, rpe, Alignment, PosePair, DEFAULT_RPE_SEGMENTS_M};
+use common::summary::MetricSet;
+use common::trajectory::{StampedCovariance, StampedPose};
+use simulator::scenario::EstimatorSpec;
+use simulator::{Fleet, SimEvent};
+use std::str::FromStr;
+use thiserror::Error;
+
+/// The estimator variants of a standalone robot.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Variant {
+    /// MSCKF only (no SLAM features).
+    Indp,
+    /// MSCKF with SLAM features.
+    IndpSlam,
+}
+
+impl Variant {
+    /// The name used on command lines and in summaries.
+    pub fn name(self) -> &'static str {
+        match self {
+            Variant::Indp => "indp",
+            Variant::IndpSlam => "indp-slam",
+        }
+    }
+}
+
+impl FromStr for Variant {
+    type Err = RunError;
+    fn from_str(s: &str) -> Result<Self, RunError> {
+        match s {
+            "indp" => Ok(Variant::Indp),
+            "indp-slam" => Ok(Variant::IndpSlam),
+            other => Err(RunError::UnknownVariant(other.to_string())),
+        }
+    }
+}
+
+/// Why a run failed.
+#[derive(Debug, Error)]
+pub enum RunError {
+    /// Simulation error.
+    #[error(transparent)]
+    Sim(#[from] simulator::SimError),
+    /// A variant name that does not exist.
+    #[error("unknown variant `{0}` (known: indp, indp-slam)")]
+    UnknownVariant(String),
+    /// The robot never moved enough to start.
+    #[error("robot {0} has no camera frame after its start time")]
+    NeverStarted(usize),
+}
+
+/// The estimator options a scenario asks for, for one variant.
+pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> EstimatorOptions {
+    let imu = &fleet.scenario.sensors.imu;
+    let cam = &fleet.scenario.sensors.camera;
+    let mut o = EstimatorOptions {
+        max_clones: spec.max_clones,
+        max_slam_features: spec.max_slam_features,
+        max_slam_in_update: spec.max_slam_in_update,
+        max_msckf_in_update: spec.max_msckf_in_update,
+        use_fej: spec.use_fej,
+        calib_extrinsics: spec.calib_extrinsics,
+        calib_intrinsics: spec.calib_intrinsics,
+        calib_time_offset: spec.calib_time_offset,
+        zero_velocity_update: spec.zero_velocity_update,
+        pixel_sigma_px: cam.pixel_noise_px,
+        ..EstimatorOptions::default()
+    };
+    o.imu.gyro_noise_density = imu.gyro_noise_density;
+    o.imu.gyro_random_walk = imu.gyro_random_walk;
+    o.imu.accel_noise_density = imu.accel_noise_density;
+    o.imu.accel_random_walk = imu.accel_random_walk;
+    o.imu.gravity_mps2 = imu.gravity_mps2;
+    if variant == Variant::Indp {
+        o.max_slam_features = 0;
+    }
+    o
+}
+
+/// Everything one standalone run produced.
+#[derive(Clone, Debug, Default)]
+pub struct RobotRun {
+    /// The estimate after each frame.
+    pub estimate: Vec<StampedPose>,
+    /// Its 3x3 orientation and position covariances.
+    pub covariance: Vec<StampedCovariance>,
+    /// The truth at the estimate times.
+    pub truth: Vec<StampedPose>,
+    /// Per-frame outputs (timing, feature counts).
+    pub frames: Vec<FrameOutput>,
+    /// Inputs and frames the estimator rejected, with the reason.
+    pub rejected: Vec<String>,
+}
+
+/// Runs robot `robot` of `fleet` with `opts`, initialized at the true state once
+/// it has moved `start_after_motion_m` (OpenVINS's simulation start).
+pub fn run_robot(fleet: &Fleet, robot: usize, opts: EstimatorOptions) -> Result<RobotRun, RunError> {
+    let spec = &fleet.scenario.estimator;
+    let truth = &fleet.truths[robot.min(fleet.truths.len().saturating_sub(1))];
+    let start = fleet.estimator_start_time(robot).ok_or(simulator::SimError::NoSuchRobot(robot))?;
+    let mut est = Estimator::new(opts, fleet.initial_calibration(robot));
+    let mut run = RobotRun::default();
+    let mut initialized = false;
+    for ev in fleet.stream(robot)? {
+        match ev {
+            SimEvent::Imu(s) => {
+                if let Err(e) = est.feed_imu(s) {
+                    run.rejected.push(e.to_string());
+                }
+            }
+            SimEvent::Camera(c) => {
+                if !initialized {
+                    if c.truth.t < start {
+                        continue;
+                    }
+                    est.initialize(&InitialState {
+                        t: c.truth.t,
+                        rot: c.truth.rot,
+                        pos: c.truth.pos,
+                        vel: c.truth.vel,
+                        bias_gyro: c.truth.biases.gyro,
+                        bias_accel: c.truth.biases.accel,
+                        sigma_ori_rad: spec.init_sigma_ori_rad,
+                        sigma_pos_m: spec.init_sigma_pos_m,
+                        sigma_vel_mps: spec.init_sigma_vel_mps,
+                        sigma_bias: spec.init_sigma_bias,
+                    });
+                    initialized = true;
+                    continue;
+                }
+                if let Err(e) = est.feed_frame(c.frame) {
+                    run.rejected.push(e.to_string());
+                }
+            }
+        }
+        for out in est.poll() {
+            match out {
+                Ok(o) => record(&mut run, truth, o),
+                Err(e) => run.rejected.push(e.to_string()),
+            }
+        }
+    }
+    if !initialized {
+        return Err(RunError::NeverStarted(robot));
+    }
+    Ok(run)
+}
+
+fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: FrameOutput) {
+    let Some(gt) = truth.spline.pose(o.t) else {
+        return;
+    };
+    run.estimate.push(StampedPose { t: o.t, rot: o.rot, pos: o.pos });
+    run.truth.push(StampedPose { t: o.t, rot: gt.rot, pos: gt.trans });
+    run.covariance.push(StampedCovariance { t: o.t, ori: o.cov_ori, pos: o.cov_pos });
+    run.frames.push(o);
+}
+
+impl RobotRun {
+    /// Accuracy, consistency and cost of the run (ATE without alignment).
+    pub fn metrics(&self) -> MetricSet {
+        let pairs: Vec<PosePair> = self
+            .estimate
+            .iter()
+            .copied()
+            .zip(self.truth.iter().copied())
+            .collect();
+        let a = ate(&pairs, Alignment::None);
+        let n = nees(&pairs, &self.covariance);
+        let mut times: Vec<f64> = self.frames.iter().map(|f| f.timing.total_ms).collect();
+        times.sort_by(f64::total_cmp);
+        let mean = (!times.is_empty()).then(|| times.iter().sum::<f64>() / times.len() as f64);
+        let p95 = times.get(((times.len() as f64) * 0.95) as usize).copied();
+        MetricSet {
+            ate_ori_deg: (a.n > 0).then_some(a.ori_deg),
+            ate_pos_m: (a.n > 0).then_some(a.pos_m),
+            nees_ori: n.ori_mean,
+            nees_pos: n.pos_mean,
+            rpe: Some(rpe(&pairs, &DEFAULT_RPE_SEGMENTS_M)),
+            frames: Some(self.frames.len() as u64),
+            ms_per_frame_mean: mean,
+            ms_per_frame_p95: p95,
+            ..MetricSet::default()
+        }
+    }
+}
