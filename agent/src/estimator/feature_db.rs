@@ -432,7 +432,10 @@ mod tests {
         db.insert(7, meas(0, 0.0, 0.0)).unwrap();
         assert!(db.insert(7, meas(1, 11.0, 0.0)).is_err());
         db.insert(7, meas(1, 9.0, 0.0)).unwrap();
-        assert_eq!(FeatureDb::new().max_pixel_jump_px(), DEFAULT_MAX_PIXEL_JUMP_PX);
+        assert_eq!(
+            FeatureDb::new().max_pixel_jump_px(),
+            DEFAULT_MAX_PIXEL_JUMP_PX
+        );
         assert!(FeatureDb::with_max_pixel_jump_px(f64::INFINITY).is_ok());
         for bad in [0.0, -1.0, f64::NAN] {
             assert!(FeatureDb::with_max_pixel_jump_px(bad).is_err());
@@ -445,7 +448,13 @@ mod tests {
         let mut m = meas(0, 10.0, 10.0);
         m.uvn.x = f64::NAN;
         let err = db.insert(5, m).unwrap_err();
-        assert_eq!(err, FeatureDbError::NonFinite { id: 5, clone_key: 0 });
+        assert_eq!(
+            err,
+            FeatureDbError::NonFinite {
+                id: 5,
+                clone_key: 0
+            }
+        );
         assert!(err.to_string().contains("feature 5"));
         let mut m = meas(0, 10.0, 10.0);
         m.t = f64::INFINITY;
@@ -481,7 +490,13 @@ mod tests {
         let mut db = sample_db();
         db.remove_measurements_before(2);
         assert_eq!(db.ids(), vec![1, 2, 4]);
-        let keys: Vec<u64> = db.get(1).unwrap().measurements.iter().map(|m| m.clone_key).collect();
+        let keys: Vec<u64> = db
+            .get(1)
+            .unwrap()
+            .measurements
+            .iter()
+            .map(|m| m.clone_key)
+            .collect();
         assert_eq!(keys, vec![2, 3, 4]);
         assert_eq!(db.get(4).unwrap().measurements.len(), 1);
         db.remove_measurements_before(4);

@@ -10,7 +10,7 @@
 //! the covariance once.
 
 use super::options::ImuNoise;
-use super::state::{State, Var};
+use super::state::{ImuFej, State, Var};
 use common::measurement::ImuSample;
 use common::so3::{exp_so3, jr_so3, skew};
 use nalgebra::{Matrix3, SMatrix, Vector3};
@@ -99,6 +99,7 @@ pub fn propagate(
     buf: &[ImuSample],
     t1: f64,
     noise: &ImuNoise,
+    use_fej: bool,
 ) -> Result<Vector3<f64>, PropagateError> {
     let t0 = state.t;
     if t1 < t0 {
@@ -109,6 +110,8 @@ pub fn propagate(
     let mut phi_sum = Mat15::identity();
     let mut q_sum = Mat15::zeros();
     let mut omega = Vector3::zeros();
+    let (r0, p0, v0) = (state.imu.rot, state.imu.pos, state.imu.vel);
+    let mut dt_sum = 0.0;
     for seg in &segs {
         let imu = &mut state.imu;
         let dt = seg.dt;
@@ -161,10 +164,53 @@ pub fn propagate(
 
         phi_sum = phi * phi_sum;
         q_sum = phi * q_sum * phi.transpose() + qd;
+        dt_sum += dt;
     }
+    if use_fej {
+        fej_transition(&mut phi_sum, state, (r0, p0, v0), dt_sum, &g);
+    }
+    state.imu_fej = ImuFej {
+        rot: state.imu.rot,
+        pos: state.imu.pos,
+        vel: state.imu.vel,
+    };
     state.t = t1;
     apply_transition(state, &phi_sum, &q_sum);
     Ok(omega)
+}
+
+/// Re-evaluates the interval's `Φ` at the first estimates of the start state
+/// (the values the previous propagation produced, before updates), keeping the
+/// propagated end state: `Φ_θθ = R_{k+1}ᵀ R_kᶠ`,
+/// `Φ_pθ = −[p_{k+1} − p_kᶠ − v_kᶠ Δt + ½ g Δt²]× R_kᶠ`,
+/// `Φ_vθ = −[v_{k+1} − v_kᶠ + g Δt]× R_kᶠ`, and the bias columns of `p` and `v`
+/// rotated from `R_k` to `R_kᶠ`. With these, the unobservable directions (global
+/// position and yaw) stay unobservable across updates (FEJ, thesis Section 2.2.2).
+fn fej_transition(
+    phi: &mut Mat15,
+    state: &State,
+    start: (Matrix3<f64>, Vector3<f64>, Vector3<f64>),
+    dt: f64,
+    g: &Vector3<f64>,
+) {
+    let (r_k, _, _) = start;
+    let fej = &state.imu_fej;
+    let imu = &state.imu;
+    phi.fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&(imu.rot.transpose() * fej.rot));
+    let dp = imu.pos - fej.pos - fej.vel * dt + g * (0.5 * dt * dt);
+    phi.fixed_view_mut::<3, 3>(3, 0)
+        .copy_from(&(-skew(&dp) * fej.rot));
+    let dv = imu.vel - fej.vel + g * dt;
+    phi.fixed_view_mut::<3, 3>(6, 0)
+        .copy_from(&(-skew(&dv) * fej.rot));
+    let rot_fix = fej.rot * r_k.transpose();
+    for row in [3, 6] {
+        for col in [9, 12] {
+            let b = rot_fix * phi.fixed_view::<3, 3>(row, col);
+            phi.fixed_view_mut::<3, 3>(row, col).copy_from(&b);
+        }
+    }
 }
 
 /// `P_II ← Φ P_II Φᵀ + Q`, `P_Ix ← Φ P_Ix` for every other variable `x`.
@@ -258,16 +304,16 @@ mod tests {
         // Numerical Φ: perturb each error-state direction and propagate the mean.
         let x0 = nominal();
         let mut base = state_at(x0.clone());
-        propagate(&mut base, &buf, t1, &ImuNoise::default()).unwrap();
+        propagate(&mut base, &buf, t1, &ImuNoise::default(), false).unwrap();
         let h = 1e-6;
         let mut phi_num = Mat15::zeros();
         for i in 0..15 {
             let mut dx = nalgebra::SVector::<f64, 15>::zeros();
             dx[i] = h;
             let mut sp = state_at(boxplus(&x0, &dx));
-            propagate(&mut sp, &buf, t1, &ImuNoise::default()).unwrap();
+            propagate(&mut sp, &buf, t1, &ImuNoise::default(), false).unwrap();
             let mut sm = state_at(boxplus(&x0, &(-dx)));
-            propagate(&mut sm, &buf, t1, &ImuNoise::default()).unwrap();
+            propagate(&mut sm, &buf, t1, &ImuNoise::default(), false).unwrap();
             let col = (boxminus(&sp.imu, &base.imu) - boxminus(&sm.imu, &base.imu)) / (2.0 * h);
             phi_num.set_column(i, &col);
         }
@@ -284,7 +330,7 @@ mod tests {
         cross
             .augment(Var::Clone(0), &[(Var::Imu, DMatrix::identity(15, 15).rows(0, 6).into_owned())], &DMatrix::zeros(6, 6))
             .unwrap();
-        propagate(&mut cross, &buf, t1, &zero).unwrap();
+        propagate(&mut cross, &buf, t1, &zero, false).unwrap();
         let p_ic = cross.block(Var::Imu, Var::Clone(0)).unwrap(); // Φ[:, 0..6]
         let err = (p_ic - phi_num.columns(0, 6)).abs().max();
         assert!(err < 1e-5, "Φ (orientation/position columns) error {err}");
@@ -300,12 +346,12 @@ mod tests {
         let buf = buffer(0.1);
         let mut s = state_at(nominal());
         assert!(matches!(
-            propagate(&mut s, &buf, 0.2, &ImuNoise::default()),
+            propagate(&mut s, &buf, 0.2, &ImuNoise::default(), false),
             Err(PropagateError::NotEnoughImu { .. })
         ));
-        propagate(&mut s, &buf, 0.05, &ImuNoise::default()).unwrap();
+        propagate(&mut s, &buf, 0.05, &ImuNoise::default(), false).unwrap();
         assert!(matches!(
-            propagate(&mut s, &buf, 0.01, &ImuNoise::default()),
+            propagate(&mut s, &buf, 0.01, &ImuNoise::default(), false),
             Err(PropagateError::Backwards { .. })
         ));
     }
@@ -315,7 +361,7 @@ mod tests {
         let buf = buffer(1.1);
         let mut s = state_at(nominal());
         s.set_cov(DMatrix::zeros(15, 15)).unwrap();
-        propagate(&mut s, &buf, 1.0, &ImuNoise::default()).unwrap();
+        propagate(&mut s, &buf, 1.0, &ImuNoise::default(), false).unwrap();
         let p = s.cov();
         // Gyro bias variance grows as σ_wg² t.
         assert!((p[(9, 9)] - 1.9393e-05f64.powi(2)).abs() < 1e-12);

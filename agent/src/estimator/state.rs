@@ -77,6 +77,18 @@ pub struct ImuState {
     pub bias_accel: Vector3<f64>,
 }
 
+/// First estimates of the IMU pose and velocity: the values propagation last
+/// produced, before any update (used by FEJ propagation).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImuFej {
+    /// First estimate of `R_ItoG`.
+    pub rot: Matrix3<f64>,
+    /// First estimate of `p_IinG`.
+    pub pos: Vector3<f64>,
+    /// First estimate of `v_IinG`.
+    pub vel: Vector3<f64>,
+}
+
 /// A cloned IMU pose.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ClonePose {
@@ -108,6 +120,8 @@ pub struct State {
     pub t: f64,
     /// The IMU navigation state.
     pub imu: ImuState,
+    /// First estimates of the IMU state.
+    pub imu_fej: ImuFej,
     /// Current calibration estimate (whether estimated online or fixed).
     pub calib: CameraCalibration,
     /// Clones by image sequence number (oldest first).
@@ -131,6 +145,11 @@ impl State {
     ) -> Self {
         let mut s = Self {
             t,
+            imu_fej: ImuFej {
+                rot: imu.rot,
+                pos: imu.pos,
+                vel: imu.vel,
+            },
             imu,
             calib,
             clones: BTreeMap::new(),

@@ -21,6 +21,7 @@
 //! Everything runs on fixed-size nalgebra types: nothing is allocated.
 
 use nalgebra::{Matrix2x3, Matrix3, SymmetricEigen, Vector2, Vector3};
+use std::cmp::Ordering;
 
 /// Levenberg-Marquardt damping of the first iteration (relative to `diag(H)`).
 const LM_INITIAL_LAMBDA: f64 = 1e-3;
@@ -142,6 +143,16 @@ pub enum TriangulationError {
     LargeResidual,
 }
 
+/// Whether `a > b` (false when either is NaN).
+fn above(a: f64, b: f64) -> bool {
+    a.partial_cmp(&b) == Some(Ordering::Greater)
+}
+
+/// Whether `a <= b` (false when either is NaN).
+fn at_most(a: f64, b: f64) -> bool {
+    matches!(a.partial_cmp(&b), Some(Ordering::Less | Ordering::Equal))
+}
+
 /// The anchor observation (the last one), after checking there are enough.
 fn anchor_of<'a>(
     obs: &'a [CameraObservation],
@@ -253,7 +264,7 @@ fn linearize(
     anchor: &CameraObservation,
     x: &Vector3<f64>,
 ) -> Option<Linearization> {
-    if !(x.z > 0.0) || !x.iter().all(|v| v.is_finite()) {
+    if !above(x.z, 0.0) || !x.iter().all(|v| v.is_finite()) {
         return None;
     }
     let r_a = &anchor.r_c_to_g;
@@ -265,11 +276,13 @@ fn linearize(
     for o in obs {
         let d = anchor.p_c_in_g - o.p_c_in_g;
         // Columns: ∂h/∂α, ∂h/∂β, ∂h/∂ρ (all in the camera frame).
-        let dh_dx = o
-            .r_c_to_g
-            .tr_mul(&Matrix3::from_columns(&[r_a.column(0).into(), r_a.column(1).into(), d]));
+        let dh_dx = o.r_c_to_g.tr_mul(&Matrix3::from_columns(&[
+            r_a.column(0).into(),
+            r_a.column(1).into(),
+            d,
+        ]));
         let h = dh_dx * x + o.r_c_to_g.tr_mul(&r_a.column(2).into_owned());
-        if !(h.z > MIN_SCALED_DEPTH) {
+        if !above(h.z, MIN_SCALED_DEPTH) {
             return None;
         }
         let inv_z = 1.0 / h.z;
@@ -310,7 +323,7 @@ pub fn refine_gauss_newton(
     if !p_in_anchor.iter().all(|v| v.is_finite()) {
         return Err(TriangulationError::NotConverged);
     }
-    if !(p_in_anchor.z > 0.0) {
+    if !above(p_in_anchor.z, 0.0) {
         return Err(TriangulationError::BehindCamera);
     }
     let inv_z = 1.0 / p_in_anchor.z;
@@ -357,7 +370,7 @@ pub fn refine_gauss_newton(
             _ => lambda *= LM_LAMBDA_FACTOR,
         }
     }
-    if !converged && !(last_relative_step < LOOSE_STEP_TOLERANCE) {
+    if !converged && !above(LOOSE_STEP_TOLERANCE, last_relative_step) {
         return Err(TriangulationError::NotConverged);
     }
     let z = 1.0 / x.z;
@@ -365,7 +378,10 @@ pub fn refine_gauss_newton(
     if !p_f_in_g.iter().all(|v| v.is_finite()) {
         return Err(TriangulationError::NotConverged);
     }
-    if obs.iter().any(|o| !(o.point_in_camera(&p_f_in_g).z > 0.0)) {
+    if obs
+        .iter()
+        .any(|o| !above(o.point_in_camera(&p_f_in_g).z, 0.0))
+    {
         return Err(TriangulationError::BehindCamera);
     }
     Ok(p_f_in_g)
@@ -388,19 +404,19 @@ pub fn check_point(
     let mut residual_sum = 0.0;
     for o in obs {
         let p_c = o.point_in_camera(p_f_in_g);
-        if !(p_c.z > 0.0) {
+        if !above(p_c.z, 0.0) {
             return Err(TriangulationError::BehindCamera);
         }
         residual_sum += (o.uvn - p_c.xy() / p_c.z).norm();
     }
     let depth = anchor.point_in_camera(p_f_in_g).z;
     check_anchor_depth(depth, opts)?;
-    if !(depth <= opts.max_baseline_ratio * max_baseline(obs)) {
+    if !at_most(depth, opts.max_baseline_ratio * max_baseline(obs)) {
         return Err(TriangulationError::SmallBaseline);
     }
     // The observation count is at least 2 (checked by `anchor_of`).
     let mean_residual = residual_sum / obs.len() as f64;
-    if !(mean_residual <= opts.max_reprojection_error_normalized) {
+    if !at_most(mean_residual, opts.max_reprojection_error_normalized) {
         return Err(TriangulationError::LargeResidual);
     }
     Ok(())
@@ -417,7 +433,10 @@ pub fn triangulate(
     opts: &TriangulationOptions,
 ) -> Result<Vector3<f64>, TriangulationError> {
     anchor_of(obs, opts)?;
-    if !(max_baseline(obs) * opts.max_baseline_ratio >= opts.min_depth_m) {
+    if !at_most(
+        opts.min_depth_m,
+        max_baseline(obs) * opts.max_baseline_ratio,
+    ) {
         return Err(TriangulationError::SmallBaseline);
     }
     let linear = triangulate_linear(obs, opts)?;
@@ -426,8 +445,6 @@ pub fn triangulate(
     Ok(refined)
 }
 
-#[cfg(test)]
-pub(super) mod tests_helpers_dummy {}
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -476,7 +493,7 @@ mod tests {
 
     /// `n` cameras spread over a segment of length `baseline` (plus small vertical
     /// wiggle), all observing `p_f`.
-    pub(super) fn scene(
+    fn scene(
         rng: &mut ChaCha8Rng,
         n: usize,
         baseline: f64,
@@ -486,18 +503,18 @@ mod tests {
         (0..n)
             .map(|i| {
                 let s = i as f64 / (n - 1) as f64 - 0.5;
-                let p_c = Vector3::new(
-                    s * baseline,
-                    0.05 * normal(rng),
-                    1.0 + 0.05 * normal(rng),
-                );
+                let p_c = Vector3::new(s * baseline, 0.05 * normal(rng), 1.0 + 0.05 * normal(rng));
                 observe(rng, p_c, p_f, sigma)
             })
             .collect()
     }
 
-    pub(super) fn random_point(rng: &mut ChaCha8Rng, depth: f64) -> Vector3<f64> {
-        Vector3::new(rng.random_range(-1.0..1.0), depth, rng.random_range(0.0..2.0))
+    fn random_point(rng: &mut ChaCha8Rng, depth: f64) -> Vector3<f64> {
+        Vector3::new(
+            rng.random_range(-1.0..1.0),
+            depth,
+            rng.random_range(0.0..2.0),
+        )
     }
 
     #[test]
@@ -540,9 +557,9 @@ mod tests {
             worst = worst.max(e);
         }
         let rms = (sum_sq / trials as f64).sqrt();
-        println!("NOISE rms {rms} worst {worst}");
-        assert!(rms < 0.03, "rms error {rms} m");
-        assert!(worst < 0.1, "worst error {worst} m");
+        // First-order depth std: z σ / (angular spread · √n) ≈ 5 · 1e-3 / (0.058 · √8) ≈ 3 cm.
+        assert!(rms < 0.05, "rms error {rms} m");
+        assert!(worst < 0.15, "worst error {worst} m");
     }
 
     #[test]
@@ -761,29 +778,5 @@ mod tests {
         let a = triangulate(&obs, &opts).unwrap();
         let b = triangulate(&obs, &opts).unwrap();
         assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits));
-    }
-}
-#[cfg(test)]
-mod scratch {
-    use super::*;
-    use rand::{Rng, SeedableRng};
-    #[test]
-    fn scratch_stats() {
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
-        let opts = TriangulationOptions::default();
-        let mut counts = std::collections::BTreeMap::new();
-        let mut worst5 = 0.0_f64; let mut ss = 0.0; let mut n5 = 0;
-        for i in 0..20000 {
-            let depth = rng.random_range(0.5..80.0);
-            let base = rng.random_range(0.05..2.0);
-            let n = rng.random_range(2..12);
-            let sigma = if i % 2 == 0 { 1e-3 } else { 3e-3 };
-            let p_f = super::tests::random_point(&mut rng, depth);
-            let obs = super::tests::scene(&mut rng, n, base, &p_f, sigma);
-            let r = triangulate(&obs, &opts);
-            let key = match r { Ok(p) => { if (depth-5.0).abs()<0.5 && (base-1.0).abs()<0.2 && sigma==1e-3 && n>=5 { let e=(p-p_f).norm(); worst5=worst5.max(e); ss+=e*e; n5+=1;} "ok".to_string() }, Err(e) => format!("{e:?}").split([' ','{']).next().unwrap().to_string() };
-            *counts.entry(key).or_insert(0) += 1;
-        }
-        println!("STATS {counts:?} worst5 {worst5} rms5 {} n5 {n5}", (ss/n5 as f64).sqrt());
     }
 }

@@ -159,12 +159,11 @@ pub fn initialize(
         return false;
     };
     let pos = sys.p_f + Vector3::new(dx[0], dx[1], dx[2]);
-    state.features.insert(id, SlamFeature { pos, pos_fej: pos });
+    // The first estimate is the point the initialization was linearized at, so
+    // every later Jacobian shares its unobservable directions (FEJ).
+    state.features.insert(id, SlamFeature { pos, pos_fej: sys.p_f });
     // Eq. 2.45: the remaining rows update the whole state (the new feature through
     // its correlations).
     let _ = state.ekf_update(&cols.vars, &h_x2, &r2, &noise2);
-    if let Some(f) = state.features.get_mut(&id) {
-        f.pos_fej = f.pos;
-    }
     true
 }

@@ -313,7 +313,7 @@ impl Estimator {
             return Err(FrameError::Propagate(PropagateError::Backwards { from: state.t, to: t_imu }));
         }
         let buf = self.imu.make_contiguous();
-        let omega = propagate(state, buf, t_imu, &opts.imu)?;
+        let omega = propagate(state, buf, t_imu, &opts.imu, opts.use_fej)?;
         self.seq += 1;
         let key = self.seq;
         augment_clone(state, key, &omega);
