@@ -82,7 +82,15 @@ fn run(args: &RunArgs) -> Result<()> {
         writeln!(
             timing,
             "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{}",
-            f.t, t.propagate_ms, t.msckf_ms, t.slam_update_ms, t.slam_init_ms, t.marginalize_ms, t.total_ms, f.msckf_features, f.slam_features
+            f.t,
+            t.propagate_ms,
+            t.msckf_ms,
+            t.slam_update_ms,
+            t.slam_init_ms,
+            t.marginalize_ms,
+            t.total_ms,
+            f.msckf_features,
+            f.slam_features
         )?;
     }
     timing.flush()?;
@@ -100,7 +108,8 @@ fn run(args: &RunArgs) -> Result<()> {
         metrics.ms_per_frame_p95.unwrap_or(f64::NAN),
         run.frames.len()
     );
-    let sim_s = run.estimate.last().map(|p| p.t).unwrap_or(0.0) - run.estimate.first().map(|p| p.t).unwrap_or(0.0);
+    let sim_s = run.estimate.last().map(|p| p.t).unwrap_or(0.0)
+        - run.estimate.first().map(|p| p.t).unwrap_or(0.0);
     let summary = RunSummary {
         scenario: scenario.name.clone(),
         variant: Some(variant.name().to_string()),
@@ -115,6 +124,6 @@ fn run(args: &RunArgs) -> Result<()> {
             metrics,
         }],
     };
-    summary.write_json(&out.join("summary.json"))?;
+    summary.write_json(out.join("summary.json"))?;
     Ok(())
 }

@@ -100,10 +100,16 @@ pub struct RobotRun {
 
 /// Runs robot `robot` of `fleet` with `opts`, initialized at the true state once
 /// it has moved `start_after_motion_m` (OpenVINS's simulation start).
-pub fn run_robot(fleet: &Fleet, robot: usize, opts: EstimatorOptions) -> Result<RobotRun, RunError> {
+pub fn run_robot(
+    fleet: &Fleet,
+    robot: usize,
+    opts: EstimatorOptions,
+) -> Result<RobotRun, RunError> {
     let spec = &fleet.scenario.estimator;
     let truth = &fleet.truths[robot.min(fleet.truths.len().saturating_sub(1))];
-    let start = fleet.estimator_start_time(robot).ok_or(simulator::SimError::NoSuchRobot(robot))?;
+    let start = fleet
+        .estimator_start_time(robot)
+        .ok_or(simulator::SimError::NoSuchRobot(robot))?;
     let mut est = Estimator::new(opts, fleet.initial_calibration(robot));
     let mut run = RobotRun::default();
     let mut initialized = false;
@@ -156,9 +162,21 @@ fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: FrameOutp
     let Some(gt) = truth.spline.pose(o.t) else {
         return;
     };
-    run.estimate.push(StampedPose { t: o.t, rot: o.rot, pos: o.pos });
-    run.truth.push(StampedPose { t: o.t, rot: gt.rot, pos: gt.trans });
-    run.covariance.push(StampedCovariance { t: o.t, ori: o.cov_ori, pos: o.cov_pos });
+    run.estimate.push(StampedPose {
+        t: o.t,
+        rot: o.rot,
+        pos: o.pos,
+    });
+    run.truth.push(StampedPose {
+        t: o.t,
+        rot: gt.rot,
+        pos: gt.trans,
+    });
+    run.covariance.push(StampedCovariance {
+        t: o.t,
+        ori: o.cov_ori,
+        pos: o.cov_pos,
+    });
     run.frames.push(o);
 }
 

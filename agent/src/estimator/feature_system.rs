@@ -114,10 +114,12 @@ pub fn build(
         let cc = cols.col(Var::Clone(m.clone_key))?;
         h_x.fixed_view_mut::<2, 6>(r, cc).copy_from(&proj.h_clone);
         if let Some(o) = ext {
-            h_x.fixed_view_mut::<2, 6>(r, o).copy_from(&proj.h_extrinsic);
+            h_x.fixed_view_mut::<2, 6>(r, o)
+                .copy_from(&proj.h_extrinsic);
         }
         if let Some(o) = intr {
-            h_x.fixed_view_mut::<2, 8>(r, o).copy_from(&proj.h_intrinsics);
+            h_x.fixed_view_mut::<2, 8>(r, o)
+                .copy_from(&proj.h_intrinsics);
         }
         h_f.fixed_view_mut::<2, 3>(r, 0).copy_from(&proj.h_feature);
     }

@@ -48,7 +48,11 @@ pub fn predict(
     if p_c.z < 1e-3 {
         return None;
     }
-    Some(calib.camera.distort(&Vector2::new(p_c.x / p_c.z, p_c.y / p_c.z)))
+    Some(
+        calib
+            .camera
+            .distort(&Vector2::new(p_c.x / p_c.z, p_c.y / p_c.z)),
+    )
 }
 
 /// Prediction and Jacobians, evaluated at the given linearization point (the
@@ -131,9 +135,11 @@ mod tests {
                 - f(&(rot * exp_so3(&-e)), &pos, &p_f, &calib))
                 / (2.0 * h);
             assert!((proj.h_clone.column(i) - num).norm() < 1e-4, "dθ {i}");
-            let num = (f(&rot, &(pos + e), &p_f, &calib) - f(&rot, &(pos - e), &p_f, &calib)) / (2.0 * h);
+            let num =
+                (f(&rot, &(pos + e), &p_f, &calib) - f(&rot, &(pos - e), &p_f, &calib)) / (2.0 * h);
             assert!((proj.h_clone.column(3 + i) - num).norm() < 1e-4, "dp {i}");
-            let num = (f(&rot, &pos, &(p_f + e), &calib) - f(&rot, &pos, &(p_f - e), &calib)) / (2.0 * h);
+            let num =
+                (f(&rot, &pos, &(p_f + e), &calib) - f(&rot, &pos, &(p_f - e), &calib)) / (2.0 * h);
             assert!((proj.h_feature.column(i) - num).norm() < 1e-4, "dpf {i}");
             let (mut cp, mut cm) = (calib.clone(), calib.clone());
             cp.rot_c_to_i *= exp_so3(&e);
@@ -144,7 +150,10 @@ mod tests {
             cp.p_c_in_i += e;
             cm.p_c_in_i -= e;
             let num = (f(&rot, &pos, &p_f, &cp) - f(&rot, &pos, &p_f, &cm)) / (2.0 * h);
-            assert!((proj.h_extrinsic.column(3 + i) - num).norm() < 1e-4, "dpc {i}");
+            assert!(
+                (proj.h_extrinsic.column(3 + i) - num).norm() < 1e-4,
+                "dpc {i}"
+            );
         }
         for i in 0..8 {
             let (mut cp, mut cm) = (calib.clone(), calib.clone());
@@ -156,7 +165,10 @@ mod tests {
                 cm.camera.distortion[i - 4] -= h;
             }
             let num = (f(&rot, &pos, &p_f, &cp) - f(&rot, &pos, &p_f, &cm)) / (2.0 * h);
-            assert!((proj.h_intrinsics.column(i) - num).norm() < 1e-4, "intrinsic {i}");
+            assert!(
+                (proj.h_intrinsics.column(i) - num).norm() < 1e-4,
+                "intrinsic {i}"
+            );
         }
     }
 

@@ -48,7 +48,11 @@ struct Segment {
 }
 
 fn lerp(a: &ImuSample, b: &ImuSample, t: f64) -> ImuSample {
-    let s = if b.t > a.t { (t - a.t) / (b.t - a.t) } else { 0.0 };
+    let s = if b.t > a.t {
+        (t - a.t) / (b.t - a.t)
+    } else {
+        0.0
+    };
     ImuSample {
         t,
         gyro: a.gyro + (b.gyro - a.gyro) * s,
@@ -130,15 +134,20 @@ pub fn propagate(
         let mut phi = Mat15::identity();
         phi.fixed_view_mut::<3, 3>(0, 0).copy_from(&dr.transpose());
         phi.fixed_view_mut::<3, 3>(0, 9).copy_from(&(-jr * dt));
-        phi.fixed_view_mut::<3, 3>(3, 0).copy_from(&(-r_k * skew(&dp_i)));
-        phi.fixed_view_mut::<3, 3>(3, 6).copy_from(&(Matrix3::identity() * dt));
+        phi.fixed_view_mut::<3, 3>(3, 0)
+            .copy_from(&(-r_k * skew(&dp_i)));
+        phi.fixed_view_mut::<3, 3>(3, 6)
+            .copy_from(&(Matrix3::identity() * dt));
         let dv_dbg = r_k * r_half * skew(&a) * jr_half * (0.5 * dt * dt);
-        phi.fixed_view_mut::<3, 3>(3, 9).copy_from(&(dv_dbg * (0.5 * dt)));
+        phi.fixed_view_mut::<3, 3>(3, 9)
+            .copy_from(&(dv_dbg * (0.5 * dt)));
         phi.fixed_view_mut::<3, 3>(3, 12)
             .copy_from(&(-r_k * r_half * (0.5 * dt * dt)));
-        phi.fixed_view_mut::<3, 3>(6, 0).copy_from(&(-r_k * skew(&dv_i)));
+        phi.fixed_view_mut::<3, 3>(6, 0)
+            .copy_from(&(-r_k * skew(&dv_i)));
         phi.fixed_view_mut::<3, 3>(6, 9).copy_from(&dv_dbg);
-        phi.fixed_view_mut::<3, 3>(6, 12).copy_from(&(-r_k * r_half * dt));
+        phi.fixed_view_mut::<3, 3>(6, 12)
+            .copy_from(&(-r_k * r_half * dt));
 
         let (sg2, sa2) = (
             noise.gyro_noise_density.powi(2),
@@ -148,10 +157,14 @@ pub fn propagate(
         qd.fixed_view_mut::<3, 3>(0, 0)
             .copy_from(&(jr * jr.transpose() * (sg2 * dt)));
         let i3 = Matrix3::identity();
-        qd.fixed_view_mut::<3, 3>(3, 3).copy_from(&(i3 * (sa2 * dt.powi(3) / 4.0)));
-        qd.fixed_view_mut::<3, 3>(3, 6).copy_from(&(i3 * (sa2 * dt * dt / 2.0)));
-        qd.fixed_view_mut::<3, 3>(6, 3).copy_from(&(i3 * (sa2 * dt * dt / 2.0)));
-        qd.fixed_view_mut::<3, 3>(6, 6).copy_from(&(i3 * (sa2 * dt)));
+        qd.fixed_view_mut::<3, 3>(3, 3)
+            .copy_from(&(i3 * (sa2 * dt.powi(3) / 4.0)));
+        qd.fixed_view_mut::<3, 3>(3, 6)
+            .copy_from(&(i3 * (sa2 * dt * dt / 2.0)));
+        qd.fixed_view_mut::<3, 3>(6, 3)
+            .copy_from(&(i3 * (sa2 * dt * dt / 2.0)));
+        qd.fixed_view_mut::<3, 3>(6, 6)
+            .copy_from(&(i3 * (sa2 * dt)));
         qd.fixed_view_mut::<3, 3>(9, 9)
             .copy_from(&(i3 * (noise.gyro_random_walk.powi(2) * dt)));
         qd.fixed_view_mut::<3, 3>(12, 12)
@@ -292,8 +305,10 @@ mod tests {
             .copy_from(&common::so3::log_so3(&(b.rot.transpose() * a.rot)));
         d.fixed_rows_mut::<3>(3).copy_from(&(a.pos - b.pos));
         d.fixed_rows_mut::<3>(6).copy_from(&(a.vel - b.vel));
-        d.fixed_rows_mut::<3>(9).copy_from(&(a.bias_gyro - b.bias_gyro));
-        d.fixed_rows_mut::<3>(12).copy_from(&(a.bias_accel - b.bias_accel));
+        d.fixed_rows_mut::<3>(9)
+            .copy_from(&(a.bias_gyro - b.bias_gyro));
+        d.fixed_rows_mut::<3>(12)
+            .copy_from(&(a.bias_accel - b.bias_accel));
         d
     }
 
@@ -325,10 +340,20 @@ mod tests {
             accel_random_walk: 0.0,
             ..ImuNoise::default()
         };
-        let mut cross = State::new(0.0, x0, DMatrix::identity(15, 15), CameraCalibration::euroc_cam0(), &[]);
+        let mut cross = State::new(
+            0.0,
+            x0,
+            DMatrix::identity(15, 15),
+            CameraCalibration::euroc_cam0(),
+            &[],
+        );
         // Augment a copy of the IMU block: after propagation P(IMU, copy) = Φ.
         cross
-            .augment(Var::Clone(0), &[(Var::Imu, DMatrix::identity(15, 15).rows(0, 6).into_owned())], &DMatrix::zeros(6, 6))
+            .augment(
+                Var::Clone(0),
+                &[(Var::Imu, DMatrix::identity(15, 15).rows(0, 6).into_owned())],
+                &DMatrix::zeros(6, 6),
+            )
             .unwrap();
         propagate(&mut cross, &buf, t1, &zero, false).unwrap();
         let p_ic = cross.block(Var::Imu, Var::Clone(0)).unwrap(); // Φ[:, 0..6]
@@ -337,7 +362,9 @@ mod tests {
         // Full Φ via P1 = Φ Φᵀ with P0 = I.
         let p1 = cross.block(Var::Imu, Var::Imu).unwrap();
         let p1_num = phi_num * phi_num.transpose();
-        let err = (p1 - DMatrix::from_iterator(15, 15, p1_num.iter().copied())).abs().max();
+        let err = (p1 - DMatrix::from_iterator(15, 15, p1_num.iter().copied()))
+            .abs()
+            .max();
         assert!(err < 1e-5, "Φ Φᵀ error {err}");
     }
 

@@ -265,7 +265,8 @@ impl State {
         cov.view_mut((0, 0), (n, n)).copy_from(&self.cov);
         cov.view_mut((n, 0), (k, n)).copy_from(&m);
         cov.view_mut((0, n), (n, k)).copy_from(&m.transpose());
-        cov.view_mut((n, n), (k, k)).copy_from(&(0.5 * (&p_nn + p_nn.transpose())));
+        cov.view_mut((n, n), (k, k))
+            .copy_from(&(0.5 * (&p_nn + p_nn.transpose())));
         self.cov = cov;
         self.index.push((new, n));
         Ok(())
@@ -291,7 +292,8 @@ impl State {
         cov.view_mut((0, 0), (n, n)).copy_from(&self.cov);
         cov.view_mut((n, 0), (k, n)).copy_from(cross);
         cov.view_mut((0, n), (n, k)).copy_from(&cross.transpose());
-        cov.view_mut((n, n), (k, k)).copy_from(&(0.5 * (p_nn + p_nn.transpose())));
+        cov.view_mut((n, n), (k, k))
+            .copy_from(&(0.5 * (p_nn + p_nn.transpose())));
         self.cov = cov;
         self.index.push((new, n));
         Ok(())
@@ -492,7 +494,11 @@ mod tests {
             bias_gyro: Vector3::zeros(),
             bias_accel: Vector3::zeros(),
         };
-        let cov = DMatrix::from_fn(15, 15, |i, j| if i == j { 0.1 + i as f64 * 0.01 } else { 0.001 });
+        let cov = DMatrix::from_fn(
+            15,
+            15,
+            |i, j| if i == j { 0.1 + i as f64 * 0.01 } else { 0.001 },
+        );
         State::new(
             0.0,
             imu,
@@ -510,9 +516,17 @@ mod tests {
         s.augment(Var::Clone(1), &[(Var::Imu, j)], &DMatrix::zeros(6, 6))
             .unwrap();
         let pc = s.block(Var::Clone(1), Var::Clone(1)).unwrap();
-        let pi = s.block(Var::Imu, Var::Imu).unwrap().view((0, 0), (6, 6)).into_owned();
+        let pi = s
+            .block(Var::Imu, Var::Imu)
+            .unwrap()
+            .view((0, 0), (6, 6))
+            .into_owned();
         assert!((pc - &pi).norm() < 1e-15);
-        let cross = s.block(Var::Clone(1), Var::Imu).unwrap().view((0, 0), (6, 6)).into_owned();
+        let cross = s
+            .block(Var::Clone(1), Var::Imu)
+            .unwrap()
+            .view((0, 0), (6, 6))
+            .into_owned();
         assert!((cross - pi).norm() < 1e-15);
         assert_eq!(s.dim(), 22);
     }
@@ -521,10 +535,18 @@ mod tests {
     fn marginalizing_removes_rows_and_keeps_other_blocks() {
         let mut s = test_state();
         let j = DMatrix::from_fn(6, 15, |i, k| if i == k { 1.0 } else { 0.0 });
-        s.augment(Var::Clone(1), &[(Var::Imu, j.clone())], &DMatrix::identity(6, 6))
-            .unwrap();
-        s.augment(Var::Clone(2), &[(Var::Imu, j)], &(DMatrix::identity(6, 6) * 2.0))
-            .unwrap();
+        s.augment(
+            Var::Clone(1),
+            &[(Var::Imu, j.clone())],
+            &DMatrix::identity(6, 6),
+        )
+        .unwrap();
+        s.augment(
+            Var::Clone(2),
+            &[(Var::Imu, j)],
+            &(DMatrix::identity(6, 6) * 2.0),
+        )
+        .unwrap();
         let before = s.block(Var::Clone(2), Var::Imu).unwrap();
         s.marginalize(Var::Clone(1)).unwrap();
         assert_eq!(s.dim(), 22);
@@ -563,7 +585,12 @@ mod tests {
         let mut s = test_state();
         let h = DMatrix::zeros(2, 6);
         let e = s
-            .ekf_update(&[Var::Clone(9)], &h, &DVector::zeros(2), &DMatrix::identity(2, 2))
+            .ekf_update(
+                &[Var::Clone(9)],
+                &h,
+                &DVector::zeros(2),
+                &DMatrix::identity(2, 2),
+            )
             .unwrap_err();
         assert_eq!(e, StateError::Missing(Var::Clone(9)));
     }

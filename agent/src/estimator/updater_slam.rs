@@ -7,7 +7,7 @@ use super::feature_db::FeatureDb;
 use super::feature_system::{build, Columns};
 use super::linalg::givens_qr_split;
 use super::options::EstimatorOptions;
-use super::projection::{predict, project};
+use super::projection::{predict, project, Projection};
 use super::state::{SlamFeature, State, Var};
 use super::triangulation::TriangulationOptions;
 use nalgebra::{DMatrix, DVector, Vector3};
@@ -45,7 +45,7 @@ pub fn update(
         .filter(|v| state.has(*v))
         .collect();
     vars.push(Var::Clone(clone_key));
-    let mut used: Vec<(u64, [f64; 2], nalgebra::SMatrix<f64, 2, 6>, nalgebra::Matrix2x3<f64>, nalgebra::SMatrix<f64, 2, 6>, nalgebra::SMatrix<f64, 2, 8>)> = Vec::new();
+    let mut used: Vec<(u64, [f64; 2], Projection)> = Vec::new();
     for id in ids {
         let (Some(feat), Some(f)) = (db.get(*id), state.features.get(id)) else {
             continue;
@@ -58,7 +58,10 @@ pub fn update(
         } else {
             (&clone.rot, &clone.pos, &f.pos)
         };
-        let (Some(proj), Some(z_hat)) = (project(lr, lp, lf, &calib), predict(&clone.rot, &clone.pos, &f.pos, &calib)) else {
+        let (Some(proj), Some(z_hat)) = (
+            project(lr, lp, lf, &calib),
+            predict(&clone.rot, &clone.pos, &f.pos, &calib),
+        ) else {
             continue;
         };
         let e = m.uv - z_hat;
@@ -66,12 +69,12 @@ pub fn update(
         let mut one_vars = vars.clone();
         one_vars.push(Var::Feature(*id));
         let one_cols = Columns::of(one_vars.clone());
-        let h = jacobian_row(&one_cols, clone_key, *id, &proj.h_clone, &proj.h_feature, &proj.h_extrinsic, &proj.h_intrinsics);
+        let h = jacobian_row(&one_cols, clone_key, *id, &proj);
         let res = DVector::from_vec(vec![e.x, e.y]);
         let r = DMatrix::identity(2, 2) * sigma2;
         match state.mahalanobis(&one_cols.vars, &h, &res, &r) {
             Ok(d2) if d2 <= opts.chi2_multiplier * chi2.get(2) => {
-                used.push((*id, [e.x, e.y], proj.h_clone, proj.h_feature, proj.h_extrinsic, proj.h_intrinsics));
+                used.push((*id, [e.x, e.y], proj));
             }
             _ => stats.rejected_chi2 += 1,
         }
@@ -83,8 +86,8 @@ pub fn update(
     let cols = Columns::of(vars);
     let mut h = DMatrix::zeros(2 * used.len(), cols.dim);
     let mut res = DVector::zeros(2 * used.len());
-    for (i, (id, e, hc, hf, he, hi)) in used.iter().enumerate() {
-        let row = jacobian_row(&cols, clone_key, *id, hc, hf, he, hi);
+    for (i, (id, e, proj)) in used.iter().enumerate() {
+        let row = jacobian_row(&cols, clone_key, *id, proj);
         h.view_mut((2 * i, 0), (2, cols.dim)).copy_from(&row);
         res[2 * i] = e[0];
         res[2 * i + 1] = e[1];
@@ -95,27 +98,19 @@ pub fn update(
     }
 }
 
-fn jacobian_row(
-    cols: &Columns,
-    clone_key: u64,
-    id: u64,
-    h_clone: &nalgebra::SMatrix<f64, 2, 6>,
-    h_feature: &nalgebra::Matrix2x3<f64>,
-    h_extrinsic: &nalgebra::SMatrix<f64, 2, 6>,
-    h_intrinsics: &nalgebra::SMatrix<f64, 2, 8>,
-) -> DMatrix<f64> {
+fn jacobian_row(cols: &Columns, clone_key: u64, id: u64, proj: &Projection) -> DMatrix<f64> {
     let mut h = DMatrix::zeros(2, cols.dim);
     if let Some(o) = cols.col(Var::Clone(clone_key)) {
-        h.fixed_view_mut::<2, 6>(0, o).copy_from(h_clone);
+        h.fixed_view_mut::<2, 6>(0, o).copy_from(&proj.h_clone);
     }
     if let Some(o) = cols.col(Var::Feature(id)) {
-        h.fixed_view_mut::<2, 3>(0, o).copy_from(h_feature);
+        h.fixed_view_mut::<2, 3>(0, o).copy_from(&proj.h_feature);
     }
     if let Some(o) = cols.col(Var::Extrinsic) {
-        h.fixed_view_mut::<2, 6>(0, o).copy_from(h_extrinsic);
+        h.fixed_view_mut::<2, 6>(0, o).copy_from(&proj.h_extrinsic);
     }
     if let Some(o) = cols.col(Var::Intrinsics) {
-        h.fixed_view_mut::<2, 8>(0, o).copy_from(h_intrinsics);
+        h.fixed_view_mut::<2, 8>(0, o).copy_from(&proj.h_intrinsics);
     }
     h
 }
@@ -155,13 +150,21 @@ pub fn initialize(
     let h_x1 = sys.h_x.rows(0, 3).into_owned();
     let h_f1 = sys.h_f.rows(0, 3).into_owned();
     let r1 = sys.res.rows(0, 3).into_owned();
-    let Ok(dx) = state.initialize_invertible(Var::Feature(id), &cols.vars, &h_x1, &h_f1, &r1, sigma2) else {
+    let Ok(dx) =
+        state.initialize_invertible(Var::Feature(id), &cols.vars, &h_x1, &h_f1, &r1, sigma2)
+    else {
         return false;
     };
     let pos = sys.p_f + Vector3::new(dx[0], dx[1], dx[2]);
     // The first estimate is the point the initialization was linearized at, so
     // every later Jacobian shares its unobservable directions (FEJ).
-    state.features.insert(id, SlamFeature { pos, pos_fej: sys.p_f });
+    state.features.insert(
+        id,
+        SlamFeature {
+            pos,
+            pos_fej: sys.p_f,
+        },
+    );
     // Eq. 2.45: the remaining rows update the whole state (the new feature through
     // its correlations).
     let _ = state.ekf_update(&cols.vars, &h_x2, &r2, &noise2);

@@ -135,6 +135,8 @@ pub struct FrameOutput {
     pub msckf_features: usize,
     /// SLAM features in the state.
     pub slam_features: usize,
+    /// What the SLAM step did.
+    pub slam: updater_slam::SlamStats,
     /// Cost of the frame.
     pub timing: FrameTiming,
 }
@@ -204,7 +206,10 @@ impl Estimator {
         let p = &self.opts.calib_prior;
         let mut calib_vars = Vec::new();
         if self.opts.calib_time_offset {
-            calib_vars.push((Var::TimeOffset, DMatrix::from_element(1, 1, p.time_offset_s.powi(2))));
+            calib_vars.push((
+                Var::TimeOffset,
+                DMatrix::from_element(1, 1, p.time_offset_s.powi(2)),
+            ));
         }
         if self.opts.calib_extrinsics {
             let mut c = DMatrix::zeros(6, 6);
@@ -229,22 +234,43 @@ impl Estimator {
             bias_gyro: init.bias_gyro,
             bias_accel: init.bias_accel,
         };
-        self.state = Some(State::new(init.t, imu, cov, self.calib.clone(), &calib_vars));
+        self.state = Some(State::new(
+            init.t,
+            imu,
+            cov,
+            self.calib.clone(),
+            &calib_vars,
+        ));
         // Frames before the start are not used.
-        self.frames.retain(|f| f.t + self.calib.time_offset_s > init.t);
+        self.frames
+            .retain(|f| f.t + self.calib.time_offset_s > init.t);
     }
 
     /// Adds an IMU sample (rejects NaN, time going backwards and gaps).
     pub fn feed_imu(&mut self, s: ImuSample) -> Result<(), InputError> {
-        if !(s.t.is_finite() && s.gyro.iter().all(|v| v.is_finite()) && s.accel.iter().all(|v| v.is_finite())) {
-            return Err(InputError::NonFinite { what: "IMU sample", t: s.t });
+        if !(s.t.is_finite()
+            && s.gyro.iter().all(|v| v.is_finite())
+            && s.accel.iter().all(|v| v.is_finite()))
+        {
+            return Err(InputError::NonFinite {
+                what: "IMU sample",
+                t: s.t,
+            });
         }
         if let Some(prev) = self.imu.back() {
             if s.t <= prev.t {
-                return Err(InputError::TimeBackwards { what: "IMU sample", t: s.t, previous: prev.t });
+                return Err(InputError::TimeBackwards {
+                    what: "IMU sample",
+                    t: s.t,
+                    previous: prev.t,
+                });
             }
             if s.t - prev.t > self.opts.max_imu_gap_s {
-                return Err(InputError::ImuGap { gap_s: s.t - prev.t, t: s.t, max_s: self.opts.max_imu_gap_s });
+                return Err(InputError::ImuGap {
+                    gap_s: s.t - prev.t,
+                    t: s.t,
+                    max_s: self.opts.max_imu_gap_s,
+                });
             }
         }
         self.imu.push_back(s);
@@ -255,13 +281,23 @@ impl Estimator {
     /// once the IMU covers its time.
     pub fn feed_frame(&mut self, frame: FeatureFrame) -> Result<(), InputError> {
         if !frame.t.is_finite()
-            || frame.features.iter().any(|f| !(f.uv.x.is_finite() && f.uv.y.is_finite()))
+            || frame
+                .features
+                .iter()
+                .any(|f| !(f.uv.x.is_finite() && f.uv.y.is_finite()))
         {
-            return Err(InputError::NonFinite { what: "frame", t: frame.t });
+            return Err(InputError::NonFinite {
+                what: "frame",
+                t: frame.t,
+            });
         }
         if let Some(prev) = self.frames.back().map(|f| f.t).or(self.last_frame_t) {
             if frame.t <= prev {
-                return Err(InputError::TimeBackwards { what: "frame", t: frame.t, previous: prev });
+                return Err(InputError::TimeBackwards {
+                    what: "frame",
+                    t: frame.t,
+                    previous: prev,
+                });
             }
         }
         if frame.features.is_empty() {
@@ -270,7 +306,10 @@ impl Estimator {
         let mut ids: Vec<u64> = frame.features.iter().map(|f| f.id).collect();
         ids.sort_unstable();
         if let Some(w) = ids.windows(2).find(|w| w[0] == w[1]) {
-            return Err(InputError::DuplicateId { t: frame.t, id: w[0] });
+            return Err(InputError::DuplicateId {
+                t: frame.t,
+                id: w[0],
+            });
         }
         self.frames.push_back(frame);
         Ok(())
@@ -280,13 +319,19 @@ impl Estimator {
     pub fn poll(&mut self) -> Vec<Result<FrameOutput, FrameError>> {
         let mut out = Vec::new();
         while let Some(front) = self.frames.front() {
-            let td = self.state.as_ref().map(|s| s.calib.time_offset_s).unwrap_or(self.calib.time_offset_s);
+            let td = self
+                .state
+                .as_ref()
+                .map(|s| s.calib.time_offset_s)
+                .unwrap_or(self.calib.time_offset_s);
             let t_imu = front.t + td;
             let covered = self.imu.back().is_some_and(|s| s.t >= t_imu);
             if !covered {
                 break;
             }
-            let Some(frame) = self.frames.pop_front() else { break };
+            let Some(frame) = self.frames.pop_front() else {
+                break;
+            };
             self.last_frame_t = Some(frame.t);
             if self.state.is_none() {
                 out.push(Err(FrameError::NotInitialized(frame.t)));
@@ -310,7 +355,10 @@ impl Estimator {
         // 1. Propagate to the image's IMU time and clone the pose there.
         let t_imu = frame.t + state.calib.time_offset_s;
         if t_imu <= state.t {
-            return Err(FrameError::Propagate(PropagateError::Backwards { from: state.t, to: t_imu }));
+            return Err(FrameError::Propagate(PropagateError::Backwards {
+                from: state.t,
+                to: t_imu,
+            }));
         }
         let buf = self.imu.make_contiguous();
         let omega = propagate(state, buf, t_imu, &opts.imu, opts.use_fej)?;
@@ -321,12 +369,24 @@ impl Estimator {
 
         // 2. Record the measurements.
         for f in &frame.features {
-            let Ok(uvn) = state.calib.camera.undistort(&f.uv) else { continue };
-            let m = FeatureMeasurement { clone_key: key, t: frame.t, uv: f.uv, uvn };
+            let Ok(uvn) = state.calib.camera.undistort(&f.uv) else {
+                continue;
+            };
+            let m = FeatureMeasurement {
+                clone_key: key,
+                t: frame.t,
+                uv: f.uv,
+                uvn,
+            };
             if self.features.insert(f.id, m).is_err() {
                 // An impossible jump: the track restarts from this observation.
                 self.features.remove(f.id);
-                let m = FeatureMeasurement { clone_key: key, t: frame.t, uv: f.uv, uvn };
+                let m = FeatureMeasurement {
+                    clone_key: key,
+                    t: frame.t,
+                    uv: f.uv,
+                    uvn,
+                };
                 let _ = self.features.insert(f.id, m);
             }
         }
@@ -335,18 +395,34 @@ impl Estimator {
         let oldest = state.clones.keys().next().copied().unwrap_or(key);
         let window_full = state.clones.len() > opts.max_clones;
         let lost: Vec<u64> = self.features.ids_not_seen_since(key);
-        let at_marg: Vec<u64> = if window_full { self.features.ids_with_measurement_at(oldest) } else { Vec::new() };
-        let slam_seen: Vec<u64> = state.features.keys().copied().filter(|id| {
-            self.features.get(*id).is_some_and(|f| f.measurements.iter().any(|m| m.clone_key == key))
-        }).collect();
+        let at_marg: Vec<u64> = if window_full {
+            self.features.ids_with_measurement_at(oldest)
+        } else {
+            Vec::new()
+        };
+        let slam_seen: Vec<u64> = state
+            .features
+            .keys()
+            .copied()
+            .filter(|id| {
+                self.features
+                    .get(*id)
+                    .is_some_and(|f| f.measurements.iter().any(|m| m.clone_key == key))
+            })
+            .collect();
         let mut slam_candidates = Vec::new();
         let mut msckf_ids = Vec::new();
-        let room = opts.max_slam_features.saturating_sub(state.features.len()).min(opts.max_slam_in_update);
+        let room = opts
+            .max_slam_features
+            .saturating_sub(state.features.len())
+            .min(opts.max_slam_in_update);
         for id in lost.iter().chain(at_marg.iter()) {
             if state.features.contains_key(id) {
                 continue;
             }
-            let Some(f) = self.features.get(*id) else { continue };
+            let Some(f) = self.features.get(*id) else {
+                continue;
+            };
             let spans = f.measurements.len() > opts.max_clones;
             if spans && !lost.contains(id) && slam_candidates.len() < room {
                 slam_candidates.push(*id);
@@ -355,18 +431,44 @@ impl Estimator {
             }
         }
         // The longest tracks first, up to the limit.
-        msckf_ids.sort_by_key(|id| std::cmp::Reverse(self.features.get(*id).map(|f| f.measurements.len()).unwrap_or(0)));
-        let msckf_used: Vec<u64> = msckf_ids.iter().copied().take(opts.max_msckf_in_update).collect();
+        msckf_ids.sort_by_key(|id| {
+            std::cmp::Reverse(
+                self.features
+                    .get(*id)
+                    .map(|f| f.measurements.len())
+                    .unwrap_or(0),
+            )
+        });
+        let msckf_used: Vec<u64> = msckf_ids
+            .iter()
+            .copied()
+            .take(opts.max_msckf_in_update)
+            .collect();
 
         // 4. MSCKF update.
         let t = Instant::now();
-        let msckf = updater_msckf::update(state, &self.features, &msckf_used, &opts, &self.chi2, &self.tri);
+        let msckf = updater_msckf::update(
+            state,
+            &self.features,
+            &msckf_used,
+            &opts,
+            &self.chi2,
+            &self.tri,
+        );
         timing.msckf_ms = ms(t);
 
         // 5. SLAM update with the features seen now.
         let t = Instant::now();
         let mut slam = updater_slam::SlamStats::default();
-        updater_slam::update(state, &self.features, &slam_seen, key, &opts, &self.chi2, &mut slam);
+        updater_slam::update(
+            state,
+            &self.features,
+            &slam_seen,
+            key,
+            &opts,
+            &self.chi2,
+            &mut slam,
+        );
         timing.slam_update_ms = ms(t);
 
         // 6. Delayed initialization of new SLAM features.
@@ -378,7 +480,14 @@ impl Estimator {
                 slam.init_failed += 1;
                 if !msckf_used.contains(id) {
                     // Not initialized: its measurements are still useful, once.
-                    let _ = updater_msckf::update(state, &self.features, &[*id], &opts, &self.chi2, &self.tri);
+                    let _ = updater_msckf::update(
+                        state,
+                        &self.features,
+                        &[*id],
+                        &opts,
+                        &self.chi2,
+                        &self.tri,
+                    );
                 }
             }
         }
@@ -396,13 +505,20 @@ impl Estimator {
                 f.measurements.clear();
             }
         }
-        let lost_slam: Vec<u64> = state.features.keys().copied().filter(|id| !slam_seen.contains(id) && !slam_candidates.contains(id)).collect();
+        let lost_slam: Vec<u64> = state
+            .features
+            .keys()
+            .copied()
+            .filter(|id| !slam_seen.contains(id) && !slam_candidates.contains(id))
+            .collect();
         for id in lost_slam {
             let _ = state.marginalize(Var::Feature(id));
             self.features.remove(id);
         }
         while state.clones.len() > opts.max_clones {
-            let Some(&old) = state.clones.keys().next() else { break };
+            let Some(&old) = state.clones.keys().next() else {
+                break;
+            };
             let _ = state.marginalize(Var::Clone(old));
             if let Some(&next) = state.clones.keys().next() {
                 self.features.remove_measurements_before(next);
@@ -426,6 +542,7 @@ impl Estimator {
             cov_pos: p.fixed_view::<3, 3>(o + 3, o + 3).into_owned(),
             msckf_features: msckf.used,
             slam_features: state.features.len(),
+            slam,
             timing,
         })
     }
@@ -444,7 +561,10 @@ fn augment_clone(state: &mut State, key: u64, omega: &Vector3<f64>) {
         j_td.view_mut((3, 0), (3, 1)).copy_from(&state.imu.vel);
         jac.push((Var::TimeOffset, j_td));
     }
-    if state.augment(Var::Clone(key), &jac, &DMatrix::zeros(6, 6)).is_ok() {
+    if state
+        .augment(Var::Clone(key), &jac, &DMatrix::zeros(6, 6))
+        .is_ok()
+    {
         state.clones.insert(
             key,
             ClonePose {
