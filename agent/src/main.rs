@@ -76,12 +76,12 @@ fn run(args: &RunArgs) -> Result<()> {
     write_tum(out.join("groundtruth.txt"), &run.truth)?;
     write_covariances(out.join("covariance.txt"), &run.covariance)?;
     let mut timing = std::io::BufWriter::new(std::fs::File::create(out.join("timing.csv"))?);
-    writeln!(timing, "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,slam_features")?;
+    writeln!(timing, "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed")?;
     for f in &run.frames {
         let t = &f.timing;
         writeln!(
             timing,
-            "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{}",
+            "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{}",
             f.t,
             t.propagate_ms,
             t.msckf_ms,
@@ -90,7 +90,13 @@ fn run(args: &RunArgs) -> Result<()> {
             t.marginalize_ms,
             t.total_ms,
             f.msckf_features,
-            f.slam_features
+            f.msckf.rejected_chi2,
+            f.msckf.failed,
+            f.slam_features,
+            f.slam.updated,
+            f.slam.rejected_chi2,
+            f.slam.initialized,
+            f.slam.init_failed
         )?;
     }
     timing.flush()?;

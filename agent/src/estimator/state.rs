@@ -303,7 +303,8 @@ impl State {
     pub fn marginalize(&mut self, var: Var) -> Result<(), StateError> {
         let o = self.offset(var).ok_or(StateError::Missing(var))?;
         let k = var.size();
-        self.cov = self.cov.clone().remove_rows(o, k).remove_columns(o, k);
+        let cov = std::mem::replace(&mut self.cov, DMatrix::zeros(0, 0));
+        self.cov = cov.remove_rows(o, k).remove_columns(o, k);
         self.index.retain(|(v, _)| *v != var);
         for (_, off) in self.index.iter_mut() {
             if *off > o {
@@ -322,26 +323,35 @@ impl State {
         Ok(())
     }
 
-    /// `P Hᵀ` for a sparse Jacobian (`dim x m`).
-    fn p_ht(&self, vars: &[(usize, usize)], h: &DMatrix<f64>) -> DMatrix<f64> {
+    /// The columns of the covariance belonging to `offs`, contiguous (`dim x c`).
+    fn gather_cols(&self, offs: &[(usize, usize)], cols: usize) -> DMatrix<f64> {
         let n = self.dim();
-        let mut pht = DMatrix::zeros(n, h.nrows());
-        let mut col = 0;
-        for &(o, k) in vars {
-            pht += self.cov.view((0, o), (n, k)) * h.view((0, col), (h.nrows(), k)).transpose();
-            col += k;
+        let mut out = DMatrix::zeros(n, cols);
+        let mut c = 0;
+        for &(o, k) in offs {
+            out.columns_mut(c, k).copy_from(&self.cov.columns(o, k));
+            c += k;
         }
-        pht
+        out
     }
 
-    /// `H P Hᵀ + R` and `P Hᵀ` for a sparse Jacobian whose columns are the
-    /// variables `vars` in order.
-    pub fn innovation(
+    /// The rows `offs` of `m` (`rows(m) == dim`), contiguous (`c x ncols(m)`).
+    fn gather_rows(m: &DMatrix<f64>, offs: &[(usize, usize)], rows: usize) -> DMatrix<f64> {
+        let mut out = DMatrix::zeros(rows, m.ncols());
+        let mut r = 0;
+        for &(o, k) in offs {
+            out.rows_mut(r, k).copy_from(&m.rows(o, k));
+            r += k;
+        }
+        out
+    }
+
+    fn checked_offsets(
         &self,
         vars: &[Var],
         h: &DMatrix<f64>,
         r: &DMatrix<f64>,
-    ) -> Result<(DMatrix<f64>, DMatrix<f64>), StateError> {
+    ) -> Result<(Vec<(usize, usize)>, usize), StateError> {
         let offs = self.offsets(vars)?;
         let cols: usize = offs.iter().map(|(_, k)| k).sum();
         if h.ncols() != cols || r.shape() != (h.nrows(), h.nrows()) {
@@ -351,17 +361,26 @@ impl State {
                 r.shape()
             )));
         }
-        let pht = self.p_ht(&offs, h);
-        let mut s = r.clone();
-        let mut col = 0;
-        for &(o, k) in &offs {
-            s += h.view((0, col), (h.nrows(), k)) * pht.view((o, 0), (k, h.nrows()));
-            col += k;
-        }
+        Ok((offs, cols))
+    }
+
+    /// `H P Hᵀ + R` and `P Hᵀ` for a sparse Jacobian whose columns are the
+    /// variables `vars` in order. The involved columns of `P` are gathered once so
+    /// both products are dense matrix multiplications.
+    pub fn innovation(
+        &self,
+        vars: &[Var],
+        h: &DMatrix<f64>,
+        r: &DMatrix<f64>,
+    ) -> Result<(DMatrix<f64>, DMatrix<f64>), StateError> {
+        let (offs, cols) = self.checked_offsets(vars, h, r)?;
+        let pht = self.gather_cols(&offs, cols) * h.transpose();
+        let s = h * Self::gather_rows(&pht, &offs, cols) + r;
         Ok((s, pht))
     }
 
-    /// Mahalanobis distance `rᵀ S⁻¹ r` of a residual under a sparse Jacobian.
+    /// Mahalanobis distance `rᵀ S⁻¹ r` of a residual under a sparse Jacobian; only
+    /// the covariance block of the involved variables is touched.
     pub fn mahalanobis(
         &self,
         vars: &[Var],
@@ -369,7 +388,9 @@ impl State {
         res: &DVector<f64>,
         r: &DMatrix<f64>,
     ) -> Result<f64, StateError> {
-        let (s, _) = self.innovation(vars, h, r)?;
+        let (offs, cols) = self.checked_offsets(vars, h, r)?;
+        let p_vv = Self::gather_rows(&self.gather_cols(&offs, cols), &offs, cols);
+        let s = h * p_vv * h.transpose() + r;
         let chol = s.cholesky().ok_or(StateError::NotPositiveDefinite)?;
         Ok(res.dot(&chol.solve(res)))
     }
@@ -387,11 +408,14 @@ impl State {
             return Err(StateError::Dimension("residual length".into()));
         }
         let (s, pht) = self.innovation(vars, h, r)?;
-        let chol = s.cholesky().ok_or(StateError::NotPositiveDefinite)?;
-        // K = P Hᵀ S⁻¹ ; P ← P − K (P Hᵀ)ᵀ ; δx = K r
-        let k_t = chol.solve(&pht.transpose()); // S⁻¹ (P Hᵀ)ᵀ = Kᵀ
-        let dx = k_t.transpose() * res;
-        self.cov -= k_t.transpose() * pht.transpose();
+        let s_inv = s
+            .cholesky()
+            .ok_or(StateError::NotPositiveDefinite)?
+            .inverse();
+        // Kᵀ = S⁻¹ (P Hᵀ)ᵀ ; P ← P − (P Hᵀ) Kᵀ ; δx = K r (dense products).
+        let k_t = s_inv * pht.transpose();
+        let dx = k_t.tr_mul(res);
+        self.cov.gemm(-1.0, &pht, &k_t, 1.0);
         self.symmetrize_and_floor();
         self.apply_correction(&dx);
         Ok(())

@@ -133,6 +133,8 @@ pub struct FrameOutput {
     pub cov_pos: Matrix3<f64>,
     /// Features used in the MSCKF update.
     pub msckf_features: usize,
+    /// What the MSCKF update did (used, gated out, failed).
+    pub msckf: updater_msckf::MsckfStats,
     /// SLAM features in the state.
     pub slam_features: usize,
     /// What the SLAM step did.
@@ -541,6 +543,7 @@ impl Estimator {
             cov_ori: p.fixed_view::<3, 3>(o, o).into_owned(),
             cov_pos: p.fixed_view::<3, 3>(o + 3, o + 3).into_owned(),
             msckf_features: msckf.used,
+            msckf,
             slam_features: state.features.len(),
             slam,
             timing,

@@ -1,0 +1,228 @@
+//! Short end-to-end runs of one simulated robot through its estimator, with
+//! asserted accuracy (ATE) and consistency (NEES) bounds.
+//!
+//! The robot walks a 40 s loop (about 1.2 m/s, rolling and pitching while it turns)
+//! in the simulator's default setup: 400 Hz IMU with thesis Table 5.1 noise, 10 Hz
+//! EuRoC cam0 with 1 px noise, a perturbed initial calibration estimated online.
+//! The bounds were set at about 2-3x the values measured over seeds 1-3 (release
+//! build); see each constant.
+
+// Helpers outside `#[test]` functions: a failed setup is a failed test.
+#![allow(clippy::expect_used)]
+
+use agent::runner::{options_for, run_robot, RobotRun, Variant};
+use common::summary::MetricSet;
+use nalgebra::UnitQuaternion;
+use simulator::{Fleet, Scenario};
+use std::path::Path;
+use std::time::Instant;
+
+/// Seeds every accuracy figure is averaged over.
+const SEEDS: [u64; 3] = [1, 2, 3];
+
+/// Length of the synthetic trajectory, s.
+const DURATION_S: f64 = 40.0;
+
+/// Writes the synthetic walk (TUM text, 20 Hz): a 4 m radius circle at 0.3 rad/s
+/// (1.2 m/s), height, roll and pitch oscillating, yaw following the circle.
+fn write_walk(path: &Path) {
+    let mut text = String::from("# timestamp tx ty tz qx qy qz qw\n");
+    let n = (DURATION_S * 20.0) as usize;
+    for k in 0..=n {
+        let s = k as f64 / 20.0;
+        let a = 0.3 * s;
+        let (x, y, z) = (4.0 * a.cos(), 4.0 * a.sin(), 1.2 + 0.3 * (0.6 * s).sin());
+        let roll = 0.15 * (0.7 * s).sin();
+        let pitch = 0.12 * (0.9 * s + 1.0).sin();
+        let yaw = a + std::f64::consts::FRAC_PI_2;
+        let q = UnitQuaternion::from_euler_angles(roll, pitch, yaw);
+        text.push_str(&format!(
+            "{:.6} {x:.6} {y:.6} {z:.6} {:.9} {:.9} {:.9} {:.9}\n",
+            100.0 + s,
+            q.i,
+            q.j,
+            q.k,
+            q.w
+        ));
+    }
+    std::fs::write(path, text).expect("write trajectory");
+}
+
+/// A one-robot scenario on the synthetic walk, with extra `estimator` settings
+/// (a YAML flow mapping, `{}` for the defaults), in `dir`.
+fn scenario(dir: &Path, estimator: &str) -> Scenario {
+    write_walk(&dir.join("walk.txt"));
+    let path = dir.join("walk.yaml");
+    std::fs::write(
+        &path,
+        format!("name: walk\nrobots:\n  - trajectory: walk.txt\nestimator: {estimator}\n"),
+    )
+    .expect("write scenario");
+    Scenario::load(&path).expect("load scenario")
+}
+
+/// One run of robot 0 with `seed` and `variant`.
+fn run(scenario: &Scenario, seed: u64, variant: Variant) -> RobotRun {
+    let fleet = Fleet::build(scenario, seed).expect("build fleet");
+    let opts = options_for(&scenario.estimator, &fleet, variant);
+    run_robot(&fleet, 0, opts).expect("run robot")
+}
+
+/// Largest position error of the run, m.
+fn max_position_error(run: &RobotRun) -> f64 {
+    run.estimate
+        .iter()
+        .zip(&run.truth)
+        .map(|(e, g)| (e.pos - g.pos).norm())
+        .fold(0.0, f64::max)
+}
+
+/// Asserts that the run went through without diverging, and returns its metrics.
+fn checked_metrics(run: &RobotRun, label: &str) -> MetricSet {
+    let m = run.metrics();
+    let frames = m.frames.unwrap_or(0);
+    // About 10 Hz over the walk after the ~1 s start.
+    assert!(frames > 350, "{label}: only {frames} frames estimated");
+    assert!(
+        run.rejected.is_empty(),
+        "{label}: rejected inputs: {:?}",
+        &run.rejected[..run.rejected.len().min(5)]
+    );
+    for e in &run.estimate {
+        assert!(
+            e.pos.iter().chain(e.rot.iter()).all(|v| v.is_finite()),
+            "{label}: non-finite estimate at t={}",
+            e.t
+        );
+    }
+    let max_err = max_position_error(run);
+    assert!(
+        max_err < 1.0,
+        "{label}: diverged (max position error {max_err:.3} m)"
+    );
+    m
+}
+
+/// Mean of one metric over runs.
+fn mean(ms: &[MetricSet], f: impl Fn(&MetricSet) -> Option<f64>) -> f64 {
+    let v: Vec<f64> = ms.iter().map(|m| f(m).expect("metric present")).collect();
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+/// Runs `variant` over [`SEEDS`] and prints each run's figures and the means.
+fn runs_over_seeds(variant: Variant) -> MetricSet {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let sc = scenario(dir.path(), "{}");
+    let mut ms = Vec::new();
+    for seed in SEEDS {
+        let start = Instant::now();
+        let r = run(&sc, seed, variant);
+        let label = format!("{} seed {seed}", variant.name());
+        let m = checked_metrics(&r, &label);
+        println!(
+            "{label}: ATE {:.3} deg {:.3} m, NEES ori {:.2} pos {:.2}, max pos err {:.3} m, \
+             {} frames, {:.2} ms/frame, run {:.2} s",
+            m.ate_ori_deg.unwrap_or(f64::NAN),
+            m.ate_pos_m.unwrap_or(f64::NAN),
+            m.nees_ori.unwrap_or(f64::NAN),
+            m.nees_pos.unwrap_or(f64::NAN),
+            max_position_error(&r),
+            m.frames.unwrap_or(0),
+            m.ms_per_frame_mean.unwrap_or(f64::NAN),
+            start.elapsed().as_secs_f64(),
+        );
+        ms.push(m);
+    }
+    let mean_set = MetricSet {
+        ate_ori_deg: Some(mean(&ms, |m| m.ate_ori_deg)),
+        ate_pos_m: Some(mean(&ms, |m| m.ate_pos_m)),
+        nees_ori: Some(mean(&ms, |m| m.nees_ori)),
+        nees_pos: Some(mean(&ms, |m| m.nees_pos)),
+        ..MetricSet::default()
+    };
+    println!(
+        "{} mean over seeds {SEEDS:?}: ATE {:.3} deg {:.3} m, NEES ori {:.2} pos {:.2}",
+        variant.name(),
+        mean_set.ate_ori_deg.unwrap_or(f64::NAN),
+        mean_set.ate_pos_m.unwrap_or(f64::NAN),
+        mean_set.nees_ori.unwrap_or(f64::NAN),
+        mean_set.nees_pos.unwrap_or(f64::NAN),
+    );
+    mean_set
+}
+
+/// NEES means (3 DoF, ideal 3) accepted for orientation and position.
+const NEES_RANGE: std::ops::RangeInclusive<f64> = 0.3..=6.0;
+
+/// Asserts the seed-averaged figures of `variant` against its bounds.
+fn assert_accurate_and_consistent(variant: Variant, max_ate_deg: f64, max_ate_m: f64) {
+    let m = runs_over_seeds(variant);
+    let name = variant.name();
+    let (ori_deg, pos_m) = (
+        m.ate_ori_deg.unwrap_or(f64::NAN),
+        m.ate_pos_m.unwrap_or(f64::NAN),
+    );
+    assert!(
+        ori_deg < max_ate_deg,
+        "{name}: mean ATE orientation {ori_deg:.3} deg"
+    );
+    assert!(pos_m < max_ate_m, "{name}: mean ATE position {pos_m:.3} m");
+    for (what, v) in [("orientation", m.nees_ori), ("position", m.nees_pos)] {
+        let v = v.unwrap_or(f64::NAN);
+        assert!(
+            NEES_RANGE.contains(&v),
+            "{name}: mean {what} NEES {v:.2} outside {NEES_RANGE:?}"
+        );
+    }
+}
+
+#[test]
+fn msckf_only_runs_are_accurate_and_consistent_over_three_seeds() {
+    // Measured means over seeds 1-3: 0.73 deg, 0.164 m; NEES 2.33 (ori), 2.51 (pos).
+    assert_accurate_and_consistent(Variant::Indp, 1.8, 0.4);
+}
+
+#[test]
+fn slam_runs_are_accurate_and_consistent_over_three_seeds() {
+    // Measured means over seeds 1-3: 0.21 deg, 0.048 m; NEES 2.00 (ori), 0.55 (pos).
+    assert_accurate_and_consistent(Variant::IndpSlam, 0.5, 0.12);
+}
+
+#[test]
+fn the_same_scenario_and_seed_give_bit_identical_estimates() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let sc = scenario(dir.path(), "{}");
+    // Each run builds its own fleet: simulator and estimator are both covered.
+    let a = run(&sc, 7, Variant::IndpSlam);
+    let b = run(&sc, 7, Variant::IndpSlam);
+    assert!(a.estimate.len() > 350, "{} estimates", a.estimate.len());
+    assert_eq!(a.estimate.len(), b.estimate.len());
+    for (x, y) in a.estimate.iter().zip(&b.estimate) {
+        assert_eq!(x, y, "estimates differ at t={}", x.t);
+    }
+    assert_eq!(a.covariance, b.covariance);
+    assert_eq!(a.rejected, b.rejected);
+}
+
+#[test]
+fn a_run_without_first_estimates_jacobians_completes() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let sc = scenario(dir.path(), "{ use_fej: false }");
+    assert!(!sc.estimator.use_fej);
+    let fleet = Fleet::build(&sc, 1).expect("build fleet");
+    let opts = options_for(&sc.estimator, &fleet, Variant::IndpSlam);
+    assert!(!opts.use_fej);
+    let r = run_robot(&fleet, 0, opts).expect("run robot");
+    let m = r.metrics();
+    // No consistency bound: FEJ is what keeps the filter consistent.
+    println!(
+        "indp-slam without FEJ, seed 1: ATE {:.3} deg {:.3} m, NEES ori {:.2} pos {:.2}, {} frames",
+        m.ate_ori_deg.unwrap_or(f64::NAN),
+        m.ate_pos_m.unwrap_or(f64::NAN),
+        m.nees_ori.unwrap_or(f64::NAN),
+        m.nees_pos.unwrap_or(f64::NAN),
+        m.frames.unwrap_or(0),
+    );
+    assert!(m.frames.unwrap_or(0) > 350, "{m:?}");
+    assert!(m.ate_pos_m.is_some_and(f64::is_finite), "{m:?}");
+}
