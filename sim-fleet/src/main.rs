@@ -1,7 +1,9 @@
-//! `sim-fleet`: simulate a fleet, evaluate estimates (and, later, launch agents).
+//! `sim-fleet`: simulate a fleet, evaluate estimates, run Monte-Carlo studies (and,
+//! later, launch agents).
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 use sim_fleet::eval::{run_eval, EvalArgs};
+use sim_fleet::montecarlo::{run_montecarlo, MontecarloArgs};
 use sim_fleet::simulate::{run_simulate, SimulateArgs};
 
 /// Fleet tools of the distributed multi-robot VIO system.
@@ -19,6 +21,9 @@ enum Command {
     Simulate(SimulateArgs),
     /// Evaluate an estimate against ground truth: ATE, RPE, NEES and plots.
     Eval(EvalArgs),
+    /// Run every robot of a scenario standalone over many seeds and estimator
+    /// variants, in parallel, and aggregate the metrics (means, spreads, divergences).
+    Montecarlo(MontecarloArgs),
 }
 
 fn main() -> Result<()> {
@@ -32,5 +37,6 @@ fn main() -> Result<()> {
     match Cli::parse().command {
         Command::Simulate(args) => run_simulate(&args),
         Command::Eval(args) => run_eval(&args),
+        Command::Montecarlo(args) => run_montecarlo(&args),
     }
 }

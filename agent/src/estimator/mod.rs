@@ -17,6 +17,7 @@ pub mod static_init;
 pub mod triangulation;
 pub mod updater_msckf;
 pub mod updater_slam;
+pub mod updater_zupt;
 pub mod vio;
 
 pub use options::EstimatorOptions;

@@ -365,17 +365,59 @@ impl State {
     }
 
     /// `H P Hᵀ + R` and `P Hᵀ` for a sparse Jacobian whose columns are the
-    /// variables `vars` in order. The involved columns of `P` are gathered once so
-    /// both products are dense matrix multiplications.
+    /// variables `vars` in order. Each variable's block of `H` is multiplied with
+    /// that variable's columns of `P` only over the rows where the block is not
+    /// zero: a SLAM feature's block touches two rows, not the whole stack.
     pub fn innovation(
         &self,
         vars: &[Var],
         h: &DMatrix<f64>,
         r: &DMatrix<f64>,
     ) -> Result<(DMatrix<f64>, DMatrix<f64>), StateError> {
-        let (offs, cols) = self.checked_offsets(vars, h, r)?;
-        let pht = self.gather_cols(&offs, cols) * h.transpose();
-        let s = h * Self::gather_rows(&pht, &offs, cols) + r;
+        let (offs, _) = self.checked_offsets(vars, h, r)?;
+        let (n, m) = (self.dim(), h.nrows());
+        let mut pht = DMatrix::zeros(n, m);
+        let mut s = r.clone();
+        let mut blocks = Vec::with_capacity(offs.len());
+        let mut c = 0;
+        for &(o, k) in &offs {
+            let hj = h.columns(c, k);
+            c += k;
+            let rows: Vec<usize> = (0..m)
+                .filter(|&i| hj.row(i).iter().any(|v| *v != 0.0))
+                .collect();
+            if rows.is_empty() {
+                continue;
+            }
+            let p_j = self.cov.columns(o, k);
+            if rows.len() == m {
+                pht.gemm(1.0, &p_j, &hj.transpose(), 1.0);
+                blocks.push((o, k, rows, hj.into_owned()));
+            } else {
+                let mut hc = DMatrix::zeros(rows.len(), k);
+                for (ri, &i) in rows.iter().enumerate() {
+                    hc.row_mut(ri).copy_from(&hj.row(i));
+                }
+                let part = p_j * hc.transpose();
+                for (ri, &i) in rows.iter().enumerate() {
+                    let mut col = pht.column_mut(i);
+                    col += part.column(ri);
+                }
+                blocks.push((o, k, rows, hc));
+            }
+        }
+        // S = Σ_j H_j (P Hᵀ)[var_j rows] over each block's nonzero rows.
+        for (o, k, rows, hc) in &blocks {
+            let part = hc * pht.rows(*o, *k);
+            if rows.len() == m {
+                s += part;
+            } else {
+                for (ri, &i) in rows.iter().enumerate() {
+                    let mut row = s.row_mut(i);
+                    row += part.row(ri);
+                }
+            }
+        }
         Ok((s, pht))
     }
 

@@ -8,7 +8,7 @@ use super::options::EstimatorOptions;
 use super::propagator::{propagate, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
 use super::triangulation::TriangulationOptions;
-use super::{updater_msckf, updater_slam};
+use super::{updater_msckf, updater_slam, updater_zupt};
 use common::calibration::CameraCalibration;
 use common::measurement::{FeatureFrame, ImuSample};
 use nalgebra::{DMatrix, Matrix3, Vector3};
@@ -139,6 +139,8 @@ pub struct FrameOutput {
     pub slam_features: usize,
     /// What the SLAM step did.
     pub slam: updater_slam::SlamStats,
+    /// The frame was a standstill handled by a zero-velocity update.
+    pub zero_velocity: bool,
     /// Cost of the frame.
     pub timing: FrameTiming,
 }
@@ -362,8 +364,29 @@ impl Estimator {
                 to: t_imu,
             }));
         }
+        let t_prev = state.t;
         let buf = self.imu.make_contiguous();
         let omega = propagate(state, buf, t_imu, &opts.imu, opts.use_fej)?;
+        // A standstill: the zero-velocity update replaces this frame's visual update
+        // (no parallax to gain, and no clone to spend).
+        if opts.zero_velocity_update {
+            let readings: Vec<ImuSample> = buf
+                .iter()
+                .filter(|s| s.t > t_prev && s.t <= t_imu)
+                .copied()
+                .collect();
+            if updater_zupt::try_update(state, &readings, &opts, &self.chi2) {
+                timing.propagate_ms = ms(t_start);
+                timing.total_ms = timing.propagate_ms;
+                return Ok(output(
+                    state,
+                    timing,
+                    Default::default(),
+                    Default::default(),
+                    true,
+                ));
+            }
+        }
         self.seq += 1;
         let key = self.seq;
         augment_clone(state, key, &omega);
@@ -533,21 +556,33 @@ impl Estimator {
         timing.marginalize_ms = ms(t);
         timing.total_ms = ms(t_start);
 
-        let p = state.cov();
-        let o = state.offset(Var::Imu).unwrap_or(0);
-        Ok(FrameOutput {
-            t: state.t,
-            rot: state.imu.rot,
-            pos: state.imu.pos,
-            vel: state.imu.vel,
-            cov_ori: p.fixed_view::<3, 3>(o, o).into_owned(),
-            cov_pos: p.fixed_view::<3, 3>(o + 3, o + 3).into_owned(),
-            msckf_features: msckf.used,
-            msckf,
-            slam_features: state.features.len(),
-            slam,
-            timing,
-        })
+        Ok(output(state, timing, msckf, slam, false))
+    }
+}
+
+/// The estimate and its marginal covariances after a frame.
+fn output(
+    state: &State,
+    timing: FrameTiming,
+    msckf: updater_msckf::MsckfStats,
+    slam: updater_slam::SlamStats,
+    zero_velocity: bool,
+) -> FrameOutput {
+    let p = state.cov();
+    let o = state.offset(Var::Imu).unwrap_or(0);
+    FrameOutput {
+        t: state.t,
+        rot: state.imu.rot,
+        pos: state.imu.pos,
+        vel: state.imu.vel,
+        cov_ori: p.fixed_view::<3, 3>(o, o).into_owned(),
+        cov_pos: p.fixed_view::<3, 3>(o + 3, o + 3).into_owned(),
+        msckf_features: msckf.used,
+        msckf,
+        slam_features: state.features.len(),
+        slam,
+        zero_velocity,
+        timing,
     }
 }
 

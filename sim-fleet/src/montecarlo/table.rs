@@ -1,0 +1,154 @@
+//! The Markdown table of a Monte-Carlo study (`table.md`, also printed).
+
+use super::aggregate::{Range, StudySummary};
+use common::summary::MetricSet;
+use std::fmt::Write as _;
+
+/// Renders the study as a Markdown table: one row per (variant, robot) and a
+/// `mean` row per variant (the average over runs of each run's robot mean).
+/// ATE columns show `mean [min-max]` over the runs; `runs` counts the robot
+/// runs of the row and `diverged` those that diverged (failed ones included,
+/// also shown in brackets). Unknown values are `-`.
+pub fn render_table(study: &StudySummary) -> String {
+    let mut out = String::new();
+    let seeds = match (study.seeds.first(), study.seeds.last()) {
+        (Some(a), Some(b)) => format!("seeds {a}-{b}"),
+        _ => "no seeds".to_string(),
+    };
+    let _ = writeln!(
+        out,
+        "Monte-Carlo study of `{}`: {} runs per variant ({seeds}); a run diverged if its ATE position exceeds {} m.\n",
+        study.scenario, study.runs, study.diverged_ate_pos_m
+    );
+    out.push_str(
+        "| variant | robot | ATE ori deg | ATE pos m | NEES ori | NEES pos | ms/frame | p95 ms | runs | diverged |\n",
+    );
+    out.push_str("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n");
+    for (name, v) in &study.variants {
+        for r in &v.robots {
+            row(
+                &mut out,
+                name,
+                &format!("{} {}", r.id, r.trajectory),
+                &r.metrics,
+                (r.spread.ate_ori_deg, r.spread.ate_pos_m),
+                (r.runs, r.diverged, r.failed),
+            );
+        }
+        row(
+            &mut out,
+            name,
+            "mean",
+            &v.mean,
+            (v.mean_spread.ate_ori_deg, v.mean_spread.ate_pos_m),
+            (v.robots.iter().map(|r| r.runs).sum(), v.diverged, v.failed),
+        );
+    }
+    out
+}
+
+fn row(
+    out: &mut String,
+    variant: &str,
+    robot: &str,
+    m: &MetricSet,
+    (ori_spread, pos_spread): (Option<Range>, Option<Range>),
+    (runs, diverged, failed): (usize, usize, usize),
+) {
+    let diverged = if failed > 0 {
+        format!("{diverged} ({failed} failed)")
+    } else {
+        diverged.to_string()
+    };
+    let _ = writeln!(
+        out,
+        "| {variant} | {robot} | {} | {} | {} | {} | {} | {} | {runs} | {diverged} |",
+        with_range(m.ate_ori_deg, ori_spread, 3),
+        with_range(m.ate_pos_m, pos_spread, 3),
+        num(m.nees_ori, 2),
+        num(m.nees_pos, 2),
+        num(m.ms_per_frame_mean, 2),
+        num(m.ms_per_frame_p95, 2),
+    );
+}
+
+fn num(v: Option<f64>, decimals: usize) -> String {
+    v.map_or_else(|| "-".to_string(), |v| format!("{v:.decimals$}"))
+}
+
+fn with_range(mean: Option<f64>, spread: Option<Range>, decimals: usize) -> String {
+    match spread {
+        Some(r) => format!(
+            "{} [{:.decimals$}-{:.decimals$}]",
+            num(mean, decimals),
+            r.min,
+            r.max
+        ),
+        None => num(mean, decimals),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::montecarlo::aggregate::{aggregate_variant, RobotOutcome, DIVERGED_ATE_POS_M};
+
+    fn outcome(ate_pos: f64) -> RobotOutcome {
+        RobotOutcome {
+            metrics: MetricSet {
+                ate_pos_m: Some(ate_pos),
+                ate_ori_deg: Some(1.0),
+                nees_pos: Some(3.14289),
+                ..MetricSet::default()
+            },
+            error: None,
+        }
+    }
+
+    #[test]
+    fn the_table_has_a_row_per_robot_and_a_mean_row_per_variant_with_ranges() {
+        let robots = vec![(0, "a".to_string()), (1, "b".to_string())];
+        let runs = vec![
+            vec![outcome(0.1), outcome(0.2)],
+            vec![outcome(0.3), outcome(40.0)],
+        ];
+        let failed = RobotOutcome {
+            metrics: MetricSet::default(),
+            error: Some("boom".into()),
+        };
+        let study = StudySummary {
+            scenario: "loop".into(),
+            runs: 2,
+            seeds: vec![1, 2],
+            diverged_ate_pos_m: DIVERGED_ATE_POS_M,
+            wall_s: None,
+            variants: vec![
+                ("indp".into(), aggregate_variant(&robots, &runs)),
+                (
+                    "indp-slam".into(),
+                    aggregate_variant(&robots[..1], &[vec![failed], vec![outcome(0.5)]]),
+                ),
+            ],
+            failures: vec![],
+        };
+        let table = render_table(&study);
+        let lines: Vec<&str> = table.lines().filter(|l| l.starts_with("| ")).collect();
+        assert_eq!(lines.len(), 2 + 3 + 2, "{table}");
+        assert!(
+            lines[2].starts_with(
+                "| indp | 0 a | 1.000 [1.000-1.000] | 0.200 [0.100-0.300] | - | 3.14 |"
+            ),
+            "{table}"
+        );
+        assert!(lines[3].ends_with("| 2 | 1 |"), "{table}");
+        assert!(lines[4].starts_with("| indp | mean |"), "{table}");
+        assert!(lines[4].ends_with("| 4 | 1 |"), "{table}");
+        assert!(
+            lines[6]
+                .starts_with("| indp-slam | mean | 1.000 [1.000-1.000] | 0.500 [0.500-0.500] |"),
+            "{table}"
+        );
+        assert!(lines[6].ends_with("| 2 | 1 (1 failed) |"), "{table}");
+        assert!(table.contains("seeds 1-2"));
+    }
+}

@@ -1,0 +1,139 @@
+//! `sim-fleet montecarlo` as a user runs it, on a short synthetic loop.
+
+use integration_tests::{bin, write_loop_trajectory};
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+type Result<T> = std::result::Result<T, Box<dyn std::error::Error>>;
+
+/// Writes the one-robot loop scenario into `dir` and returns its path.
+fn loop_scenario(dir: &Path) -> Result<PathBuf> {
+    write_loop_trajectory(&dir.join("loop.txt"), 30.0)?;
+    let scenario = dir.join("scenario.yaml");
+    std::fs::write(
+        &scenario,
+        "name: loop\nrobots:\n  - trajectory: loop.txt\nestimator:\n  max_slam_features: 10\n",
+    )?;
+    Ok(scenario)
+}
+
+/// Runs the study with `jobs` workers into `out`; returns `out/summary.json`.
+fn montecarlo(scenario: &Path, jobs: &str, out: &Path) -> Result<Value> {
+    let output = Command::new(bin("sim-fleet"))
+        .arg("montecarlo")
+        .arg(scenario)
+        .args([
+            "--runs",
+            "2",
+            "--variants",
+            "indp,indp-slam",
+            "--jobs",
+            jobs,
+            "--out",
+        ])
+        .arg(out)
+        .output()?;
+    assert!(
+        output.status.success(),
+        "montecarlo failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        stdout.contains("| indp-slam | mean |"),
+        "the table is printed: {stdout}"
+    );
+    Ok(serde_json::from_str(&std::fs::read_to_string(
+        out.join("summary.json"),
+    )?)?)
+}
+
+/// The `mean` of every variant without the timing keys (which depend on the load).
+fn means_without_timing(summary: &Value) -> Vec<(String, Value)> {
+    let Some(variants) = summary["variants"].as_object() else {
+        return Vec::new();
+    };
+    variants
+        .iter()
+        .map(|(name, v)| {
+            let mut mean = v["mean"].as_object().cloned().unwrap_or_default();
+            mean.retain(|k, _| !k.starts_with("ms_per_frame"));
+            (name.clone(), Value::Object(mean))
+        })
+        .collect()
+}
+
+#[test]
+fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_the_job_count() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenario = loop_scenario(dir.path()).unwrap();
+    let out1 = dir.path().join("mc1");
+    let one = montecarlo(&scenario, "1", &out1).unwrap();
+
+    assert_eq!(one["scenario"], "loop");
+    assert_eq!(one["runs"], 2);
+    assert_eq!(one["seeds"], serde_json::json!([1, 2]));
+    let indp = &one["variants"]["indp"];
+    let ate = indp["mean"]["ate_pos_m"].as_f64().expect("a number");
+    assert!(ate < 1.0, "indp mean ATE {ate} m");
+    assert!(indp["mean_spread"]["ate_pos_m"]["max"].as_f64().unwrap() >= ate);
+    assert_eq!(indp["diverged"], 0);
+    let slam_robot = &one["variants"]["indp-slam"]["robots"][0];
+    assert!(slam_robot.is_object(), "indp-slam robots[0] missing: {one}");
+    assert_eq!(slam_robot["id"], 0);
+    assert_eq!(slam_robot["trajectory"], "loop");
+    assert_eq!(slam_robot["runs"], 2);
+    assert!(slam_robot["metrics"]["ate_ori_deg"].is_number());
+    assert!(slam_robot["spread"]["nees_pos"]["min"].is_number());
+    assert!(out1.join("table.md").is_file());
+
+    for variant in ["indp", "indp-slam"] {
+        for seed in ["seed1", "seed2"] {
+            let run = out1.join("runs").join(variant).join(seed);
+            for file in ["estimate.txt", "groundtruth.txt", "covariance.txt"] {
+                assert!(
+                    run.join("robot0").join(file).is_file(),
+                    "{variant}/{seed}/{file}"
+                );
+            }
+            let summary: Value =
+                serde_json::from_str(&std::fs::read_to_string(run.join("summary.json")).unwrap())
+                    .unwrap();
+            assert_eq!(summary["variant"], variant);
+            assert!(summary["transport"].is_null());
+            assert!(summary["robots"][0]["ate_pos_m"].is_number());
+        }
+    }
+
+    let two = montecarlo(&scenario, "2", &dir.path().join("mc2")).unwrap();
+    assert_eq!(means_without_timing(&one).len(), 2);
+    assert_eq!(means_without_timing(&one), means_without_timing(&two));
+}
+
+#[test]
+fn montecarlo_rejects_an_unknown_variant_before_running_anything() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenario = loop_scenario(dir.path()).unwrap();
+    let out = dir.path().join("mc");
+    let output = Command::new(bin("sim-fleet"))
+        .args([
+            "montecarlo",
+            scenario.to_str().unwrap(),
+            "--runs",
+            "1",
+            "--variants",
+            "indp,collaborative",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("unknown variant `collaborative`"),
+        "{stderr}"
+    );
+    assert!(!out.join("summary.json").exists());
+}
