@@ -28,7 +28,9 @@ impl Givens {
         if b == 0.0 {
             return None;
         }
-        let r = a.hypot(b);
+        // Plain square root: the entries are Jacobians of moderate size, so the
+        // overflow protection of `hypot` is not needed and it is much slower.
+        let r = (a * a + b * b).sqrt();
         if r == 0.0 || !r.is_finite() {
             return None;
         }
@@ -138,17 +140,13 @@ pub fn compress_in_place(h_x: &mut DMatrix<f64>, res: &mut DVector<f64>) {
     if m <= n_cols {
         return;
     }
-    for n in 0..n_cols {
-        for row in (n + 1..m).rev() {
-            let Some(g) = Givens::zeroing(h_x[(row - 1, n)], h_x[(row, n)]) else {
-                continue;
-            };
-            g.apply_to_rows(h_x, row - 1, n);
-            h_x[(row, n)] = 0.0;
-            g.apply_to_vector(res, row - 1);
-        }
-    }
-    keep_leading_rows(h_x, res, n_cols);
+    // Householder QR: the same R and Qᵀr as Givens rotations (up to signs), in
+    // fewer passes over the tall matrix.
+    let qr = nalgebra::linalg::QR::new(std::mem::replace(h_x, DMatrix::zeros(0, 0)));
+    qr.q_tr_mul(res);
+    *h_x = qr.r();
+    let taken = std::mem::replace(res, DVector::zeros(0));
+    *res = taken.resize_vertically(n_cols, 0.0);
 }
 
 /// Removes the first `count` rows of `h` and `v`, reusing their buffers.
@@ -159,15 +157,6 @@ fn drop_leading_rows(h: &mut DMatrix<f64>, v: &mut DVector<f64>, count: usize) {
     let taken = std::mem::replace(v, DVector::zeros(0));
     let count = count.min(taken.len());
     *v = taken.remove_rows(0, count);
-}
-
-/// Keeps the first `count` rows of `h` and `v`, reusing their buffers.
-fn keep_leading_rows(h: &mut DMatrix<f64>, v: &mut DVector<f64>, count: usize) {
-    let n_cols = h.ncols();
-    let taken = std::mem::replace(h, DMatrix::zeros(0, 0));
-    *h = taken.resize(count, n_cols, 0.0);
-    let taken = std::mem::replace(v, DVector::zeros(0));
-    *v = taken.resize_vertically(count, 0.0);
 }
 
 #[cfg(test)]

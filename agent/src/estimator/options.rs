@@ -100,7 +100,7 @@ impl Default for EstimatorOptions {
             calib_extrinsics: true,
             calib_intrinsics: true,
             calib_time_offset: true,
-            zero_velocity_update: false,
+            zero_velocity_update: true,
             pixel_sigma_px: 1.0,
             chi2_multiplier: 1.0,
             imu: ImuNoise::default(),
