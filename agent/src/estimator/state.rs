@@ -450,14 +450,16 @@ impl State {
             return Err(StateError::Dimension("residual length".into()));
         }
         let (s, pht) = self.innovation(vars, h, r)?;
-        let s_inv = s
-            .cholesky()
-            .ok_or(StateError::NotPositiveDefinite)?
-            .inverse();
-        // Kᵀ = S⁻¹ (P Hᵀ)ᵀ ; P ← P − (P Hᵀ) Kᵀ ; δx = K r (dense products).
-        let k_t = s_inv * pht.transpose();
-        let dx = k_t.tr_mul(res);
-        self.cov.gemm(-1.0, &pht, &k_t, 1.0);
+        let chol = s.cholesky().ok_or(StateError::NotPositiveDefinite)?;
+        // With S = L Lᵀ and W = L⁻¹ (P Hᵀ)ᵀ: P ← P − Wᵀ W, δx = Wᵀ L⁻¹ r.
+        let l = chol.l();
+        let mut w = pht.transpose();
+        l.solve_lower_triangular_mut(&mut w);
+        let mut lr = res.clone();
+        l.solve_lower_triangular_mut(&mut lr);
+        let dx = w.tr_mul(&lr);
+        let w_t = w.transpose();
+        self.cov.gemm(-1.0, &w_t, &w, 1.0);
         self.symmetrize_and_floor();
         self.apply_correction(&dx);
         Ok(())

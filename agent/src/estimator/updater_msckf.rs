@@ -8,7 +8,7 @@ use super::feature_db::FeatureDb;
 use super::feature_system::{build, Columns};
 use super::linalg::{compress_in_place, nullspace_project_in_place};
 use super::options::EstimatorOptions;
-use super::state::State;
+use super::state::{State, Var};
 use super::triangulation::TriangulationOptions;
 use nalgebra::{DMatrix, DVector};
 
@@ -34,12 +34,29 @@ pub fn update(
 ) -> MsckfStats {
     let mut stats = MsckfStats::default();
     let cols = Columns::window(state);
+    let calib_vars: Vec<Var> = cols
+        .vars
+        .iter()
+        .copied()
+        .filter(|v| !matches!(v, Var::Clone(_)))
+        .collect();
     let sigma2 = opts.pixel_sigma_px * opts.pixel_sigma_px;
-    let mut blocks: Vec<(DMatrix<f64>, DVector<f64>)> = Vec::with_capacity(ids.len());
+    // Each feature's system over the variables it involves (calibration and the
+    // clones that saw it): gating touches only that block of the covariance.
+    let mut blocks: Vec<(Columns, DMatrix<f64>, DVector<f64>)> = Vec::with_capacity(ids.len());
     let mut rows = 0;
     for id in ids {
         let Some(feature) = db.get(*id) else { continue };
-        let Some(mut sys) = build(state, feature, &cols, opts.use_fej, tri) else {
+        let mut vars = calib_vars.clone();
+        vars.extend(
+            feature
+                .measurements
+                .iter()
+                .filter(|m| state.clones.contains_key(&m.clone_key))
+                .map(|m| Var::Clone(m.clone_key)),
+        );
+        let fcols = Columns::of(vars);
+        let Some(mut sys) = build(state, feature, &fcols, opts.use_fej, tri) else {
             stats.failed += 1;
             continue;
         };
@@ -49,7 +66,7 @@ pub fn update(
             continue;
         }
         let r = DMatrix::identity(sys.res.len(), sys.res.len()) * sigma2;
-        let Ok(d2) = state.mahalanobis(&cols.vars, &sys.h_x, &sys.res, &r) else {
+        let Ok(d2) = state.mahalanobis(&fcols.vars, &sys.h_x, &sys.res, &r) else {
             stats.failed += 1;
             continue;
         };
@@ -58,7 +75,7 @@ pub fn update(
             continue;
         }
         rows += sys.res.len();
-        blocks.push((sys.h_x, sys.res));
+        blocks.push((fcols, sys.h_x, sys.res));
         stats.used += 1;
     }
     if rows == 0 {
@@ -67,10 +84,17 @@ pub fn update(
     let mut h = DMatrix::zeros(rows, cols.dim);
     let mut res = DVector::zeros(rows);
     let mut r0 = 0;
-    for (hx, rs) in &blocks {
-        h.view_mut((r0, 0), (hx.nrows(), cols.dim)).copy_from(hx);
-        res.rows_mut(r0, rs.len()).copy_from(rs);
-        r0 += rs.len();
+    for (fcols, hx, rs) in &blocks {
+        let m = rs.len();
+        for v in &fcols.vars {
+            let (Some(src), Some(dst)) = (fcols.col(*v), cols.col(*v)) else {
+                continue;
+            };
+            h.view_mut((r0, dst), (m, v.size()))
+                .copy_from(&hx.view((0, src), (m, v.size())));
+        }
+        res.rows_mut(r0, m).copy_from(rs);
+        r0 += m;
     }
     compress_in_place(&mut h, &mut res);
     let r = DMatrix::identity(res.len(), res.len()) * sigma2;

@@ -273,3 +273,26 @@ fn a_truncated_mcap_file_is_an_error_not_a_panic() {
     std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
     assert!(crate::mcap_io::read_stream(&path).is_err());
 }
+
+#[test]
+fn every_example_scenario_loads() {
+    fn visit(dir: &Path, found: &mut Vec<std::path::PathBuf>) {
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let p = entry.unwrap().path();
+            if p.is_dir() {
+                visit(&p, found);
+            } else if p.extension().is_some_and(|e| e == "yaml") {
+                found.push(p);
+            }
+        }
+    }
+    let mut found = Vec::new();
+    visit(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios"),
+        &mut found,
+    );
+    assert!(found.len() >= 6);
+    for p in found {
+        Scenario::load(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    }
+}
