@@ -323,25 +323,18 @@ impl State {
         Ok(())
     }
 
-    /// The columns of the covariance belonging to `offs`, contiguous (`dim x c`).
-    fn gather_cols(&self, offs: &[(usize, usize)], cols: usize) -> DMatrix<f64> {
-        let n = self.dim();
-        let mut out = DMatrix::zeros(n, cols);
+    /// The covariance block of the variables at `offs` (`c x c`).
+    fn gather_block(&self, offs: &[(usize, usize)], size: usize) -> DMatrix<f64> {
+        let mut out = DMatrix::zeros(size, size);
         let mut c = 0;
-        for &(o, k) in offs {
-            out.columns_mut(c, k).copy_from(&self.cov.columns(o, k));
-            c += k;
-        }
-        out
-    }
-
-    /// The rows `offs` of `m` (`rows(m) == dim`), contiguous (`c x ncols(m)`).
-    fn gather_rows(m: &DMatrix<f64>, offs: &[(usize, usize)], rows: usize) -> DMatrix<f64> {
-        let mut out = DMatrix::zeros(rows, m.ncols());
-        let mut r = 0;
-        for &(o, k) in offs {
-            out.rows_mut(r, k).copy_from(&m.rows(o, k));
-            r += k;
+        for &(oc, kc) in offs {
+            let mut r = 0;
+            for &(or, kr) in offs {
+                out.view_mut((r, c), (kr, kc))
+                    .copy_from(&self.cov.view((or, oc), (kr, kc)));
+                r += kr;
+            }
+            c += kc;
         }
         out
     }
@@ -431,7 +424,7 @@ impl State {
         r: &DMatrix<f64>,
     ) -> Result<f64, StateError> {
         let (offs, cols) = self.checked_offsets(vars, h, r)?;
-        let p_vv = Self::gather_rows(&self.gather_cols(&offs, cols), &offs, cols);
+        let p_vv = self.gather_block(&offs, cols);
         let s = h * p_vv * h.transpose() + r;
         let chol = s.cholesky().ok_or(StateError::NotPositiveDefinite)?;
         Ok(res.dot(&chol.solve(res)))
@@ -451,12 +444,11 @@ impl State {
         }
         let (s, pht) = self.innovation(vars, h, r)?;
         let chol = s.cholesky().ok_or(StateError::NotPositiveDefinite)?;
-        // With S = L Lᵀ and W = L⁻¹ (P Hᵀ)ᵀ: P ← P − Wᵀ W, δx = Wᵀ L⁻¹ r.
-        let l = chol.l();
-        let mut w = pht.transpose();
-        l.solve_lower_triangular_mut(&mut w);
-        let mut lr = res.clone();
-        l.solve_lower_triangular_mut(&mut lr);
+        // With S = L Lᵀ and W = L⁻¹ (P Hᵀ)ᵀ: P ← P − Wᵀ W, δx = Wᵀ L⁻¹ r. L⁻¹ is
+        // small (m x m); forming it makes W one dense product.
+        let l_inv = lower_triangular_inverse(&chol.l());
+        let w = &l_inv * pht.transpose();
+        let lr = &l_inv * res;
         let dx = w.tr_mul(&lr);
         let w_t = w.transpose();
         self.cov.gemm(-1.0, &w_t, &w, 1.0);
@@ -498,15 +490,20 @@ impl State {
 
     /// Keeps the covariance symmetric with a positive diagonal.
     fn symmetrize_and_floor(&mut self) {
-        let n = self.dim();
-        for i in 0..n {
-            for j in (i + 1)..n {
-                let a = 0.5 * (self.cov[(i, j)] + self.cov[(j, i)]);
-                self.cov[(i, j)] = a;
-                self.cov[(j, i)] = a;
-            }
-            if self.cov[(i, i)] < 1e-18 {
-                self.cov[(i, i)] = 1e-18;
+        // (P + Pᵀ) / 2 with whole-matrix passes (vectorized, no bounds checks).
+        let t = self.cov.transpose();
+        self.cov += t;
+        self.cov *= 0.5;
+        for d in self
+            .cov
+            .diagonal()
+            .iter()
+            .copied()
+            .enumerate()
+            .collect::<Vec<_>>()
+        {
+            if d.1 < 1e-18 {
+                self.cov[(d.0, d.0)] = 1e-18;
             }
         }
     }
@@ -548,6 +545,27 @@ impl State {
             }
         }
     }
+}
+
+/// Inverse of a lower-triangular matrix with a positive diagonal, by forward
+/// substitution on its columns (`m³/6` multiply-adds, contiguous accesses).
+fn lower_triangular_inverse(l: &DMatrix<f64>) -> DMatrix<f64> {
+    let m = l.nrows();
+    let mut inv = DMatrix::<f64>::zeros(m, m);
+    let ls = l.as_slice();
+    for (j, x) in inv.as_mut_slice().chunks_exact_mut(m.max(1)).enumerate() {
+        // Column j of L⁻¹ solves L x = e_j; x is zero above j.
+        x[j] = 1.0;
+        for k in j..m {
+            let lk = &ls[k * m..(k + 1) * m];
+            let xk = x[k] / lk[k];
+            x[k] = xk;
+            for i in (k + 1)..m {
+                x[i] -= lk[i] * xk;
+            }
+        }
+    }
+    inv
 }
 
 #[cfg(test)]
@@ -646,6 +664,16 @@ mod tests {
         assert!((s.cov() - p_expected).norm() < 1e-12);
         assert!((s.imu.pos - Vector3::new(dx[3], dx[4], dx[5])).norm() < 1e-12);
         assert!((s.calib.time_offset_s - dx[15]).abs() < 1e-12);
+    }
+
+    #[test]
+    fn lower_triangular_inverse_is_exact() {
+        let a = DMatrix::from_fn(7, 7, |i, j| {
+            1.0 / (1.0 + i as f64 + j as f64) + if i == j { 1.0 } else { 0.0 }
+        });
+        let l = a.cholesky().unwrap().l();
+        let inv = lower_triangular_inverse(&l);
+        assert!((&l * &inv - DMatrix::identity(7, 7)).norm() < 1e-12);
     }
 
     #[test]
