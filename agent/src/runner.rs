@@ -63,6 +63,7 @@ pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> Est
         max_clones: spec.max_clones,
         max_slam_features: spec.max_slam_features,
         max_slam_in_update: spec.max_slam_in_update,
+        slam_delay_s: spec.slam_delay_s,
         max_msckf_in_update: spec.max_msckf_in_update,
         use_fej: spec.use_fej,
         calib_extrinsics: spec.calib_extrinsics,

@@ -65,6 +65,10 @@ pub struct EstimatorOptions {
     pub max_slam_features: usize,
     /// Maximum SLAM features initialized per frame.
     pub max_slam_in_update: usize,
+    /// No SLAM feature is initialized before the filter has run this long, s: the
+    /// calibration converges first, so features are not frozen (FEJ) at positions
+    /// biased by a wrong initial calibration (OpenVINS's `dt_slam_delay`).
+    pub slam_delay_s: f64,
     /// Maximum MSCKF features used per frame (the longest tracks first).
     pub max_msckf_in_update: usize,
     /// First-Estimates Jacobians.
@@ -95,6 +99,7 @@ impl Default for EstimatorOptions {
             max_clones: 11,
             max_slam_features: 50,
             max_slam_in_update: 25,
+            slam_delay_s: 2.0,
             max_msckf_in_update: 40,
             use_fej: true,
             calib_extrinsics: true,

@@ -156,6 +156,8 @@ pub struct Estimator {
     features: FeatureDb,
     seq: u64,
     last_frame_t: Option<f64>,
+    /// IMU time the filter started at.
+    start_t: f64,
     chi2: Chi2Table,
     tri: TriangulationOptions,
 }
@@ -176,6 +178,7 @@ impl Estimator {
             features: FeatureDb::default(),
             seq: 0,
             last_frame_t: None,
+            start_t: 0.0,
             chi2: Chi2Table::new(0.95, 1000),
             tri: TriangulationOptions::default(),
         }
@@ -238,6 +241,7 @@ impl Estimator {
             bias_gyro: init.bias_gyro,
             bias_accel: init.bias_accel,
         };
+        self.start_t = init.t;
         self.state = Some(State::new(
             init.t,
             imu,
@@ -437,10 +441,14 @@ impl Estimator {
             .collect();
         let mut slam_candidates = Vec::new();
         let mut msckf_ids = Vec::new();
-        let room = opts
-            .max_slam_features
-            .saturating_sub(state.features.len())
-            .min(opts.max_slam_in_update);
+        let slam_allowed = state.t - self.start_t >= opts.slam_delay_s;
+        let room = if slam_allowed {
+            opts.max_slam_features
+                .saturating_sub(state.features.len())
+                .min(opts.max_slam_in_update)
+        } else {
+            0
+        };
         for id in lost.iter().chain(at_marg.iter()) {
             if state.features.contains_key(id) {
                 continue;

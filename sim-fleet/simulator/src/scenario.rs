@@ -291,6 +291,8 @@ pub struct EstimatorSpec {
     pub max_slam_features: usize,
     /// Maximum SLAM features initialized or updated per frame.
     pub max_slam_in_update: usize,
+    /// Seconds after the start before SLAM features are initialized.
+    pub slam_delay_s: f64,
     /// Maximum MSCKF features per update.
     pub max_msckf_in_update: usize,
     /// First-Estimates Jacobians on.
@@ -321,6 +323,7 @@ impl Default for EstimatorSpec {
             max_clones: 11,
             max_slam_features: 50,
             max_slam_in_update: 25,
+            slam_delay_s: 2.0,
             max_msckf_in_update: 40,
             use_fej: true,
             calib_extrinsics: true,
