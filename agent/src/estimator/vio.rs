@@ -7,6 +7,7 @@ use super::feature_db::{FeatureDb, FeatureMeasurement};
 use super::options::EstimatorOptions;
 use super::propagator::{propagate, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
+use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
 use super::triangulation::TriangulationOptions;
 use super::{updater_msckf, updater_slam, updater_zupt};
 use common::calibration::CameraCalibration;
@@ -252,6 +253,31 @@ impl Estimator {
         // Frames before the start are not used.
         self.frames
             .retain(|f| f.t + self.calib.time_offset_s > init.t);
+    }
+
+    /// Starts the filter from the IMU buffer with the static initializer (thesis
+    /// Eqs. 2.78-2.81): the robot must have stood still for the last
+    /// `init.window_s` seconds. Position is the origin, velocity zero, gravity sets
+    /// roll and pitch, the mean gyro reading the gyro bias; `sigmas` gives the prior
+    /// standard deviations (its time and mean fields are ignored). Returns the
+    /// initializer's result; on error nothing changes.
+    pub fn initialize_static(
+        &mut self,
+        init: &StaticInitOptions,
+        sigmas: &InitialState,
+    ) -> Result<StaticInitResult, StaticInitError> {
+        let samples = self.imu.make_contiguous();
+        let res = static_initialize(samples, init)?;
+        self.initialize(&InitialState {
+            t: res.t,
+            rot: res.rot_i_to_g,
+            pos: Vector3::zeros(),
+            vel: res.velocity,
+            bias_gyro: res.bias_gyro,
+            bias_accel: res.bias_accel,
+            ..sigmas.clone()
+        });
+        Ok(res)
     }
 
     /// Adds an IMU sample (rejects NaN, time going backwards and gaps).
