@@ -12,6 +12,7 @@ pub mod linalg;
 pub mod options;
 pub mod projection;
 pub mod propagator;
+pub mod slam_feature;
 pub mod state;
 pub mod static_init;
 pub mod triangulation;

@@ -69,6 +69,8 @@ pub struct EstimatorOptions {
     /// calibration converges first, so features are not frozen (FEJ) at positions
     /// biased by a wrong initial calibration (OpenVINS's `dt_slam_delay`).
     pub slam_delay_s: f64,
+    /// Global or anchored 3-D SLAM features.
+    pub feature_representation: super::slam_feature::FeatureRepresentation,
     /// Maximum MSCKF features used per frame (the longest tracks first).
     pub max_msckf_in_update: usize,
     /// First-Estimates Jacobians.
@@ -100,6 +102,7 @@ impl Default for EstimatorOptions {
             max_slam_features: 50,
             max_slam_in_update: 25,
             slam_delay_s: 2.0,
+            feature_representation: Default::default(),
             max_msckf_in_update: 40,
             use_fej: true,
             calib_extrinsics: true,

@@ -107,10 +107,13 @@ pub struct ClonePose {
 /// A SLAM feature in the state.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SlamFeature {
-    /// `p_FinG`, m.
+    /// `p_FinG` (global representation) or `p_FinA`, the position in the anchor
+    /// clone's camera frame (anchored representation), m.
     pub pos: Vector3<f64>,
-    /// First estimate (the value at initialization).
+    /// First estimate (the value at initialization or at the last anchor change).
     pub pos_fej: Vector3<f64>,
+    /// The anchor clone of an anchored feature; `None` for a global one.
+    pub anchor: Option<u64>,
 }
 
 /// The whole filter state: means, first estimates and the joint covariance.
@@ -296,6 +299,35 @@ impl State {
             .copy_from(&(0.5 * (p_nn + p_nn.transpose())));
         self.cov = cov;
         self.index.push((new, n));
+        Ok(())
+    }
+
+    /// Replaces `var` by a linear function of itself and other variables,
+    /// `x' = Σ J_i x_i` (the list must include `var` itself): a change of variables,
+    /// such as re-anchoring a feature. The mean is the caller's to set.
+    pub fn transform(&mut self, var: Var, jac: &[(Var, DMatrix<f64>)]) -> Result<(), StateError> {
+        let o = self.offset(var).ok_or(StateError::Missing(var))?;
+        let (n, k) = (self.dim(), var.size());
+        let mut m = DMatrix::zeros(k, n);
+        for (v, j) in jac {
+            let ov = self.offset(*v).ok_or(StateError::Missing(*v))?;
+            if j.shape() != (k, v.size()) {
+                return Err(StateError::Dimension(format!(
+                    "transform Jacobian for {v:?}"
+                )));
+            }
+            m += j * self.cov.view((ov, 0), (v.size(), n));
+        }
+        let mut p_nn = DMatrix::zeros(k, k);
+        for (v, j) in jac {
+            let ov = self.offset(*v).ok_or(StateError::Missing(*v))?;
+            p_nn += m.view((0, ov), (k, v.size())) * j.transpose();
+        }
+        self.cov.view_mut((o, 0), (k, n)).copy_from(&m);
+        self.cov.view_mut((0, o), (n, k)).copy_from(&m.transpose());
+        self.cov
+            .view_mut((o, o), (k, k))
+            .copy_from(&(0.5 * (&p_nn + p_nn.transpose())));
         Ok(())
     }
 

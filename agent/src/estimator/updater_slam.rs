@@ -8,6 +8,7 @@ use super::feature_system::{build, Columns};
 use super::linalg::givens_qr_split;
 use super::options::EstimatorOptions;
 use super::projection::{predict, project, Projection};
+use super::slam_feature::{global_position, in_anchor, FeatureRepresentation};
 use super::state::{SlamFeature, State, Var};
 use super::triangulation::TriangulationOptions;
 use nalgebra::{DMatrix, DVector, Vector3};
@@ -25,7 +26,81 @@ pub struct SlamStats {
     pub init_failed: usize,
 }
 
-/// Updates the SLAM features `ids` with their observation in clone `clone_key`.
+/// One feature's measurement row: residual and Jacobian blocks by variable.
+struct Row {
+    res: [f64; 2],
+    blocks: Vec<(Var, DMatrix<f64>)>,
+}
+
+impl Row {
+    fn add(&mut self, var: Var, block: DMatrix<f64>) {
+        match self.blocks.iter_mut().find(|(v, _)| *v == var) {
+            Some((_, b)) => *b += block,
+            None => self.blocks.push((var, block)),
+        }
+    }
+
+    /// The row as a dense `2 x cols.dim` matrix.
+    fn dense(&self, cols: &Columns) -> DMatrix<f64> {
+        let mut h = DMatrix::zeros(2, cols.dim);
+        for (v, b) in &self.blocks {
+            if let Some(o) = cols.col(*v) {
+                h.view_mut((0, o), (2, v.size())).copy_from(b);
+            }
+        }
+        h
+    }
+}
+
+fn dyn_block<const C: usize>(m: &nalgebra::SMatrix<f64, 2, C>) -> DMatrix<f64> {
+    DMatrix::from_iterator(2, C, m.iter().copied())
+}
+
+/// The measurement row of SLAM feature `id` seen from clone `clone_key`: the
+/// Jacobians at the first estimates (FEJ) of the clone and of the feature (and of
+/// its anchor), the residual at the current estimates.
+fn measurement_row(
+    state: &State,
+    db: &FeatureDb,
+    id: u64,
+    clone_key: u64,
+    use_fej: bool,
+) -> Option<Row> {
+    let clone = state.clones.get(&clone_key)?;
+    let f = state.features.get(&id)?;
+    let m = db
+        .get(id)?
+        .measurements
+        .iter()
+        .find(|m| m.clone_key == clone_key)?;
+    let (p_lin, jac) = global_position(state, id, f, use_fej)?;
+    let (p_cur, _) = global_position(state, id, f, false)?;
+    let (lr, lp) = if use_fej {
+        (&clone.rot_fej, &clone.pos_fej)
+    } else {
+        (&clone.rot, &clone.pos)
+    };
+    let proj: Projection = project(lr, lp, &p_lin, &state.calib)?;
+    let e = m.uv - predict(&clone.rot, &clone.pos, &p_cur, &state.calib)?;
+    let mut row = Row {
+        res: [e.x, e.y],
+        blocks: vec![(Var::Clone(clone_key), dyn_block(&proj.h_clone))],
+    };
+    if state.has(Var::Extrinsic) {
+        row.add(Var::Extrinsic, dyn_block(&proj.h_extrinsic));
+    }
+    if state.has(Var::Intrinsics) {
+        row.add(Var::Intrinsics, dyn_block(&proj.h_intrinsics));
+    }
+    let h_f = dyn_block(&proj.h_feature);
+    for (v, j) in jac {
+        row.add(v, &h_f * j);
+    }
+    Some(row)
+}
+
+/// Updates the SLAM features `ids` with their observation in clone `clone_key`,
+/// each gated alone, all in one EKF update.
 pub fn update(
     state: &mut State,
     db: &FeatureDb,
@@ -35,84 +110,44 @@ pub fn update(
     chi2: &Chi2Table,
     stats: &mut SlamStats,
 ) {
-    let Some(clone) = state.clones.get(&clone_key).cloned() else {
-        return;
-    };
-    let calib = state.calib.clone();
     let sigma2 = opts.pixel_sigma_px.powi(2);
-    let mut vars: Vec<Var> = [Var::Extrinsic, Var::Intrinsics]
-        .into_iter()
-        .filter(|v| state.has(*v))
-        .collect();
-    vars.push(Var::Clone(clone_key));
-    let mut used: Vec<(u64, [f64; 2], Projection)> = Vec::new();
-    for id in ids {
-        let (Some(feat), Some(f)) = (db.get(*id), state.features.get(id)) else {
+    let noise2 = DMatrix::identity(2, 2) * sigma2;
+    let mut used: Vec<Row> = Vec::new();
+    for &id in ids {
+        let Some(row) = measurement_row(state, db, id, clone_key, opts.use_fej) else {
             continue;
         };
-        let Some(m) = feat.measurements.iter().find(|m| m.clone_key == clone_key) else {
-            continue;
-        };
-        let (lr, lp, lf) = if opts.use_fej {
-            (&clone.rot_fej, &clone.pos_fej, &f.pos_fej)
-        } else {
-            (&clone.rot, &clone.pos, &f.pos)
-        };
-        let (Some(proj), Some(z_hat)) = (
-            project(lr, lp, lf, &calib),
-            predict(&clone.rot, &clone.pos, &f.pos, &calib),
-        ) else {
-            continue;
-        };
-        let e = m.uv - z_hat;
-        // Gate this feature alone.
-        let mut one_vars = vars.clone();
-        one_vars.push(Var::Feature(*id));
-        let one_cols = Columns::of(one_vars.clone());
-        let h = jacobian_row(&one_cols, clone_key, *id, &proj);
-        let res = DVector::from_vec(vec![e.x, e.y]);
-        let r = DMatrix::identity(2, 2) * sigma2;
-        match state.mahalanobis(&one_cols.vars, &h, &res, &r) {
-            Ok(d2) if d2 <= opts.chi2_multiplier * chi2.get(2) => {
-                used.push((*id, [e.x, e.y], proj));
-            }
+        let cols = Columns::of(row.blocks.iter().map(|(v, _)| *v).collect());
+        let res = DVector::from_row_slice(&row.res);
+        match state.mahalanobis(&cols.vars, &row.dense(&cols), &res, &noise2) {
+            Ok(d2) if d2 <= opts.chi2_multiplier * chi2.get(2) => used.push(row),
             _ => stats.rejected_chi2 += 1,
         }
     }
     if used.is_empty() {
         return;
     }
-    vars.extend(used.iter().map(|u| Var::Feature(u.0)));
+    let mut vars: Vec<Var> = Vec::new();
+    for row in &used {
+        for (v, _) in &row.blocks {
+            if !vars.contains(v) {
+                vars.push(*v);
+            }
+        }
+    }
     let cols = Columns::of(vars);
     let mut h = DMatrix::zeros(2 * used.len(), cols.dim);
     let mut res = DVector::zeros(2 * used.len());
-    for (i, (id, e, proj)) in used.iter().enumerate() {
-        let row = jacobian_row(&cols, clone_key, *id, proj);
-        h.view_mut((2 * i, 0), (2, cols.dim)).copy_from(&row);
-        res[2 * i] = e[0];
-        res[2 * i + 1] = e[1];
+    for (i, row) in used.iter().enumerate() {
+        h.view_mut((2 * i, 0), (2, cols.dim))
+            .copy_from(&row.dense(&cols));
+        res[2 * i] = row.res[0];
+        res[2 * i + 1] = row.res[1];
     }
     let r = DMatrix::identity(res.len(), res.len()) * sigma2;
     if state.ekf_update(&cols.vars, &h, &res, &r).is_ok() {
         stats.updated += used.len();
     }
-}
-
-fn jacobian_row(cols: &Columns, clone_key: u64, id: u64, proj: &Projection) -> DMatrix<f64> {
-    let mut h = DMatrix::zeros(2, cols.dim);
-    if let Some(o) = cols.col(Var::Clone(clone_key)) {
-        h.fixed_view_mut::<2, 6>(0, o).copy_from(&proj.h_clone);
-    }
-    if let Some(o) = cols.col(Var::Feature(id)) {
-        h.fixed_view_mut::<2, 3>(0, o).copy_from(&proj.h_feature);
-    }
-    if let Some(o) = cols.col(Var::Extrinsic) {
-        h.fixed_view_mut::<2, 6>(0, o).copy_from(&proj.h_extrinsic);
-    }
-    if let Some(o) = cols.col(Var::Intrinsics) {
-        h.fixed_view_mut::<2, 8>(0, o).copy_from(&proj.h_intrinsics);
-    }
-    h
 }
 
 /// Delayed initialization of feature `id` into the state from its whole track.
@@ -132,6 +167,40 @@ pub fn initialize(
     let Some(mut sys) = build(state, feature, &cols, opts.use_fej, tri) else {
         return false;
     };
+    // Anchored: the new variable is p_FinA in the newest clone's camera; H_f and
+    // H_x follow p_FinG = R_A (R_CtoI p_FinA + p_CinI) + p_A (at first estimates).
+    let anchor = match opts.feature_representation {
+        FeatureRepresentation::Global => None,
+        FeatureRepresentation::Anchored => state.clones.keys().next_back().copied(),
+    };
+    let (mut p_init, mut p_init_fej) = (sys.p_f, sys.p_f);
+    if let Some(a) = anchor {
+        let (Some(p_a), Some(p_a_fej)) = (
+            in_anchor(state, a, &sys.p_f, false),
+            in_anchor(state, a, &sys.p_f, opts.use_fej),
+        ) else {
+            return false;
+        };
+        let probe = SlamFeature {
+            pos: p_a,
+            pos_fej: p_a_fej,
+            anchor: Some(a),
+        };
+        let Some((_, jac)) = global_position(state, id, &probe, true) else {
+            return false;
+        };
+        let h_fg = sys.h_f.clone();
+        for (v, j) in jac {
+            let block = &h_fg * j;
+            if v == Var::Feature(id) {
+                sys.h_f = block;
+            } else if let Some(o) = cols.col(v) {
+                let mut view = sys.h_x.view_mut((0, o), (h_fg.nrows(), v.size()));
+                view += block;
+            }
+        }
+        (p_init, p_init_fej) = (p_a, p_a_fej);
+    }
     // Eq. 2.41-2.43: rotate so H_f = [R_f; 0]; the top 3 rows initialize the
     // feature, the rest update the state.
     let top = givens_qr_split(&mut sys.h_f, &mut sys.h_x, &mut sys.res);
@@ -155,14 +224,15 @@ pub fn initialize(
     else {
         return false;
     };
-    let pos = sys.p_f + Vector3::new(dx[0], dx[1], dx[2]);
+    let pos = p_init + Vector3::new(dx[0], dx[1], dx[2]);
     // The first estimate is the point the initialization was linearized at, so
     // every later Jacobian shares its unobservable directions (FEJ).
     state.features.insert(
         id,
         SlamFeature {
             pos,
-            pos_fej: sys.p_f,
+            pos_fej: p_init_fej,
+            anchor,
         },
     );
     // Eq. 2.45: the remaining rows update the whole state (the new feature through

@@ -9,7 +9,7 @@ use super::propagator::{propagate, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
 use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
 use super::triangulation::TriangulationOptions;
-use super::{updater_msckf, updater_slam, updater_zupt};
+use super::{slam_feature, updater_msckf, updater_slam, updater_zupt};
 use common::calibration::CameraCalibration;
 use common::measurement::{FeatureFrame, ImuSample};
 use nalgebra::{DMatrix, Matrix3, Vector3};
@@ -578,6 +578,10 @@ impl Estimator {
             let Some(&old) = state.clones.keys().next() else {
                 break;
             };
+            // Anchored features leave with their anchor: move them to the newest clone.
+            if let Some(&newest) = state.clones.keys().next_back() {
+                slam_feature::reanchor(state, old, newest);
+            }
             let _ = state.marginalize(Var::Clone(old));
             if let Some(&next) = state.clones.keys().next() {
                 self.features.remove_measurements_before(next);

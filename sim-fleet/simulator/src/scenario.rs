@@ -293,6 +293,9 @@ pub struct EstimatorSpec {
     pub max_slam_in_update: usize,
     /// Seconds after the start before SLAM features are initialized.
     pub slam_delay_s: f64,
+    /// SLAM feature parameterization: `global` (p_FinG) or `anchored` (in the
+    /// camera of the clone that initialized it).
+    pub feature_representation: FeatureRepresentationSpec,
     /// Maximum MSCKF features per update.
     pub max_msckf_in_update: usize,
     /// First-Estimates Jacobians on.
@@ -317,6 +320,16 @@ pub struct EstimatorSpec {
     pub start_after_motion_m: f64,
 }
 
+/// SLAM feature parameterization named in a scenario.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FeatureRepresentationSpec {
+    /// Global 3-D position.
+    Global,
+    /// 3-D position in an anchor clone's camera frame.
+    Anchored,
+}
+
 impl Default for EstimatorSpec {
     fn default() -> Self {
         Self {
@@ -324,6 +337,7 @@ impl Default for EstimatorSpec {
             max_slam_features: 50,
             max_slam_in_update: 25,
             slam_delay_s: 2.0,
+            feature_representation: FeatureRepresentationSpec::Global,
             max_msckf_in_update: 40,
             use_fej: true,
             calib_extrinsics: true,
