@@ -482,11 +482,35 @@ impl State {
         let w = &l_inv * pht.transpose();
         let lr = &l_inv * res;
         let dx = w.tr_mul(&lr);
-        let w_t = w.transpose();
-        self.cov.gemm(-1.0, &w_t, &w, 1.0);
-        self.symmetrize_and_floor();
+        self.subtract_gram_lower(&w);
+        self.cov.fill_upper_triangle_with_lower_triangle();
+        self.floor_diagonal();
         self.apply_correction(&dx);
         Ok(())
+    }
+
+    /// `P ← P − Wᵀ W` on the lower triangle only (the result is symmetric), in
+    /// column blocks so each block is one dense product: about half the work.
+    fn subtract_gram_lower(&mut self, w: &DMatrix<f64>) {
+        const BLOCK: usize = 32;
+        let n = self.dim();
+        let w_t = w.transpose();
+        let mut j0 = 0;
+        while j0 < n {
+            let bw = BLOCK.min(n - j0);
+            let mut blk = self.cov.view_mut((j0, j0), (n - j0, bw));
+            blk.gemm(-1.0, &w_t.rows(j0, n - j0), &w.columns(j0, bw), 1.0);
+            j0 += bw;
+        }
+    }
+
+    /// Keeps the diagonal positive.
+    fn floor_diagonal(&mut self) {
+        for i in 0..self.dim() {
+            if self.cov[(i, i)] < 1e-18 {
+                self.cov[(i, i)] = 1e-18;
+            }
+        }
     }
 
     /// Adds `new` from an invertible linearized measurement
@@ -518,26 +542,6 @@ impl State {
         let cross = -(&h_inv * pht.transpose());
         self.insert_with_cross(new, &p_nn, &cross)?;
         Ok(h_inv * res)
-    }
-
-    /// Keeps the covariance symmetric with a positive diagonal.
-    fn symmetrize_and_floor(&mut self) {
-        // (P + Pᵀ) / 2 with whole-matrix passes (vectorized, no bounds checks).
-        let t = self.cov.transpose();
-        self.cov += t;
-        self.cov *= 0.5;
-        for d in self
-            .cov
-            .diagonal()
-            .iter()
-            .copied()
-            .enumerate()
-            .collect::<Vec<_>>()
-        {
-            if d.1 < 1e-18 {
-                self.cov[(d.0, d.0)] = 1e-18;
-            }
-        }
     }
 
     /// Applies an error-state correction `δx` to every variable (boxplus).
