@@ -248,31 +248,32 @@ impl State {
         if self.has(new) {
             return Err(StateError::Duplicate(new));
         }
+        let (m, p_nn) = self.linear_map(new.size(), jac)?;
+        self.insert_with_cross(new, &(p_nn + noise), &m)
+    }
+
+    /// For `x' = Σ J_i x_i` (each `J_i` of `k` rows): `M = Σ J_i P[x_i, :]` (the
+    /// cross-covariance of `x'` with the state, `k x dim`) and `P' = Σ M[:, x_i] J_iᵀ`.
+    fn linear_map(
+        &self,
+        k: usize,
+        jac: &[(Var, DMatrix<f64>)],
+    ) -> Result<(DMatrix<f64>, DMatrix<f64>), StateError> {
         let n = self.dim();
-        let k = new.size();
-        // M = J P[vars, :]  (k x n)
         let mut m = DMatrix::zeros(k, n);
         for (v, j) in jac {
             let o = self.offset(*v).ok_or(StateError::Missing(*v))?;
             if j.shape() != (k, v.size()) {
-                return Err(StateError::Dimension(format!("augment Jacobian for {v:?}")));
+                return Err(StateError::Dimension(format!("Jacobian for {v:?}")));
             }
             m += j * self.cov.view((o, 0), (v.size(), n));
         }
-        let mut p_nn = noise.clone();
+        let mut p_nn = DMatrix::zeros(k, k);
         for (v, j) in jac {
             let o = self.offset(*v).ok_or(StateError::Missing(*v))?;
             p_nn += m.view((0, o), (k, v.size())) * j.transpose();
         }
-        let mut cov = DMatrix::zeros(n + k, n + k);
-        cov.view_mut((0, 0), (n, n)).copy_from(&self.cov);
-        cov.view_mut((n, 0), (k, n)).copy_from(&m);
-        cov.view_mut((0, n), (n, k)).copy_from(&m.transpose());
-        cov.view_mut((n, n), (k, k))
-            .copy_from(&(0.5 * (&p_nn + p_nn.transpose())));
-        self.cov = cov;
-        self.index.push((new, n));
-        Ok(())
+        Ok((m, p_nn))
     }
 
     /// Adds `new` with a given covariance block and cross-covariance with the
@@ -308,21 +309,7 @@ impl State {
     pub fn transform(&mut self, var: Var, jac: &[(Var, DMatrix<f64>)]) -> Result<(), StateError> {
         let o = self.offset(var).ok_or(StateError::Missing(var))?;
         let (n, k) = (self.dim(), var.size());
-        let mut m = DMatrix::zeros(k, n);
-        for (v, j) in jac {
-            let ov = self.offset(*v).ok_or(StateError::Missing(*v))?;
-            if j.shape() != (k, v.size()) {
-                return Err(StateError::Dimension(format!(
-                    "transform Jacobian for {v:?}"
-                )));
-            }
-            m += j * self.cov.view((ov, 0), (v.size(), n));
-        }
-        let mut p_nn = DMatrix::zeros(k, k);
-        for (v, j) in jac {
-            let ov = self.offset(*v).ok_or(StateError::Missing(*v))?;
-            p_nn += m.view((0, ov), (k, v.size())) * j.transpose();
-        }
+        let (m, p_nn) = self.linear_map(k, jac)?;
         self.cov.view_mut((o, 0), (k, n)).copy_from(&m);
         self.cov.view_mut((0, o), (n, k)).copy_from(&m.transpose());
         self.cov
