@@ -112,7 +112,10 @@ pub fn run_robot(
     opts: EstimatorOptions,
 ) -> Result<RobotRun, RunError> {
     let spec = &fleet.scenario.estimator;
-    let truth = &fleet.truths[robot.min(fleet.truths.len().saturating_sub(1))];
+    let truth = fleet
+        .truths
+        .get(robot)
+        .ok_or(simulator::SimError::NoSuchRobot(robot))?;
     let start = fleet
         .estimator_start_time(robot)
         .ok_or(simulator::SimError::NoSuchRobot(robot))?;
