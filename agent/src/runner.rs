@@ -2,12 +2,11 @@
 //! peers): the agent reads its own robot's sensors from the simulator, as a real
 //! robot reads its own, and the result is scored against the simulator's truth.
 
-use crate::estimator::slam_feature::FeatureRepresentation;
 use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, InitialState};
 use common::metrics::{ate, nees, rpe, Alignment, PosePair, DEFAULT_RPE_SEGMENTS_M};
 use common::summary::MetricSet;
 use common::trajectory::{StampedCovariance, StampedPose};
-use simulator::scenario::{EstimatorSpec, FeatureRepresentationSpec};
+use simulator::scenario::EstimatorSpec;
 use simulator::{Fleet, SimEvent};
 use std::str::FromStr;
 use thiserror::Error;
@@ -65,10 +64,7 @@ pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> Est
         max_slam_features: spec.max_slam_features,
         max_slam_in_update: spec.max_slam_in_update,
         slam_delay_s: spec.slam_delay_s,
-        feature_representation: match spec.feature_representation {
-            FeatureRepresentationSpec::Global => FeatureRepresentation::Global,
-            FeatureRepresentationSpec::Anchored => FeatureRepresentation::Anchored,
-        },
+        feature_representation: spec.feature_representation,
         max_msckf_in_update: spec.max_msckf_in_update,
         use_fej: spec.use_fej,
         calib_extrinsics: spec.calib_extrinsics,

@@ -4,24 +4,12 @@
 //! `p_FinG = R_A (R_CtoI p_FinA + p_CinI) + p_A`.
 
 use super::state::{SlamFeature, State, Var};
+pub use common::estimator_options::FeatureRepresentation;
 use common::so3::skew;
 use nalgebra::{DMatrix, Matrix3, Vector3};
-use serde::{Deserialize, Serialize};
 
 /// Jacobian blocks by variable (each `3 x size`).
 pub type SparseJacobian = Vec<(Var, DMatrix<f64>)>;
-
-/// How SLAM features are parameterized in the state.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum FeatureRepresentation {
-    /// `p_FinG`.
-    #[default]
-    Global,
-    /// `p_FinA` in the camera of the clone the feature was initialized at; the
-    /// anchor moves to the newest clone when its clone leaves the window.
-    Anchored,
-}
 
 /// `p_FinG` of feature `id` and its Jacobians w.r.t. the state variables it
 /// depends on (3 x size each), at the first estimates when `fej`.

@@ -7,6 +7,7 @@
 
 use common::calibration::CameraCalibration;
 use common::camera::{CameraModel, Distortion};
+use common::estimator_options::{EstimatorOptions, FeatureRepresentation};
 use nalgebra::{Matrix3, Vector3, Vector4};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -295,7 +296,7 @@ pub struct EstimatorSpec {
     pub slam_delay_s: f64,
     /// SLAM feature parameterization: `global` (p_FinG) or `anchored` (in the
     /// camera of the clone that initialized it).
-    pub feature_representation: FeatureRepresentationSpec,
+    pub feature_representation: FeatureRepresentation,
     /// Maximum MSCKF features per update.
     pub max_msckf_in_update: usize,
     /// First-Estimates Jacobians on.
@@ -320,32 +321,23 @@ pub struct EstimatorSpec {
     pub start_after_motion_m: f64,
 }
 
-/// SLAM feature parameterization named in a scenario.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum FeatureRepresentationSpec {
-    /// Global 3-D position.
-    Global,
-    /// 3-D position in an anchor clone's camera frame.
-    Anchored,
-}
-
 impl Default for EstimatorSpec {
+    /// The estimator's own defaults (`common::estimator_options`), plus OpenVINS's
+    /// simulation start: 1 deg / 5 cm / 1 cm/s / 0.02 prior sigmas, after 1.1 m.
     fn default() -> Self {
+        let o = EstimatorOptions::default();
         Self {
-            max_clones: 11,
-            max_slam_features: 50,
-            max_slam_in_update: 25,
-            slam_delay_s: 2.0,
-            feature_representation: FeatureRepresentationSpec::Global,
-            max_msckf_in_update: 40,
-            use_fej: true,
-            calib_extrinsics: true,
-            calib_intrinsics: true,
-            calib_time_offset: true,
-            // On by default: it never fired on the moving V1_01 flight (10 seeds,
-            // identical results) and keeps a robot that stops from diverging.
-            zero_velocity_update: true,
+            max_clones: o.max_clones,
+            max_slam_features: o.max_slam_features,
+            max_slam_in_update: o.max_slam_in_update,
+            slam_delay_s: o.slam_delay_s,
+            feature_representation: o.feature_representation,
+            max_msckf_in_update: o.max_msckf_in_update,
+            use_fej: o.use_fej,
+            calib_extrinsics: o.calib_extrinsics,
+            calib_intrinsics: o.calib_intrinsics,
+            calib_time_offset: o.calib_time_offset,
+            zero_velocity_update: o.zero_velocity_update,
             init_sigma_ori_rad: 0.017,
             init_sigma_pos_m: 0.05,
             init_sigma_vel_mps: 0.01,

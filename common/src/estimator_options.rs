@@ -1,0 +1,136 @@
+//! The estimator's options, with OpenVINS's simulation defaults (thesis Table 5.1).
+//!
+//! They live here, not in the agent, so scenario files take their defaults from the
+//! same place the estimator does.
+
+use serde::{Deserialize, Serialize};
+
+/// How SLAM features are parameterized in the state.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FeatureRepresentation {
+    /// `p_FinG`.
+    #[default]
+    Global,
+    /// `p_FinA` in the camera of the clone the feature was initialized at; the
+    /// anchor moves to the newest clone when its clone leaves the window.
+    Anchored,
+}
+
+/// IMU noise model used by the filter (continuous-time densities).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ImuNoise {
+    /// Gyroscope white noise density, rad/s/√Hz.
+    pub gyro_noise_density: f64,
+    /// Gyroscope bias random walk, rad/s²/√Hz.
+    pub gyro_random_walk: f64,
+    /// Accelerometer white noise density, m/s²/√Hz.
+    pub accel_noise_density: f64,
+    /// Accelerometer bias random walk, m/s³/√Hz.
+    pub accel_random_walk: f64,
+    /// Gravity magnitude, m/s².
+    pub gravity_mps2: f64,
+}
+
+impl Default for ImuNoise {
+    fn default() -> Self {
+        Self {
+            gyro_noise_density: 1.6968e-04,
+            gyro_random_walk: 1.9393e-05,
+            accel_noise_density: 2.0e-3,
+            accel_random_walk: 3.0e-3,
+            gravity_mps2: crate::conventions::GRAVITY_MPS2,
+        }
+    }
+}
+
+/// Prior standard deviations of the calibration states.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationPrior {
+    /// Time offset, s.
+    pub time_offset_s: f64,
+    /// Extrinsic rotation, rad.
+    pub extrinsic_rot_rad: f64,
+    /// Extrinsic position, m.
+    pub extrinsic_pos_m: f64,
+    /// Focal lengths and principal point, px.
+    pub intrinsics_px: f64,
+    /// Distortion coefficients.
+    pub distortion: f64,
+}
+
+impl Default for CalibrationPrior {
+    fn default() -> Self {
+        Self {
+            time_offset_s: 0.01,
+            extrinsic_rot_rad: 0.005,
+            extrinsic_pos_m: 0.015,
+            intrinsics_px: 1.0,
+            distortion: 0.005,
+        }
+    }
+}
+
+/// Everything that configures one estimator.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EstimatorOptions {
+    /// Sliding window size (clones).
+    pub max_clones: usize,
+    /// Maximum SLAM features in the state (0: MSCKF only).
+    pub max_slam_features: usize,
+    /// Maximum SLAM features initialized per frame.
+    pub max_slam_in_update: usize,
+    /// No SLAM feature is initialized before the filter has run this long, s: the
+    /// calibration converges first, so features are not frozen (FEJ) at positions
+    /// biased by a wrong initial calibration (OpenVINS's `dt_slam_delay`).
+    pub slam_delay_s: f64,
+    /// Global or anchored 3-D SLAM features.
+    pub feature_representation: FeatureRepresentation,
+    /// Maximum MSCKF features used per frame (the longest tracks first).
+    pub max_msckf_in_update: usize,
+    /// First-Estimates Jacobians.
+    pub use_fej: bool,
+    /// Estimate the camera-IMU extrinsics.
+    pub calib_extrinsics: bool,
+    /// Estimate intrinsics and distortion.
+    pub calib_intrinsics: bool,
+    /// Estimate the camera-IMU time offset.
+    pub calib_time_offset: bool,
+    /// Zero-velocity updates when standing still.
+    pub zero_velocity_update: bool,
+    /// Pixel measurement noise, px.
+    pub pixel_sigma_px: f64,
+    /// Multiplier of the chi-square gate (1 = 95 % quantile).
+    pub chi2_multiplier: f64,
+    /// IMU noise model.
+    pub imu: ImuNoise,
+    /// Calibration priors.
+    pub calib_prior: CalibrationPrior,
+    /// Largest IMU gap accepted, s.
+    pub max_imu_gap_s: f64,
+}
+
+impl Default for EstimatorOptions {
+    fn default() -> Self {
+        Self {
+            max_clones: 11,
+            max_slam_features: 50,
+            max_slam_in_update: 25,
+            slam_delay_s: 2.0,
+            feature_representation: Default::default(),
+            max_msckf_in_update: 40,
+            use_fej: true,
+            calib_extrinsics: true,
+            calib_intrinsics: true,
+            calib_time_offset: true,
+            // On by default: it never fired on the moving V1_01 flight (10 seeds,
+            // identical results) and keeps a robot that stops from diverging.
+            zero_velocity_update: true,
+            pixel_sigma_px: 1.0,
+            chi2_multiplier: 1.0,
+            imu: ImuNoise::default(),
+            calib_prior: CalibrationPrior::default(),
+            max_imu_gap_s: 0.1,
+        }
+    }
+}
