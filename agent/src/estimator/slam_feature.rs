@@ -138,13 +138,7 @@ mod tests {
     use common::so3::exp_so3;
 
     fn state_with_two_clones() -> State {
-        let imu = ImuState {
-            rot: Matrix3::identity(),
-            pos: Vector3::zeros(),
-            vel: Vector3::zeros(),
-            bias_gyro: Vector3::zeros(),
-            bias_accel: Vector3::zeros(),
-        };
+        let imu = ImuState::default();
         let mut s = State::new(
             0.0,
             imu,

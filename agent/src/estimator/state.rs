@@ -62,7 +62,8 @@ pub enum StateError {
     Dimension(String),
 }
 
-/// The IMU navigation state and its first estimates.
+/// The IMU navigation state. The default is level at the origin, at rest, with
+/// zero biases.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ImuState {
     /// `R_ItoG`.
@@ -75,6 +76,18 @@ pub struct ImuState {
     pub bias_gyro: Vector3<f64>,
     /// Accelerometer bias, m/s².
     pub bias_accel: Vector3<f64>,
+}
+
+impl Default for ImuState {
+    fn default() -> Self {
+        Self {
+            rot: Matrix3::identity(),
+            pos: Vector3::zeros(),
+            vel: Vector3::zeros(),
+            bias_gyro: Vector3::zeros(),
+            bias_accel: Vector3::zeros(),
+        }
+    }
 }
 
 /// First estimates of the IMU pose and velocity: the values propagation last
@@ -596,13 +609,7 @@ mod tests {
     use super::*;
 
     fn test_state() -> State {
-        let imu = ImuState {
-            rot: Matrix3::identity(),
-            pos: Vector3::zeros(),
-            vel: Vector3::zeros(),
-            bias_gyro: Vector3::zeros(),
-            bias_accel: Vector3::zeros(),
-        };
+        let imu = ImuState::default();
         let cov = DMatrix::from_fn(
             15,
             15,

@@ -108,17 +108,13 @@ mod tests {
     use super::*;
     use crate::estimator::state::ImuState;
     use common::calibration::CameraCalibration;
-    use nalgebra::Matrix3;
 
     fn still_state(vel: Vector3<f64>) -> State {
         State::new(
             0.0,
             ImuState {
-                rot: Matrix3::identity(),
-                pos: Vector3::zeros(),
                 vel,
-                bias_gyro: Vector3::zeros(),
-                bias_accel: Vector3::zeros(),
+                ..ImuState::default()
             },
             DMatrix::identity(15, 15) * 1e-3,
             CameraCalibration::euroc_cam0(),
