@@ -6,6 +6,7 @@
 //! The flow of one camera frame is `Estimator::process_frame` in [`vio`].
 
 pub mod chi2;
+pub mod feature_classes;
 pub mod feature_db;
 pub mod feature_system;
 pub mod linalg;

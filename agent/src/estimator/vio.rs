@@ -3,13 +3,14 @@
 //! nothing); after each processed frame the estimate and its covariance come out.
 
 use super::chi2::Chi2Table;
-use super::feature_db::{FeatureDb, FeatureMeasurement};
+use super::feature_classes::{classify, clean_up, record_measurements, FeatureClasses};
+use super::feature_db::FeatureDb;
 use super::options::EstimatorOptions;
 use super::propagator::{propagate, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
 use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
 use super::triangulation::TriangulationOptions;
-use super::{slam_feature, updater_msckf, updater_slam, updater_zupt};
+use super::{updater_msckf, updater_slam, updater_zupt};
 use common::calibration::CameraCalibration;
 use common::measurement::{FeatureFrame, ImuSample};
 use nalgebra::{DMatrix, Matrix3, Vector3};
@@ -422,94 +423,23 @@ impl Estimator {
         augment_clone(state, key, &omega);
         timing.propagate_ms = ms(t_start);
 
-        // 2. Record the measurements.
-        for f in &frame.features {
-            let Ok(uvn) = state.calib.camera.undistort(&f.uv) else {
-                continue;
-            };
-            let m = FeatureMeasurement {
-                clone_key: key,
-                t: frame.t,
-                uv: f.uv,
-                uvn,
-            };
-            if self.features.insert(f.id, m).is_err() {
-                // An impossible jump: the track restarts from this observation.
-                self.features.remove(f.id);
-                let m = FeatureMeasurement {
-                    clone_key: key,
-                    t: frame.t,
-                    uv: f.uv,
-                    uvn,
-                };
-                let _ = self.features.insert(f.id, m);
-            }
-        }
-
-        // 3. Sort features into classes.
-        let oldest = state.clones.keys().next().copied().unwrap_or(key);
-        let window_full = state.clones.len() > opts.max_clones;
-        let lost: Vec<u64> = self.features.ids_not_seen_since(key);
-        let at_marg: Vec<u64> = if window_full {
-            self.features.ids_with_measurement_at(oldest)
-        } else {
-            Vec::new()
-        };
-        let slam_seen: Vec<u64> = state
-            .features
-            .keys()
-            .copied()
-            .filter(|id| {
-                self.features
-                    .get(*id)
-                    .is_some_and(|f| f.measurements.iter().any(|m| m.clone_key == key))
-            })
-            .collect();
-        let mut slam_candidates = Vec::new();
-        let mut msckf_ids = Vec::new();
+        // 2. Record the measurements; 3. sort the features into classes.
+        record_measurements(&mut self.features, state, frame, key);
         let slam_allowed = state.t - self.start_t >= opts.slam_delay_s;
-        let room = if slam_allowed {
-            opts.max_slam_features
-                .saturating_sub(state.features.len())
-                .min(opts.max_slam_in_update)
-        } else {
-            0
-        };
-        for id in lost.iter().chain(at_marg.iter()) {
-            if state.features.contains_key(id) {
-                continue;
-            }
-            let Some(f) = self.features.get(*id) else {
-                continue;
-            };
-            let spans = f.measurements.len() > opts.max_clones;
-            if spans && !lost.contains(id) && slam_candidates.len() < room {
-                slam_candidates.push(*id);
-            } else if !msckf_ids.contains(id) {
-                msckf_ids.push(*id);
-            }
-        }
-        // The longest tracks first, up to the limit.
-        msckf_ids.sort_by_key(|id| {
-            std::cmp::Reverse(
-                self.features
-                    .get(*id)
-                    .map(|f| f.measurements.len())
-                    .unwrap_or(0),
-            )
-        });
-        let msckf_used: Vec<u64> = msckf_ids
-            .iter()
-            .copied()
-            .take(opts.max_msckf_in_update)
-            .collect();
+        let classes = classify(&self.features, state, key, &opts, slam_allowed);
+        let FeatureClasses {
+            slam_seen,
+            slam_candidates,
+            msckf_used,
+            ..
+        } = &classes;
 
         // 4. MSCKF update.
         let t = Instant::now();
         let msckf = updater_msckf::update(
             state,
             &self.features,
-            &msckf_used,
+            msckf_used,
             &opts,
             &self.chi2,
             &self.tri,
@@ -522,7 +452,7 @@ impl Estimator {
         updater_slam::update(
             state,
             &self.features,
-            &slam_seen,
+            slam_seen,
             key,
             &opts,
             &self.chi2,
@@ -532,7 +462,7 @@ impl Estimator {
 
         // 6. Delayed initialization of new SLAM features.
         let t = Instant::now();
-        for id in &slam_candidates {
+        for id in slam_candidates {
             if updater_slam::initialize(state, &self.features, *id, &opts, &self.chi2, &self.tri) {
                 slam.initialized += 1;
             } else {
@@ -554,39 +484,7 @@ impl Estimator {
 
         // 7. Clean up: used and lost features, lost SLAM features, oldest clone.
         let t = Instant::now();
-        for id in msckf_ids.iter().chain(slam_candidates.iter()) {
-            if !state.features.contains_key(id) {
-                self.features.remove(*id);
-            }
-        }
-        for id in slam_seen.iter().chain(slam_candidates.iter()) {
-            if let Some(f) = self.features.get_mut(*id) {
-                f.measurements.clear();
-            }
-        }
-        let lost_slam: Vec<u64> = state
-            .features
-            .keys()
-            .copied()
-            .filter(|id| !slam_seen.contains(id) && !slam_candidates.contains(id))
-            .collect();
-        for id in lost_slam {
-            let _ = state.marginalize(Var::Feature(id));
-            self.features.remove(id);
-        }
-        while state.clones.len() > opts.max_clones {
-            let Some(&old) = state.clones.keys().next() else {
-                break;
-            };
-            // Anchored features leave with their anchor: move them to the newest clone.
-            if let Some(&newest) = state.clones.keys().next_back() {
-                slam_feature::reanchor(state, old, newest);
-            }
-            let _ = state.marginalize(Var::Clone(old));
-            if let Some(&next) = state.clones.keys().next() {
-                self.features.remove_measurements_before(next);
-            }
-        }
+        clean_up(&mut self.features, state, &classes, opts.max_clones);
         // IMU readings older than the state are no longer needed.
         while self.imu.len() > 2 && self.imu[1].t < state.t {
             self.imu.pop_front();

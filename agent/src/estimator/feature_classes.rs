@@ -1,0 +1,143 @@
+//! What happens to each feature of a frame: its measurement is recorded, it is
+//! sorted into one class (thesis Section 5.3: VIO/MSCKF, SLAM update, SLAM
+//! initialization), and after the updates the used or lost ones are cleaned up.
+
+use super::feature_db::{FeatureDb, FeatureMeasurement};
+use super::options::EstimatorOptions;
+use super::slam_feature;
+use super::state::{State, Var};
+use common::measurement::FeatureFrame;
+
+/// The features of one frame by the update they go to. A feature is in at most
+/// one of `slam_seen`, `slam_candidates`, `msckf_ids`.
+#[derive(Clone, Debug, Default)]
+pub struct FeatureClasses {
+    /// SLAM features observed in this frame.
+    pub slam_seen: Vec<u64>,
+    /// Tracks spanning the window that become SLAM features (if there is room).
+    pub slam_candidates: Vec<u64>,
+    /// Lost tracks and tracks leaving the window, longest first.
+    pub msckf_ids: Vec<u64>,
+    /// The part of `msckf_ids` used in this frame's MSCKF update.
+    pub msckf_used: Vec<u64>,
+}
+
+/// Adds the frame's observations (undistorted with the current intrinsics) to the
+/// database under clone `key`. A track with an impossible jump restarts.
+pub fn record_measurements(db: &mut FeatureDb, state: &State, frame: &FeatureFrame, key: u64) {
+    for f in &frame.features {
+        let Ok(uvn) = state.calib.camera.undistort(&f.uv) else {
+            continue;
+        };
+        let m = FeatureMeasurement {
+            clone_key: key,
+            t: frame.t,
+            uv: f.uv,
+            uvn,
+        };
+        if db.insert(f.id, m).is_err() {
+            // An impossible jump: the track restarts from this observation.
+            db.remove(f.id);
+            let _ = db.insert(f.id, m);
+        }
+    }
+}
+
+/// Sorts the tracks after frame `key` into classes (OpenVINS's selection: lost
+/// tracks and tracks seen by the clone about to leave go to the MSCKF, unless they
+/// span the whole window and there is room for a SLAM feature).
+pub fn classify(
+    db: &FeatureDb,
+    state: &State,
+    key: u64,
+    opts: &EstimatorOptions,
+    slam_allowed: bool,
+) -> FeatureClasses {
+    let oldest = state.clones.keys().next().copied().unwrap_or(key);
+    let lost = db.ids_not_seen_since(key);
+    let at_marg = if state.clones.len() > opts.max_clones {
+        db.ids_with_measurement_at(oldest)
+    } else {
+        Vec::new()
+    };
+    let slam_seen: Vec<u64> = state
+        .features
+        .keys()
+        .copied()
+        .filter(|id| db.get(*id).is_some_and(|f| f.has_measurement_at(key)))
+        .collect();
+    let room = if slam_allowed {
+        opts.max_slam_features
+            .saturating_sub(state.features.len())
+            .min(opts.max_slam_in_update)
+    } else {
+        0
+    };
+    let mut c = FeatureClasses {
+        slam_seen,
+        ..FeatureClasses::default()
+    };
+    for id in lost.iter().chain(at_marg.iter()) {
+        if state.features.contains_key(id) {
+            continue;
+        }
+        let Some(f) = db.get(*id) else {
+            continue;
+        };
+        let spans = f.measurements.len() > opts.max_clones;
+        if spans && !lost.contains(id) && c.slam_candidates.len() < room {
+            c.slam_candidates.push(*id);
+        } else if !c.msckf_ids.contains(id) {
+            c.msckf_ids.push(*id);
+        }
+    }
+    // The longest tracks first, up to the limit.
+    c.msckf_ids.sort_by_key(|id| {
+        std::cmp::Reverse(db.get(*id).map(|f| f.measurements.len()).unwrap_or(0))
+    });
+    c.msckf_used = c
+        .msckf_ids
+        .iter()
+        .copied()
+        .take(opts.max_msckf_in_update)
+        .collect();
+    c
+}
+
+/// After the updates: forgets used tracks, keeps SLAM features' tracks empty
+/// (each measurement is used once), marginalizes lost SLAM features, and slides
+/// the window (re-anchoring anchored features first).
+pub fn clean_up(db: &mut FeatureDb, state: &mut State, c: &FeatureClasses, max_clones: usize) {
+    for id in c.msckf_ids.iter().chain(c.slam_candidates.iter()) {
+        if !state.features.contains_key(id) {
+            db.remove(*id);
+        }
+    }
+    for id in c.slam_seen.iter().chain(c.slam_candidates.iter()) {
+        if let Some(f) = db.get_mut(*id) {
+            f.measurements.clear();
+        }
+    }
+    let lost_slam: Vec<u64> = state
+        .features
+        .keys()
+        .copied()
+        .filter(|id| !c.slam_seen.contains(id) && !c.slam_candidates.contains(id))
+        .collect();
+    for id in lost_slam {
+        let _ = state.marginalize(Var::Feature(id));
+        db.remove(id);
+    }
+    while state.clones.len() > max_clones {
+        let Some(&old) = state.clones.keys().next() else {
+            break;
+        };
+        if let Some(&newest) = state.clones.keys().next_back() {
+            slam_feature::reanchor(state, old, newest);
+        }
+        let _ = state.marginalize(Var::Clone(old));
+        if let Some(&next) = state.clones.keys().next() {
+            db.remove_measurements_before(next);
+        }
+    }
+}
