@@ -176,17 +176,24 @@ mod tests {
         s
     }
 
-    #[test]
-    fn anchored_position_jacobians_match_numerical_differentiation() {
+    /// Two clones and feature 7 anchored at clone 0, 4 m in front of its camera.
+    fn state_with_anchored_feature() -> (State, SlamFeature) {
         let mut s = state_with_two_clones();
+        let p = Vector3::new(0.3, -0.2, 4.0);
         let f = SlamFeature {
-            pos: Vector3::new(0.3, -0.2, 4.0),
-            pos_fej: Vector3::new(0.3, -0.2, 4.0),
+            pos: p,
+            pos_fej: p,
             anchor: Some(0),
         };
         s.features.insert(7, f.clone());
         s.augment(Var::Feature(7), &[], &(DMatrix::identity(3, 3) * 0.01))
             .unwrap();
+        (s, f)
+    }
+
+    #[test]
+    fn anchored_position_jacobians_match_numerical_differentiation() {
+        let (s, f) = state_with_anchored_feature();
         let (p0, jac) = global_position(&s, 7, &f, false).unwrap();
         let n = s.dim();
         let h = 1e-6;
@@ -207,15 +214,7 @@ mod tests {
 
     #[test]
     fn reanchoring_keeps_the_global_position_and_its_covariance() {
-        let mut s = state_with_two_clones();
-        let f = SlamFeature {
-            pos: Vector3::new(0.3, -0.2, 4.0),
-            pos_fej: Vector3::new(0.3, -0.2, 4.0),
-            anchor: Some(0),
-        };
-        s.features.insert(7, f.clone());
-        s.augment(Var::Feature(7), &[], &(DMatrix::identity(3, 3) * 0.01))
-            .unwrap();
+        let (mut s, f) = state_with_anchored_feature();
         let (pg, jac) = global_position(&s, 7, &f, false).unwrap();
         // Covariance of p_FinG before: Σ J_i P_ij J_jᵀ.
         let cov_g = |s: &State, jac: &[(Var, DMatrix<f64>)]| {
