@@ -9,6 +9,7 @@
 //! * [`estimator_options`]: the estimator's options and their defaults.
 //! * [`measurement`]: IMU samples and camera feature frames.
 //! * [`trajectory`]: TUM / EuRoC ground-truth readers and a TUM writer.
+//! * [`messages`]: what agents send each other, and its wire format.
 //! * [`metrics`]: ATE, RPE and NEES.
 //! * [`summary`]: the `summary.json` schema shared by the agent and the fleet tools.
 #![warn(missing_docs)]
@@ -19,6 +20,7 @@ pub mod conventions;
 pub mod descriptor;
 pub mod estimator_options;
 pub mod measurement;
+pub mod messages;
 pub mod metrics;
 pub mod so3;
 pub mod summary;
