@@ -7,6 +7,15 @@
 //! * [`transport`]: publish/subscribe between agents (Zenoh, iceoryx2, in-process).
 #![warn(missing_docs)]
 
+pub mod agent_log;
+pub mod agent_output;
+pub mod config;
 pub mod estimator;
+pub mod fleet_clock;
+pub mod inbox;
+pub mod node;
+pub mod outbox;
+pub mod peer_events;
+pub mod peer_history;
 pub mod runner;
 pub mod transport;

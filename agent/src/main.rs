@@ -1,18 +1,29 @@
 //! `agent`: runs one robot of the fleet.
-use agent::runner::{options_for, run_robot, Variant};
+use agent::agent_output::{metrics_of, write_outputs};
+use agent::config::AgentConfig;
+use agent::node::{run_node, RobotSetup};
+use agent::runner::{options_for, run_robot, write_run_outputs, Variant};
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 use common::summary::{MetricSet, RobotSummary, RunSummary};
-use common::trajectory::{write_covariances, write_tum};
+use signal_hook::consts::{SIGINT, SIGTERM};
 use simulator::{Fleet, Scenario};
-use std::io::Write;
 use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// One robot's agent of the distributed multi-robot VIO fleet.
 #[derive(Parser, Debug)]
 #[command(name = "agent", version, about, long_about = None)]
 struct Cli {
+    /// Run as one agent of a fleet, as the configuration file (YAML) says.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Print `progress <tick> <ticks> <frames> <lag_s>` lines on stdout (for the
+    /// fleet launcher).
+    #[arg(long)]
+    progress: bool,
     #[command(subcommand)]
     command: Option<Command>,
 }
@@ -21,6 +32,29 @@ struct Cli {
 enum Command {
     /// Run one robot of a simulated scenario standalone (no peers) and score it.
     Run(RunArgs),
+    /// Robustness probe: join a fleet as another robot and send it malformed
+    /// payloads and a message of a foreign fleet (they must be dropped and
+    /// counted, and the agents must keep running).
+    Probe(ProbeArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct ProbeArgs {
+    /// An agent's configuration: the fleet and transport to join.
+    #[arg(long)]
+    config: PathBuf,
+    /// The robot id the probe uses (must not be a fleet member's).
+    #[arg(long, default_value_t = 999)]
+    as_robot: u32,
+    /// Malformed payloads to send.
+    #[arg(long, default_value_t = 3)]
+    malformed: u32,
+    /// Fleet id of the foreign message to send (none if not given).
+    #[arg(long)]
+    foreign_fleet: Option<String>,
+    /// How long to wait for a peer before sending, s.
+    #[arg(long, default_value_t = 10.0)]
+    wait_s: f64,
 }
 
 #[derive(clap::Args, Debug)]
@@ -49,14 +83,137 @@ fn main() -> Result<()> {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
-    match Cli::parse().command {
-        Some(Command::Run(args)) => run(&args),
-        None => {
+    let cli = Cli::parse();
+    match (&cli.command, &cli.config) {
+        (Some(Command::Run(args)), _) => run(args),
+        (Some(Command::Probe(args)), _) => probe(args),
+        (None, Some(config)) => run_agent(config, cli.progress),
+        (None, None) => {
             println!("agent {} (see --help)", env!("CARGO_PKG_VERSION"));
             Ok(())
         }
     }
+}
+
+/// One agent of a fleet: estimator, peers over the configured transport,
+/// outputs in the configured folder. SIGINT/SIGTERM stop it cleanly (a second
+/// signal exits at once).
+fn run_agent(config: &std::path::Path, progress: bool) -> Result<()> {
+    let cfg = AgentConfig::load(config)?;
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [SIGINT, SIGTERM] {
+        signal_hook::flag::register_conditional_shutdown(sig, 1, Arc::clone(&stop))?;
+        signal_hook::flag::register(sig, Arc::clone(&stop))?;
+    }
+    let setup = RobotSetup::load(&cfg)?;
+    let settings = cfg.transport_settings();
+    let transport = agent::transport::open(&settings, None)
+        .with_context(|| format!("robot {}: opening the transport", cfg.robot_id))?;
+    let name = transport.name();
+    tracing::info!(
+        robot = cfg.robot_id,
+        fleet = %cfg.fleet_id,
+        transport = name,
+        ticks = setup.ticks_total,
+        "agent starting"
+    );
+    let report = run_node(&cfg, &setup, transport, &stop, |p| {
+        if progress {
+            println!(
+                "progress {} {} {} {:.3}",
+                p.tick, p.ticks_total, p.frames, p.lag_s
+            );
+        }
+    })?;
+    std::fs::create_dir_all(&cfg.output_dir)
+        .with_context(|| format!("creating {}", cfg.output_dir.display()))?;
+    write_outputs(&report, cfg.robot_id, name, &cfg.output_dir)
+        .with_context(|| format!("writing outputs to {}", cfg.output_dir.display()))?;
+    let m = metrics_of(&report);
+    tracing::info!(
+        robot = cfg.robot_id,
+        frames = report.run.frames.len(),
+        ate_ori_deg = m.ate_ori_deg.unwrap_or(f64::NAN),
+        ate_pos_m = m.ate_pos_m.unwrap_or(f64::NAN),
+        bytes_per_s_sent = m.bytes_per_s_sent.unwrap_or(f64::NAN),
+        received = m.messages_received.unwrap_or(0),
+        dropped = m.messages_dropped.unwrap_or(0),
+        interrupted = report.interrupted,
+        "agent done"
+    );
+    if progress {
+        println!("done {}", cfg.output_dir.display());
+    }
+    Ok(())
+}
+
+fn probe(args: &ProbeArgs) -> Result<()> {
+    use agent::transport::PresenceEvent;
+    use common::messages::{encode, AgentState, Body, Envelope, Heartbeat, MessageKind};
+    use std::time::{Duration, Instant};
+    let cfg = AgentConfig::load(&args.config)?;
+    let mut settings = cfg.transport_settings();
+    settings.robot_id = args.as_robot;
+    // Join through the agent's own endpoint, listening on any free port.
+    settings.zenoh.connect = settings.zenoh.listen.clone();
+    settings.zenoh.listen = vec!["tcp/127.0.0.1:0".to_string()];
+    let mut t = agent::transport::open(&settings, None)?;
+    let deadline = Instant::now() + Duration::from_secs_f64(args.wait_s);
+    // Wait for the agent of the configuration itself (its presence means its
+    // subscriber is known), then a moment for the routes to settle.
+    let mut seen = false;
+    while !seen && Instant::now() < deadline {
+        seen = t
+            .presence()
+            .contains(&PresenceEvent::Appeared(cfg.robot_id));
+        let _ = t.receive(Duration::from_millis(20))?;
+    }
+    anyhow::ensure!(
+        seen,
+        "robot {} of fleet `{}` did not appear",
+        cfg.robot_id,
+        cfg.fleet_id
+    );
+    std::thread::sleep(Duration::from_millis(200));
+    for k in 0..args.malformed {
+        // A wrong magic, a truncated header, and random-looking bytes.
+        let junk: Vec<u8> = match k % 3 {
+            0 => b"not a fleet message".to_vec(),
+            1 => vec![b'F', b'V'],
+            _ => (0..64u32)
+                .map(|i| (i.wrapping_mul(2654435761) >> 13) as u8)
+                .collect(),
+        };
+        t.publish(MessageKind::Tracks, &junk)?;
+    }
+    if let Some(fleet) = &args.foreign_fleet {
+        let env = Envelope {
+            fleet_id: fleet.clone(),
+            robot_id: args.as_robot,
+            seq: 0,
+            stamp_s: 0.0,
+            sent_wall_ns: 0,
+            body: Body::Heartbeat(Heartbeat {
+                state: AgentState::Running,
+                frames_done: 0,
+                last_frame_index: None,
+                last_t_s: None,
+            }),
+        };
+        t.publish(MessageKind::Heartbeat, &encode(&env)?)?;
+    }
+    // Give the transport time to deliver before leaving.
+    std::thread::sleep(Duration::from_millis(500));
+    t.close(Duration::from_secs(2))?;
+    println!(
+        "sent {} malformed and {} foreign-fleet messages to fleet `{}`",
+        args.malformed,
+        u32::from(args.foreign_fleet.is_some()),
+        cfg.fleet_id
+    );
+    Ok(())
 }
 
 fn run(args: &RunArgs) -> Result<()> {
@@ -71,35 +228,7 @@ fn run(args: &RunArgs) -> Result<()> {
         tracing::warn!("rejected: {r}");
     }
     let out = &args.out;
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    write_tum(out.join("estimate.txt"), &run.estimate)?;
-    write_tum(out.join("groundtruth.txt"), &run.truth)?;
-    write_covariances(out.join("covariance.txt"), &run.covariance)?;
-    let mut timing = std::io::BufWriter::new(std::fs::File::create(out.join("timing.csv"))?);
-    writeln!(timing, "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed")?;
-    for f in &run.frames {
-        let t = &f.timing;
-        writeln!(
-            timing,
-            "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{}",
-            f.t,
-            t.propagate_ms,
-            t.msckf_ms,
-            t.slam_update_ms,
-            t.slam_init_ms,
-            t.marginalize_ms,
-            t.total_ms,
-            f.msckf_features,
-            f.msckf.rejected_chi2,
-            f.msckf.failed,
-            f.slam_features,
-            f.slam.updated,
-            f.slam.rejected_chi2,
-            f.slam.initialized,
-            f.slam.init_failed
-        )?;
-    }
-    timing.flush()?;
+    write_run_outputs(&run, out).with_context(|| format!("writing {}", out.display()))?;
     let metrics = run.metrics();
     println!(
         "robot {} ({}), {}, seed {seed}: ATE {:.3} deg / {:.3} m, NEES ori {:.2} pos {:.2}, {:.2} ms/frame (p95 {:.2}), {} frames",

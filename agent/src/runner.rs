@@ -6,6 +6,7 @@ use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, InitialState};
 use common::metrics::{ate, nees, rpe, Alignment, PosePair, DEFAULT_RPE_SEGMENTS_M};
 use common::summary::MetricSet;
 use common::trajectory::{StampedCovariance, StampedPose};
+use simulator::camera_sim::TruthState;
 use simulator::scenario::EstimatorSpec;
 use simulator::{Fleet, SimEvent};
 use std::str::FromStr;
@@ -130,18 +131,7 @@ pub fn run_robot(
                     if c.truth.t < start {
                         continue;
                     }
-                    est.initialize(&InitialState {
-                        t: c.truth.t,
-                        rot: c.truth.rot,
-                        pos: c.truth.pos,
-                        vel: c.truth.vel,
-                        bias_gyro: c.truth.biases.gyro,
-                        bias_accel: c.truth.biases.accel,
-                        sigma_ori_rad: spec.init_sigma_ori_rad,
-                        sigma_pos_m: spec.init_sigma_pos_m,
-                        sigma_vel_mps: spec.init_sigma_vel_mps,
-                        sigma_bias: spec.init_sigma_bias,
-                    });
+                    est.initialize(&initial_state(spec, &c.truth));
                     initialized = true;
                     continue;
                 }
@@ -163,7 +153,25 @@ pub fn run_robot(
     Ok(run)
 }
 
-fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: FrameOutput) {
+/// The estimator's start from the true state, with the scenario's prior
+/// standard deviations (OpenVINS's simulation start).
+pub fn initial_state(spec: &EstimatorSpec, truth: &TruthState) -> InitialState {
+    InitialState {
+        t: truth.t,
+        rot: truth.rot,
+        pos: truth.pos,
+        vel: truth.vel,
+        bias_gyro: truth.biases.gyro,
+        bias_accel: truth.biases.accel,
+        sigma_ori_rad: spec.init_sigma_ori_rad,
+        sigma_pos_m: spec.init_sigma_pos_m,
+        sigma_vel_mps: spec.init_sigma_vel_mps,
+        sigma_bias: spec.init_sigma_bias,
+    }
+}
+
+/// Appends a frame's output to `run`, with the truth at the estimate's time.
+pub fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: FrameOutput) {
     let Some(gt) = truth.spline.pose(o.t) else {
         return;
     };
@@ -212,4 +220,41 @@ impl RobotRun {
             ..MetricSet::default()
         }
     }
+}
+
+/// Writes a run's estimate and ground truth (TUM), per-pose covariances and
+/// per-frame timing (`timing.csv`) into `dir`.
+pub fn write_run_outputs(run: &RobotRun, dir: &std::path::Path) -> std::io::Result<()> {
+    use std::io::Write;
+    let to_io = |e: common::trajectory::TrajectoryError| std::io::Error::other(e.to_string());
+    std::fs::create_dir_all(dir)?;
+    common::trajectory::write_tum(dir.join("estimate.txt"), &run.estimate).map_err(to_io)?;
+    common::trajectory::write_tum(dir.join("groundtruth.txt"), &run.truth).map_err(to_io)?;
+    common::trajectory::write_covariances(dir.join("covariance.txt"), &run.covariance)
+        .map_err(to_io)?;
+    let mut timing = std::io::BufWriter::new(std::fs::File::create(dir.join("timing.csv"))?);
+    writeln!(timing, "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed")?;
+    for f in &run.frames {
+        let t = &f.timing;
+        writeln!(
+            timing,
+            "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{}",
+            f.t,
+            t.propagate_ms,
+            t.msckf_ms,
+            t.slam_update_ms,
+            t.slam_init_ms,
+            t.marginalize_ms,
+            t.total_ms,
+            f.msckf_features,
+            f.msckf.rejected_chi2,
+            f.msckf.failed,
+            f.slam_features,
+            f.slam.updated,
+            f.slam.rejected_chi2,
+            f.slam.initialized,
+            f.slam.init_failed
+        )?;
+    }
+    timing.flush()
 }

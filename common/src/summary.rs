@@ -67,6 +67,22 @@ pub struct MetricSet {
     pub bytes_sent: Option<u64>,
     /// Bytes received from other robots.
     pub bytes_received: Option<u64>,
+    /// Bytes sent per second of fleet time.
+    pub bytes_per_s_sent: Option<f64>,
+    /// Messages sent to other robots.
+    pub messages_sent: Option<u64>,
+    /// Messages received from other robots and accepted.
+    pub messages_received: Option<u64>,
+    /// Received payloads dropped (malformed, foreign fleet, impostor sender).
+    pub messages_dropped: Option<u64>,
+    /// Times a peer vanished (died, froze or left) during the run.
+    pub peer_losses: Option<u64>,
+    /// Mean one-way message latency, ms (wall clock, same host).
+    pub latency_ms_mean: Option<f64>,
+    /// 99th percentile of the one-way message latency, ms.
+    pub latency_ms_p99: Option<f64>,
+    /// Peak heap bytes of peer histories (all peers).
+    pub history_bytes: Option<u64>,
     /// Inter- or intra-robot loop closures used.
     pub loop_closures: Option<u64>,
     /// Filter updates with features seen by several robots.
@@ -146,6 +162,14 @@ impl MetricSet {
             ms_per_frame_p95: f(|s| s.ms_per_frame_p95),
             bytes_sent: u(|s| s.bytes_sent),
             bytes_received: u(|s| s.bytes_received),
+            bytes_per_s_sent: f(|s| s.bytes_per_s_sent),
+            messages_sent: u(|s| s.messages_sent),
+            messages_received: u(|s| s.messages_received),
+            messages_dropped: u(|s| s.messages_dropped),
+            peer_losses: u(|s| s.peer_losses),
+            latency_ms_mean: f(|s| s.latency_ms_mean),
+            latency_ms_p99: f(|s| s.latency_ms_p99),
+            history_bytes: u(|s| s.history_bytes),
             loop_closures: u(|s| s.loop_closures),
             common_feature_updates: u(|s| s.common_feature_updates),
         }

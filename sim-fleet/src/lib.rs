@@ -1,8 +1,9 @@
 //! Fleet tools: simulation to files, evaluation, reports, the Monte-Carlo runner
-//! and (later) the launcher.
+//! and the fleet launcher (`fleet_run`).
 #![warn(missing_docs)]
 
 pub mod eval;
+pub mod fleet_run;
 pub mod montecarlo;
 pub mod plots;
 pub mod simulate;

@@ -1,8 +1,9 @@
 //! `sim-fleet`: simulate a fleet, evaluate estimates, run Monte-Carlo studies (and,
-//! later, launch agents).
+//! launch a fleet of agents).
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 use sim_fleet::eval::{run_eval, EvalArgs};
+use sim_fleet::fleet_run::{run_fleet, RunArgs};
 use sim_fleet::montecarlo::{run_montecarlo, MontecarloArgs};
 use sim_fleet::simulate::{run_simulate, SimulateArgs};
 
@@ -24,6 +25,9 @@ enum Command {
     /// Run every robot of a scenario standalone over many seeds and estimator
     /// variants, in parallel, and aggregate the metrics (means, spreads, divergences).
     Montecarlo(MontecarloArgs),
+    /// Launch one agent process per robot (Zenoh or iceoryx2; threads for
+    /// inproc), supervise them and collect their outputs into DIR/summary.json.
+    Run(RunArgs),
 }
 
 fn main() -> Result<()> {
@@ -33,10 +37,12 @@ fn main() -> Result<()> {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
     match Cli::parse().command {
         Command::Simulate(args) => run_simulate(&args),
         Command::Eval(args) => run_eval(&args),
         Command::Montecarlo(args) => run_montecarlo(&args),
+        Command::Run(args) => run_fleet(&args),
     }
 }

@@ -5,6 +5,7 @@
 //! feature frames, returning the estimate and its covariance after each frame.
 //! The flow of one camera frame is `Estimator::process_frame` in [`vio`].
 
+pub mod camera_window;
 pub mod chi2;
 pub mod feature_classes;
 pub mod feature_db;

@@ -166,6 +166,7 @@ mod tests {
                 k as u64,
                 ClonePose {
                     t: k as f64,
+                    t_cam: k as f64,
                     rot,
                     pos: p,
                     rot_fej: rot,

@@ -107,6 +107,9 @@ pub struct ImuFej {
 pub struct ClonePose {
     /// IMU time of the clone, s.
     pub t: f64,
+    /// Camera time of the image the clone was taken for, s (its IMU time is this
+    /// plus the time-offset estimate of that moment).
+    pub t_cam: f64,
     /// `R_ItoG`.
     pub rot: Matrix3<f64>,
     /// `p_IinG`, m.

@@ -2,6 +2,7 @@
 //! frames go in (validated; bad input is rejected with a reason and changes
 //! nothing); after each processed frame the estimate and its covariance come out.
 
+use super::camera_window::{camera_window, CameraWindow};
 use super::chi2::Chi2Table;
 use super::feature_classes::{classify, clean_up, record_measurements, FeatureClasses};
 use super::feature_db::FeatureDb;
@@ -194,6 +195,20 @@ impl Estimator {
     /// The state, once initialized.
     pub fn state(&self) -> Option<&State> {
         self.state.as_ref()
+    }
+
+    /// The sliding window as peers see it (camera poses, joint covariance, and the
+    /// SLAM features when `with_landmarks`), once initialized.
+    pub fn camera_window(&self, with_landmarks: bool) -> Option<CameraWindow> {
+        self.state
+            .as_ref()
+            .map(|s| camera_window(s, with_landmarks))
+    }
+
+    /// The calibration in use: the state's estimate once initialized, the initial
+    /// guess before.
+    pub fn calibration(&self) -> &CameraCalibration {
+        self.state.as_ref().map(|s| &s.calib).unwrap_or(&self.calib)
     }
 
     /// Starts the filter at a given state (e.g. ground truth in simulation, or the
@@ -420,7 +435,7 @@ impl Estimator {
         }
         self.seq += 1;
         let key = self.seq;
-        augment_clone(state, key, &omega);
+        augment_clone(state, key, frame.t, &omega);
         timing.propagate_ms = ms(t_start);
 
         // 2. Record the measurements; 3. sort the features into classes.
@@ -525,7 +540,7 @@ fn output(
 /// Stochastic cloning of the IMU pose at the image time; with online time-offset
 /// calibration the clone also depends on `t_d` through `[ω; v]` (the pose moves
 /// with the estimated offset).
-fn augment_clone(state: &mut State, key: u64, omega: &Vector3<f64>) {
+fn augment_clone(state: &mut State, key: u64, t_cam: f64, omega: &Vector3<f64>) {
     let mut j_imu = DMatrix::zeros(6, 15);
     j_imu.view_mut((0, 0), (6, 6)).fill_with_identity();
     let mut jac = vec![(Var::Imu, j_imu)];
@@ -543,6 +558,7 @@ fn augment_clone(state: &mut State, key: u64, omega: &Vector3<f64>) {
             key,
             ClonePose {
                 t: state.t,
+                t_cam,
                 rot: state.imu.rot,
                 pos: state.imu.pos,
                 rot_fej: state.imu.rot,

@@ -4,6 +4,27 @@
 //!
 //! A transport moves opaque byte payloads tagged with the sender's robot id and a
 //! [`MessageKind`]; encoding, fleet-id checks and statistics live above it.
+//!
+//! * [`settings`]: what the agent's configuration says, and [`open`] to build a transport
+//!   from it.
+//! * [`inproc`]: [`InprocHub`], one process, deterministic.
+//! * [`zenoh`]: [`ZenohTransport`], peers over TCP (loopback, LAN, across machines).
+//! * [`iceoryx2`]: [`Iceoryx2Transport`], processes of one machine over shared memory.
+//! * [`faults`]: [`FaultyTransport`], seeded loss and added delay for fault tests.
+
+pub mod faults;
+pub mod iceoryx2;
+pub mod inproc;
+pub mod settings;
+pub mod zenoh;
+
+pub use faults::{FaultSettings, FaultyTransport};
+pub use iceoryx2::Iceoryx2Transport;
+pub use inproc::{InprocHub, InprocTransport};
+pub use settings::{
+    open, Iceoryx2Settings, TransportKind, TransportSettings, ZenohSettings, ZENOH_BUILTIN_CONFIGS,
+};
+pub use zenoh::ZenohTransport;
 
 use common::messages::MessageKind;
 use std::time::Duration;
@@ -67,6 +88,20 @@ pub enum TransportError {
         /// What went wrong.
         reason: String,
     },
+    /// Leaving the fleet failed or did not finish in time.
+    #[error("{transport}: closing failed: {reason}")]
+    Close {
+        /// Which transport.
+        transport: &'static str,
+        /// What went wrong.
+        reason: String,
+    },
+    /// The transport was closed before this call.
+    #[error("{transport}: already closed")]
+    Closed {
+        /// Which transport.
+        transport: &'static str,
+    },
     /// The payload is larger than the transport accepts.
     #[error("payload of {len} bytes exceeds the limit of {max} bytes")]
     TooLarge {
@@ -94,4 +129,24 @@ pub trait Transport: Send {
     fn presence(&mut self) -> Vec<PresenceEvent>;
     /// Leaves the fleet (peers see this agent vanish); waits at most `timeout`.
     fn close(&mut self, timeout: Duration) -> Result<(), TransportError>;
+}
+
+/// A boxed transport (what [`open`] returns) is a transport, so wrappers such as
+/// [`FaultyTransport`] take it as well as a concrete one.
+impl<T: Transport + ?Sized> Transport for Box<T> {
+    fn name(&self) -> &'static str {
+        (**self).name()
+    }
+    fn publish(&mut self, kind: MessageKind, bytes: &[u8]) -> Result<(), TransportError> {
+        (**self).publish(kind, bytes)
+    }
+    fn receive(&mut self, timeout: Duration) -> Result<Option<Received>, TransportError> {
+        (**self).receive(timeout)
+    }
+    fn presence(&mut self) -> Vec<PresenceEvent> {
+        (**self).presence()
+    }
+    fn close(&mut self, timeout: Duration) -> Result<(), TransportError> {
+        (**self).close(timeout)
+    }
 }

@@ -11,7 +11,7 @@ fn rpe_row(segment_m: f64, pos: Option<f64>, count: usize) -> RpeEntry {
     }
 }
 
-const METRIC_KEYS: [&str; 12] = [
+const METRIC_KEYS: [&str; 20] = [
     "ate_ori_deg",
     "ate_pos_m",
     "nees_ori",
@@ -22,6 +22,14 @@ const METRIC_KEYS: [&str; 12] = [
     "ms_per_frame_p95",
     "bytes_sent",
     "bytes_received",
+    "bytes_per_s_sent",
+    "messages_sent",
+    "messages_received",
+    "messages_dropped",
+    "peer_losses",
+    "latency_ms_mean",
+    "latency_ms_p99",
+    "history_bytes",
     "loop_closures",
     "common_feature_updates",
 ];

@@ -1,0 +1,182 @@
+//! What an agent leaves in its output folder after a run:
+//! `estimate.txt` / `groundtruth.txt` (TUM), `covariance.txt`, `timing.csv`,
+//! `peer_events.jsonl`, `transport_stats.json` and `summary.json` (plus the MCAP
+//! log written during the run).
+
+use crate::node::NodeReport;
+use crate::runner::write_run_outputs;
+use common::summary::{MetricSet, RobotSummary, RunSummary};
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// What was kept of one peer, for `transport_stats.json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct HistoryReport {
+    /// Keyframe windows held at the end.
+    pub keyframes: usize,
+    /// Keyframe windows stored in total.
+    pub stored: u64,
+    /// Keyframe windows dropped by the memory bound.
+    pub dropped: u64,
+    /// Bytes held at the end (history and recent data).
+    pub bytes: usize,
+    /// Fleet time spanned by the held keyframe windows, s.
+    pub span_s: f64,
+    /// Memory growth: history bytes per hour of the peer's fleet time.
+    pub bytes_per_peer_hour: Option<f64>,
+}
+
+/// The contents of `transport_stats.json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct TransportReport<'a> {
+    /// Transport name.
+    pub transport: &'a str,
+    /// Traffic per kind, per peer, drops and gaps.
+    pub net: &'a crate::inbox::NetStats,
+    /// Messages that could not be sent.
+    pub publish_errors: u64,
+    /// Bytes sent per second of fleet time, per kind.
+    pub bytes_per_s_by_kind: BTreeMap<String, f64>,
+    /// Latency percentiles (ms): p50, p99, max.
+    pub latency_ms: Option<[f64; 3]>,
+    /// Peer presence at the end.
+    pub peers: &'a BTreeMap<u32, crate::peer_events::PeerPresence>,
+    /// Histories per peer.
+    pub histories: BTreeMap<u32, HistoryReport>,
+    /// Peak history bytes (all peers).
+    pub peak_history_bytes: usize,
+    /// Real time: largest lag behind the wall clock, s.
+    pub max_lag_s: f64,
+    /// Ticks done.
+    pub ticks: u64,
+    /// Stopped by a signal.
+    pub interrupted: bool,
+}
+
+fn percentile(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let i = ((sorted.len() as f64 - 1.0) * q).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
+
+/// History statistics of one peer.
+pub fn history_report(h: &crate::peer_history::PeerHistory) -> HistoryReport {
+    let first = h
+        .keyframes
+        .values()
+        .next()
+        .and_then(|k| k.snapshot.clones.first().map(|c| c.t_s));
+    let last = h
+        .keyframes
+        .values()
+        .next_back()
+        .and_then(|k| k.snapshot.clones.last().map(|c| c.t_s));
+    let span_s = match (first, last) {
+        (Some(a), Some(b)) => (b - a).max(0.0),
+        _ => 0.0,
+    };
+    HistoryReport {
+        keyframes: h.keyframes.len(),
+        stored: h.stored_keyframes,
+        dropped: h.dropped_keyframes,
+        bytes: h.bytes(),
+        span_s,
+        bytes_per_peer_hour: (span_s > 1.0).then(|| h.history_bytes as f64 / span_s * 3600.0),
+    }
+}
+
+/// Writes every output of `report` into `dir`; `transport` names the transport.
+pub fn write_outputs(
+    report: &NodeReport,
+    robot_id: u32,
+    transport: &str,
+    dir: &Path,
+) -> std::io::Result<()> {
+    write_run_outputs(&report.run, dir)?;
+    let mut events = std::io::BufWriter::new(std::fs::File::create(dir.join("peer_events.jsonl"))?);
+    report.peers.write_jsonl(&mut events)?;
+    std::io::Write::flush(&mut events)?;
+
+    let mut lat = report.latencies_ms.clone();
+    lat.sort_by(f64::total_cmp);
+    let latency_ms = (!lat.is_empty()).then(|| {
+        [
+            percentile(&lat, 0.5),
+            percentile(&lat, 0.99),
+            lat.last().copied().unwrap_or(f64::NAN),
+        ]
+    });
+    let fleet_s = report.fleet_s.max(1e-9);
+    let transport_report = TransportReport {
+        transport,
+        net: &report.net,
+        publish_errors: report.publish_errors,
+        bytes_per_s_by_kind: report
+            .net
+            .kinds
+            .iter()
+            .map(|(k, c)| (k.as_str().to_string(), c.sent_bytes as f64 / fleet_s))
+            .collect(),
+        latency_ms,
+        peers: &report.peers.peers,
+        histories: report
+            .histories
+            .iter()
+            .map(|(p, h)| (*p, history_report(h)))
+            .collect(),
+        peak_history_bytes: report.peak_history_bytes,
+        max_lag_s: report.max_lag_s,
+        ticks: report.ticks,
+        interrupted: report.interrupted,
+    };
+    let json = serde_json::to_string_pretty(&transport_report).map_err(std::io::Error::other)?;
+    std::fs::write(dir.join("transport_stats.json"), json)?;
+
+    let metrics = metrics_of(report);
+    let summary = RunSummary {
+        scenario: report.scenario.clone(),
+        variant: Some(report.variant.clone()),
+        seed: report.seed,
+        transport: Some(transport.to_string()),
+        wall_s: Some(report.wall_s),
+        sim_s: Some(report.fleet_s),
+        mean: MetricSet::mean_of(std::slice::from_ref(&metrics)),
+        robots: vec![RobotSummary {
+            id: robot_id,
+            trajectory: report.robot_name.clone(),
+            metrics,
+        }],
+    };
+    summary
+        .write_json(dir.join("summary.json"))
+        .map_err(|e| std::io::Error::other(e.to_string()))
+}
+
+/// The robot's metrics: the estimator's, plus traffic and peers.
+pub fn metrics_of(report: &NodeReport) -> MetricSet {
+    let mut m = report.run.metrics();
+    let net = &report.net;
+    m.bytes_sent = Some(net.bytes_sent());
+    m.bytes_received = Some(net.bytes_received());
+    m.bytes_per_s_sent = (report.fleet_s > 0.0).then(|| net.bytes_sent() as f64 / report.fleet_s);
+    m.messages_sent = Some(net.kinds.values().map(|k| k.sent).sum());
+    m.messages_received = Some(net.kinds.values().map(|k| k.received).sum());
+    m.messages_dropped = Some(net.dropped.values().sum());
+    m.peer_losses = Some(
+        report
+            .peers
+            .peers
+            .values()
+            .map(|p| u64::from(p.losses))
+            .sum(),
+    );
+    let mut lat = report.latencies_ms.clone();
+    lat.sort_by(f64::total_cmp);
+    m.latency_ms_mean = (!lat.is_empty()).then(|| lat.iter().sum::<f64>() / lat.len() as f64);
+    m.latency_ms_p99 = (!lat.is_empty()).then(|| percentile(&lat, 0.99));
+    m.history_bytes = Some(report.peak_history_bytes as u64);
+    m
+}

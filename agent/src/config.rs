@@ -1,0 +1,458 @@
+//! The agent's configuration file (YAML). Units are in the key names; estimator
+//! keys follow OpenVINS's names where one exists (`max_clones`, `max_slam`,
+//! `use_fej`, `calib_cam_extrinsics`, ...).
+
+use crate::runner::Variant;
+use crate::transport::{Iceoryx2Settings, TransportKind, TransportSettings, ZenohSettings};
+use common::estimator_options::FeatureRepresentation;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+
+/// Why a configuration could not be used.
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("reading {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The YAML is invalid or has unknown keys.
+    #[error("{path}: {source}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The cause (with line and column).
+        source: serde_yaml::Error,
+    },
+    /// A value is out of range or inconsistent.
+    #[error("{path}: {what}")]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        what: String,
+    },
+}
+
+/// One agent: who it is, how it talks, what it reads, what it writes.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgentConfig {
+    /// This robot's id in the fleet (also its robot index in a simulated scenario
+    /// unless `input.robot_index` says otherwise).
+    pub robot_id: u32,
+    /// Fleet id: messages of other fleets are ignored and counted.
+    #[serde(default = "default_fleet")]
+    pub fleet_id: String,
+    /// Where outputs go (created if missing).
+    pub output_dir: PathBuf,
+    /// Transport to the peers.
+    #[serde(default)]
+    pub transport: TransportSection,
+    /// Where the sensor data come from.
+    pub input: InputConfig,
+    /// Estimator variant and option overrides.
+    #[serde(default)]
+    pub estimator: EstimatorSection,
+    /// Lockstep or real-time clock.
+    #[serde(default)]
+    pub clock: ClockConfig,
+    /// What is published and how often.
+    #[serde(default)]
+    pub publish: PublishConfig,
+    /// Peer histories: what is kept, and the memory bound.
+    #[serde(default)]
+    pub history: HistoryConfig,
+    /// Whether to write the MCAP log.
+    #[serde(default = "yes")]
+    pub mcap_log: bool,
+}
+
+fn default_fleet() -> String {
+    "fleet".into()
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// The transport section: which transport and its settings (the fleet and robot
+/// ids come from the top level).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransportSection {
+    /// `zenoh`, `iceoryx2` or `inproc`.
+    #[serde(default)]
+    pub kind: TransportKind,
+    /// Zenoh settings (config by built-in name or path, endpoint overrides).
+    #[serde(default)]
+    pub zenoh: ZenohSettings,
+    /// iceoryx2 settings.
+    #[serde(default)]
+    pub iceoryx2: Iceoryx2Settings,
+}
+
+/// Sensor source.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InputConfig {
+    /// `simulator`: the agent simulates its own robot of `scenario` (as a real
+    /// robot reads its own sensors); `mcap`: replays `mcap` (a file written by
+    /// `sim-fleet simulate`), with sensor and estimator settings from `scenario`.
+    pub source: InputSource,
+    /// Scenario file (YAML); relative paths are relative to the config file.
+    pub scenario: PathBuf,
+    /// Robot index in the scenario (default: `robot_id`).
+    #[serde(default)]
+    pub robot_index: Option<usize>,
+    /// Seed of the simulation (default: the scenario's).
+    #[serde(default)]
+    pub seed: Option<u64>,
+    /// MCAP file to replay (source `mcap`).
+    #[serde(default)]
+    pub mcap: Option<PathBuf>,
+}
+
+/// Where sensor data come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum InputSource {
+    /// The fleet simulator, for this robot only.
+    Simulator,
+    /// A recorded MCAP file.
+    Mcap,
+}
+
+/// Estimator variant and OpenVINS-named overrides of the scenario's settings.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EstimatorSection {
+    /// `indp` (MSCKF only) or `indp-slam`.
+    #[serde(default = "default_variant")]
+    pub variant: String,
+    /// Sliding-window size (clones).
+    #[serde(default)]
+    pub max_clones: Option<usize>,
+    /// Maximum SLAM features in the state.
+    #[serde(default)]
+    pub max_slam: Option<usize>,
+    /// Maximum SLAM features per update.
+    #[serde(default)]
+    pub max_slam_in_update: Option<usize>,
+    /// Maximum MSCKF features per update.
+    #[serde(default)]
+    pub max_msckf_in_update: Option<usize>,
+    /// First-Estimates Jacobians.
+    #[serde(default)]
+    pub use_fej: Option<bool>,
+    /// Online extrinsic calibration.
+    #[serde(default)]
+    pub calib_cam_extrinsics: Option<bool>,
+    /// Online intrinsic calibration.
+    #[serde(default)]
+    pub calib_cam_intrinsics: Option<bool>,
+    /// Online camera-IMU time-offset calibration.
+    #[serde(default)]
+    pub calib_cam_timeoffset: Option<bool>,
+    /// Zero-velocity updates at standstills.
+    #[serde(default)]
+    pub try_zupt: Option<bool>,
+    /// SLAM feature representation: `global` or `anchored`.
+    #[serde(default)]
+    pub feat_rep_slam: Option<FeatureRepresentation>,
+}
+
+fn default_variant() -> String {
+    "indp-slam".into()
+}
+
+impl Default for EstimatorSection {
+    fn default() -> Self {
+        Self {
+            variant: default_variant(),
+            max_clones: None,
+            max_slam: None,
+            max_slam_in_update: None,
+            max_msckf_in_update: None,
+            use_fej: None,
+            calib_cam_extrinsics: None,
+            calib_cam_intrinsics: None,
+            calib_cam_timeoffset: None,
+            try_zupt: None,
+            feat_rep_slam: None,
+        }
+    }
+}
+
+/// How the agent's clock advances.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ClockMode {
+    /// Frame by frame on the fleet clock: no agent starts camera tick `k + 1`
+    /// before every live peer finished tick `k`; bit-identical across transports.
+    Lockstep,
+    /// Paced to the wall clock times `realtime_rate`, as on real robots.
+    Realtime,
+}
+
+/// Clock settings.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClockConfig {
+    /// `lockstep` or `realtime`.
+    #[serde(default = "default_mode")]
+    pub mode: ClockMode,
+    /// Real time: simulated seconds per wall second.
+    #[serde(default = "one")]
+    pub realtime_rate: f64,
+    /// The peers this agent expects (lockstep waits for them; both modes wait up
+    /// to `start_timeout_s` for them to appear before starting).
+    #[serde(default)]
+    pub peers: Vec<u32>,
+    /// How long to wait for the expected peers at start, s.
+    #[serde(default = "default_start_timeout")]
+    pub start_timeout_s: f64,
+    /// Lockstep: a peer that sends nothing for this long is no longer waited for, s.
+    #[serde(default = "default_barrier_timeout")]
+    pub barrier_timeout_s: f64,
+    /// After its own data end, how long the agent keeps receiving while peers are
+    /// still running, s.
+    #[serde(default = "default_linger")]
+    pub linger_timeout_s: f64,
+}
+
+fn default_mode() -> ClockMode {
+    ClockMode::Lockstep
+}
+fn one() -> f64 {
+    1.0
+}
+fn default_start_timeout() -> f64 {
+    30.0
+}
+fn default_barrier_timeout() -> f64 {
+    10.0
+}
+fn default_linger() -> f64 {
+    60.0
+}
+
+impl Default for ClockConfig {
+    fn default() -> Self {
+        Self {
+            mode: default_mode(),
+            realtime_rate: 1.0,
+            peers: Vec::new(),
+            start_timeout_s: default_start_timeout(),
+            barrier_timeout_s: default_barrier_timeout(),
+            linger_timeout_s: default_linger(),
+        }
+    }
+}
+
+/// Publication rates.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PublishConfig {
+    /// A window snapshot once this many camera frames have passed since the last
+    /// one (keyframe snapshots count; 1 = every frame). The default 6 puts one
+    /// snapshot between two keyframes of an 11-clone window at 10 Hz.
+    #[serde(default = "default_snapshot_every")]
+    pub snapshot_every_frames: u32,
+    /// Keyframe windows for peers' histories, at most this often, s (a keyframe
+    /// window never overlaps the previous one).
+    #[serde(default = "one")]
+    pub keyframe_period_s: f64,
+    /// Include SLAM features (positions and 3x3 marginals) in every snapshot
+    /// (they are always in keyframe snapshots). Off by default: bandwidth.
+    #[serde(default)]
+    pub landmarks_in_snapshots: bool,
+    /// Heartbeat period in real-time mode, s (lockstep sends one per tick).
+    #[serde(default = "one")]
+    pub heartbeat_period_s: f64,
+}
+
+fn default_snapshot_every() -> u32 {
+    6
+}
+
+impl Default for PublishConfig {
+    fn default() -> Self {
+        Self {
+            snapshot_every_frames: default_snapshot_every(),
+            keyframe_period_s: 1.0,
+            landmarks_in_snapshots: false,
+            heartbeat_period_s: 1.0,
+        }
+    }
+}
+
+/// Peer-history bounds.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HistoryConfig {
+    /// Memory bound per peer, MiB: the oldest keyframe windows are dropped first.
+    #[serde(default = "default_history_mib")]
+    pub max_mib_per_peer: f64,
+    /// Recent (non-keyframe) track frames kept per peer, s.
+    #[serde(default = "default_recent_s")]
+    pub recent_tracks_s: f64,
+}
+
+fn default_history_mib() -> f64 {
+    64.0
+}
+fn default_recent_s() -> f64 {
+    2.0
+}
+
+impl Default for HistoryConfig {
+    fn default() -> Self {
+        Self {
+            max_mib_per_peer: default_history_mib(),
+            recent_tracks_s: default_recent_s(),
+        }
+    }
+}
+
+impl AgentConfig {
+    /// Reads and checks a configuration file; relative paths in it become relative
+    /// to the file's folder.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let mut cfg: AgentConfig =
+            serde_yaml::from_str(&text).map_err(|source| ConfigError::Parse {
+                path: path.to_path_buf(),
+                source,
+            })?;
+        let base = path.parent().unwrap_or(Path::new("."));
+        cfg.input.scenario = base.join(&cfg.input.scenario);
+        cfg.input.mcap = cfg.input.mcap.map(|m| base.join(m));
+        cfg.output_dir = base.join(&cfg.output_dir);
+        cfg.validate().map_err(|what| ConfigError::Invalid {
+            path: path.to_path_buf(),
+            what,
+        })?;
+        Ok(cfg)
+    }
+
+    /// Range and consistency checks.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.fleet_id.is_empty() || self.fleet_id.len() > 64 {
+            return Err("fleet_id must have 1 to 64 bytes".into());
+        }
+        if !self
+            .fleet_id
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        {
+            return Err(format!(
+                "fleet_id `{}` may only hold letters, digits, `-` and `_` (it is a key segment)",
+                self.fleet_id
+            ));
+        }
+        self.estimator
+            .variant
+            .parse::<Variant>()
+            .map_err(|e| e.to_string())?;
+        if self.input.source == InputSource::Mcap && self.input.mcap.is_none() {
+            return Err("input.source is mcap but input.mcap is not set".into());
+        }
+        let c = &self.clock;
+        if !(c.realtime_rate.is_finite() && c.realtime_rate > 0.0) {
+            return Err(format!(
+                "clock.realtime_rate must be > 0 (got {})",
+                c.realtime_rate
+            ));
+        }
+        for (name, v) in [
+            ("clock.start_timeout_s", c.start_timeout_s),
+            ("clock.barrier_timeout_s", c.barrier_timeout_s),
+            ("clock.linger_timeout_s", c.linger_timeout_s),
+            ("publish.keyframe_period_s", self.publish.keyframe_period_s),
+            (
+                "publish.heartbeat_period_s",
+                self.publish.heartbeat_period_s,
+            ),
+            ("history.max_mib_per_peer", self.history.max_mib_per_peer),
+            ("history.recent_tracks_s", self.history.recent_tracks_s),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{name} must be a finite number >= 0 (got {v})"));
+            }
+        }
+        if self.publish.snapshot_every_frames == 0 {
+            return Err("publish.snapshot_every_frames must be >= 1".into());
+        }
+        if c.peers.contains(&self.robot_id) {
+            return Err(format!(
+                "clock.peers lists this agent's own robot_id {}",
+                self.robot_id
+            ));
+        }
+        Ok(())
+    }
+
+    /// The transport settings of this agent.
+    pub fn transport_settings(&self) -> TransportSettings {
+        TransportSettings {
+            fleet_id: self.fleet_id.clone(),
+            robot_id: self.robot_id,
+            kind: self.transport.kind,
+            zenoh: self.transport.zenoh.clone(),
+            iceoryx2: self.transport.iceoryx2.clone(),
+        }
+    }
+
+    /// The scenario robot this agent simulates.
+    pub fn robot_index(&self) -> usize {
+        self.input.robot_index.unwrap_or(self.robot_id as usize)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINIMAL: &str =
+        "robot_id: 1\noutput_dir: out\ninput:\n  source: simulator\n  scenario: s.yaml\n";
+
+    #[test]
+    fn minimal_config_takes_defaults_and_resolves_paths() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.yaml");
+        std::fs::write(&p, MINIMAL).unwrap();
+        let c = AgentConfig::load(&p).unwrap();
+        assert_eq!(c.robot_id, 1);
+        assert_eq!(c.fleet_id, "fleet");
+        assert_eq!(c.clock.mode, ClockMode::Lockstep);
+        assert_eq!(c.publish.snapshot_every_frames, 6);
+        assert_eq!(c.input.scenario, dir.path().join("s.yaml"));
+        assert_eq!(c.robot_index(), 1);
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_values_are_reported() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.yaml");
+        std::fs::write(&p, format!("{MINIMAL}colour: red\n")).unwrap();
+        let e = AgentConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("colour"), "{e}");
+        std::fs::write(&p, format!("{MINIMAL}fleet_id: a/b\n")).unwrap();
+        let e = AgentConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("fleet_id"), "{e}");
+        std::fs::write(&p, format!("{MINIMAL}estimator:\n  variant: magic\n")).unwrap();
+        let e = AgentConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("magic"), "{e}");
+        std::fs::write(&p, format!("{MINIMAL}clock:\n  peers: [1]\n")).unwrap();
+        let e = AgentConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("own robot_id"), "{e}");
+    }
+}

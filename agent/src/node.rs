@@ -1,0 +1,618 @@
+//! One agent process at work: it reads its own robot's sensors, runs its
+//! estimator, tells its peers what it sees, listens to them, and keeps their
+//! histories. [`run_node`] is the whole loop, one camera tick at a time:
+//!
+//! 1. wait for the fleet clock (lockstep barrier, or the wall clock in real time);
+//! 2. hand the peers' messages of the previous ticks to their histories;
+//! 3. feed this tick's IMU samples and images to the estimator, publishing each
+//!    processed frame's tracks, new descriptors and, when due, a window snapshot;
+//! 4. announce the tick done (heartbeat).
+//!
+//! At the end it says so (a `Finished` heartbeat) and keeps listening while peers
+//! still run, so nothing they send is lost.
+
+use crate::config::{AgentConfig, ClockMode, InputSource};
+use crate::estimator::{Estimator, FrameOutput};
+use crate::fleet_clock::{Lockstep, Pacer, TickGrid};
+use crate::inbox::{Inbox, NetStats};
+use crate::outbox::Outbox;
+use crate::peer_events::{PeerEvent, PeerEvents};
+use crate::peer_history::{HistoryLimits, PeerHistory};
+use crate::runner::{initial_state, options_for, record, RobotRun, RunError, Variant};
+use crate::transport::{Transport, TransportError};
+use common::measurement::FeatureFrame;
+use common::messages::{encode, AgentState, Body, Envelope};
+use simulator::{Fleet, Scenario, SimEvent};
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+use thiserror::Error;
+
+/// Why an agent could not run.
+#[derive(Debug, Error)]
+pub enum NodeError {
+    /// The scenario could not be loaded.
+    #[error(transparent)]
+    Scenario(#[from] simulator::scenario::ScenarioError),
+    /// The simulation failed.
+    #[error(transparent)]
+    Sim(#[from] simulator::SimError),
+    /// Replay file error.
+    #[error(transparent)]
+    Replay(#[from] simulator::mcap_io::McapIoError),
+    /// Estimator set-up error.
+    #[error(transparent)]
+    Run(#[from] RunError),
+    /// The transport failed beyond recovery.
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+}
+
+/// Progress of a run, for the launcher's display.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Progress {
+    /// Ticks done.
+    pub tick: u64,
+    /// Ticks in the run.
+    pub ticks_total: u64,
+    /// Camera frames processed by the estimator.
+    pub frames: u64,
+    /// Real time: how far behind the wall clock the agent is, s.
+    pub lag_s: f64,
+}
+
+/// Everything a finished run knows.
+#[derive(Debug, Default)]
+pub struct NodeReport {
+    /// The estimate, truth, covariances and per-frame outputs.
+    pub run: RobotRun,
+    /// Traffic statistics.
+    pub net: NetStats,
+    /// Peer presence and its event log.
+    pub peers: PeerEvents,
+    /// What was kept of each peer.
+    pub histories: BTreeMap<u32, PeerHistory>,
+    /// Largest total history bytes seen.
+    pub peak_history_bytes: usize,
+    /// Ticks done.
+    pub ticks: u64,
+    /// Fleet time covered, s.
+    pub fleet_s: f64,
+    /// Wall time, s.
+    pub wall_s: f64,
+    /// Stopped by a signal before the end of the data.
+    pub interrupted: bool,
+    /// Publish errors (the message was not sent; the run went on).
+    pub publish_errors: u64,
+    /// Largest lag behind the wall clock in real-time mode, s.
+    pub max_lag_s: f64,
+    /// One-way latencies of received messages, ms (same-host wall clocks).
+    pub latencies_ms: Vec<f64>,
+    /// Scenario name.
+    pub scenario: String,
+    /// Seed.
+    pub seed: u64,
+    /// Estimator variant.
+    pub variant: String,
+    /// Robot name (trajectory).
+    pub robot_name: String,
+}
+
+/// The robot this agent is: its simulated (or recorded) sensors and its
+/// estimator settings.
+pub struct RobotSetup {
+    /// The fleet (truth, world) of the scenario.
+    pub fleet: Fleet,
+    /// Robot index in the scenario.
+    pub robot: usize,
+    /// Estimator variant.
+    pub variant: Variant,
+    /// The fleet's camera tick grid.
+    pub grid: TickGrid,
+    /// Ticks until the robot's data end.
+    pub ticks_total: u64,
+    /// Recorded events (MCAP replay), if any.
+    recorded: Option<Vec<SimEvent>>,
+}
+
+impl RobotSetup {
+    /// Loads the scenario and, for a replay, the recording.
+    pub fn load(cfg: &AgentConfig) -> Result<Self, NodeError> {
+        let scenario = Scenario::load(&cfg.input.scenario)?;
+        let seed = cfg.input.seed.unwrap_or(scenario.seed);
+        let fleet = Fleet::build(&scenario, seed)?;
+        let robot = cfg.robot_index();
+        let truth = fleet
+            .truths
+            .get(robot)
+            .ok_or(simulator::SimError::NoSuchRobot(robot))?;
+        let variant: Variant = cfg.estimator.variant.parse()?;
+        let t0_s = fleet
+            .truths
+            .iter()
+            .map(|t| t.start_time())
+            .fold(f64::INFINITY, f64::min);
+        let dt_s = 1.0 / fleet.scenario.sensors.camera.rate_hz;
+        let grid = TickGrid { t0_s, dt_s };
+        let recorded = match (cfg.input.source, &cfg.input.mcap) {
+            (InputSource::Mcap, Some(path)) => Some(simulator::mcap_io::read_stream(path)?),
+            _ => None,
+        };
+        let t_end = match &recorded {
+            Some(events) => events.last().map_or(t0_s, event_time),
+            None => truth.end_time(),
+        };
+        Ok(Self {
+            ticks_total: grid.ticks_until(t_end),
+            fleet,
+            robot,
+            variant,
+            grid,
+            recorded,
+        })
+    }
+
+    fn events(&self) -> Result<Box<dyn Iterator<Item = SimEvent> + '_>, NodeError> {
+        Ok(match &self.recorded {
+            Some(events) => Box::new(events.iter().cloned()),
+            None => Box::new(self.fleet.stream(self.robot)?),
+        })
+    }
+}
+
+fn event_time(e: &SimEvent) -> f64 {
+    match e {
+        SimEvent::Imu(s) => s.t,
+        SimEvent::Camera(c) => c.frame.t,
+    }
+}
+
+/// The agent's moving parts during a run.
+struct Node {
+    transport: Box<dyn Transport>,
+    inbox: Inbox,
+    outbox: Outbox,
+    lockstep: Lockstep,
+    pending: Vec<Envelope>,
+    limits: HistoryLimits,
+    report: NodeReport,
+    started: Instant,
+    fleet_t: Option<f64>,
+    log: Option<crate::agent_log::AgentLog>,
+}
+
+impl Node {
+    fn wall_s(&self) -> f64 {
+        self.started.elapsed().as_secs_f64()
+    }
+
+    fn note(&mut self, e: Option<PeerEvent>) {
+        let Some(e) = e else { return };
+        tracing::info!(peer = e.peer, event = e.event, "peer event");
+        if let Some(log) = self.log.as_mut() {
+            let t = e.fleet_t_s.unwrap_or(0.0);
+            let _ = log.log(t, 2, "peers", &format!("robot {} {}", e.peer, e.event));
+        }
+    }
+
+    /// Publishes `envelopes`; a failure is counted and logged, never fatal.
+    fn publish(&mut self, envelopes: Vec<Envelope>) {
+        for mut env in envelopes {
+            env.sent_wall_ns = wall_ns();
+            let kind = env.kind();
+            let bytes = match encode(&env) {
+                Ok(b) => b,
+                Err(e) => {
+                    tracing::warn!("not sending {kind:?}: {e}");
+                    self.report.publish_errors += 1;
+                    continue;
+                }
+            };
+            match self.transport.publish(kind, &bytes) {
+                Ok(()) => self.report.net.sent(kind, bytes.len()),
+                Err(e) => {
+                    self.report.publish_errors += 1;
+                    if self.report.publish_errors <= 10 {
+                        tracing::warn!("{e}");
+                    }
+                }
+            }
+        }
+    }
+
+    /// Receives for at most `timeout` (one message, or none), and applies
+    /// presence changes.
+    fn pump(&mut self, timeout: Duration) -> bool {
+        for ev in self.transport.presence() {
+            let e = self.report.peers.presence(ev, self.wall_s(), self.fleet_t);
+            if let crate::transport::PresenceEvent::Vanished(p) = ev {
+                if self.lockstep.release(p) {
+                    self.report
+                        .peers
+                        .push(p, "released", self.wall_s(), self.fleet_t);
+                    tracing::info!(peer = p, "gone: no longer waiting for it");
+                }
+            }
+            self.note(e);
+        }
+        let msg = match self.transport.receive(timeout) {
+            Ok(Some(m)) => m,
+            Ok(None) => return false,
+            Err(e) => {
+                tracing::warn!("{e}");
+                return false;
+            }
+        };
+        let Some(env) = self.inbox.accept(&msg, &mut self.report.net) else {
+            if let Some(why) = self.report.net.drop_samples.last() {
+                if self.report.net.dropped.values().sum::<u64>() <= 20 {
+                    tracing::warn!("dropped: {why}");
+                }
+            }
+            return true;
+        };
+        let now = self.wall_s();
+        if let Some(ms) = latency_ms(&env) {
+            self.report.latencies_ms.push(ms);
+        }
+        let peer = env.robot_id;
+        let e = self.report.peers.heard(peer, now, self.fleet_t);
+        self.note(e);
+        self.lockstep.heard(peer, now);
+        if let Body::Heartbeat(hb) = &env.body {
+            let finished = hb.state == AgentState::Finished;
+            self.lockstep
+                .progress(peer, hb.last_frame_index, finished, now);
+            if finished
+                && !self
+                    .report
+                    .peers
+                    .peers
+                    .get(&peer)
+                    .is_some_and(|p| p.finished)
+            {
+                let e = self.report.peers.push(peer, "finished", now, self.fleet_t);
+                self.note(Some(e));
+            }
+        }
+        self.pending.push(env);
+        true
+    }
+
+    /// Receives everything already there.
+    fn drain(&mut self) {
+        while self.pump(Duration::ZERO) {}
+    }
+
+    /// Moves pending messages stamped up to `until_s` into the peers' histories,
+    /// in a deterministic order.
+    fn deliver(&mut self, until_s: f64) {
+        let (now, later): (Vec<Envelope>, Vec<Envelope>) = std::mem::take(&mut self.pending)
+            .into_iter()
+            .partition(|e| e.stamp_s <= until_s);
+        self.pending = later;
+        let mut now = now;
+        now.sort_by(|a, b| {
+            a.stamp_s
+                .total_cmp(&b.stamp_s)
+                .then(a.robot_id.cmp(&b.robot_id))
+                .then(a.kind().cmp(&b.kind()))
+                .then(a.seq.cmp(&b.seq))
+        });
+        for env in now {
+            let h = self.report.histories.entry(env.robot_id).or_default();
+            match env.body {
+                Body::Tracks(t) => h.add_tracks(t, &self.limits),
+                Body::Descriptors(d) => h.add_descriptors(d),
+                Body::Snapshot(s) => {
+                    if let (Some(log), Some(c)) = (self.log.as_mut(), s.clones.last()) {
+                        let _ = log.pose(
+                            &format!("/peers/{}/camera", env.robot_id),
+                            "world",
+                            c.t_s,
+                            &c.rot_c_to_g(),
+                            &c.p_c_in_g(),
+                        );
+                    }
+                    h.add_snapshot(s, &self.limits);
+                }
+                Body::Heartbeat(_) => {}
+            }
+        }
+        let total: usize = self.report.histories.values().map(|h| h.bytes()).sum();
+        self.report.peak_history_bytes = self.report.peak_history_bytes.max(total);
+    }
+
+    fn stopping(stop: &AtomicBool) -> bool {
+        stop.load(Ordering::Relaxed)
+    }
+}
+
+fn wall_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// One-way latency from the envelope's wall-clock send time (same host).
+fn latency_ms(env: &Envelope) -> Option<f64> {
+    let sent = env.sent_wall_ns;
+    if sent == 0 {
+        return None;
+    }
+    Some(wall_ns().saturating_sub(sent) as f64 * 1e-6)
+}
+
+/// Runs the agent until its data end (or `stop` is set), then lingers while
+/// peers still run. Outputs are returned, not written (see
+/// [`crate::agent_output`]).
+pub fn run_node(
+    cfg: &AgentConfig,
+    setup: &RobotSetup,
+    transport: Box<dyn Transport>,
+    stop: &AtomicBool,
+    mut progress: impl FnMut(Progress),
+) -> Result<NodeReport, NodeError> {
+    let fleet = &setup.fleet;
+    let robot = setup.robot;
+    let truth = fleet
+        .truths
+        .get(robot)
+        .ok_or(simulator::SimError::NoSuchRobot(robot))?;
+    let spec = &fleet.scenario.estimator;
+    let start_t = fleet
+        .estimator_start_time(robot)
+        .ok_or(simulator::SimError::NoSuchRobot(robot))?;
+    let mut est = Estimator::new(
+        options_for(spec, fleet, setup.variant),
+        fleet.initial_calibration(robot),
+    );
+    let log = if cfg.mcap_log {
+        std::fs::create_dir_all(&cfg.output_dir).ok();
+        match crate::agent_log::AgentLog::create(&cfg.output_dir.join("agent.mcap")) {
+            Ok(l) => Some(l),
+            Err(e) => {
+                tracing::warn!("no MCAP log: {e}");
+                None
+            }
+        }
+    } else {
+        None
+    };
+    let mut node = Node {
+        transport,
+        inbox: Inbox::new(&cfg.fleet_id, cfg.robot_id),
+        outbox: Outbox::new(&cfg.fleet_id, cfg.robot_id, cfg.publish.clone()),
+        lockstep: Lockstep::new(&cfg.clock.peers, 0.0),
+        pending: Vec::new(),
+        limits: HistoryLimits {
+            max_bytes: (cfg.history.max_mib_per_peer * 1024.0 * 1024.0) as usize,
+            recent_s: cfg.history.recent_tracks_s,
+        },
+        report: NodeReport {
+            scenario: fleet.scenario.name.clone(),
+            seed: fleet.seed,
+            variant: setup.variant.name().to_string(),
+            robot_name: fleet.scenario.robot_name(robot),
+            ..NodeReport::default()
+        },
+        started: Instant::now(),
+        fleet_t: None,
+        log,
+    };
+
+    // Wait for the expected peers (their presence means their subscribers exist).
+    let deadline = Instant::now() + Duration::from_secs_f64(cfg.clock.start_timeout_s);
+    loop {
+        let alive = node.report.peers.alive();
+        let missing: Vec<u32> = cfg
+            .clock
+            .peers
+            .iter()
+            .filter(|p| !alive.contains(p))
+            .copied()
+            .collect();
+        if missing.is_empty() || Instant::now() >= deadline || Node::stopping(stop) {
+            if !missing.is_empty() {
+                tracing::warn!(?missing, "starting without these peers");
+                for p in missing {
+                    node.lockstep.release(p);
+                }
+            }
+            break;
+        }
+        node.pump(Duration::from_millis(20));
+    }
+    let now = node.wall_s();
+    for p in &cfg.clock.peers {
+        node.lockstep.heard(*p, now);
+    }
+
+    let grid = setup.grid;
+    let pacer = Pacer::new(grid.end_of(0), cfg.clock.realtime_rate);
+    let mut events = setup.events()?.peekable();
+    let mut queued: VecDeque<(u64, FeatureFrame)> = VecDeque::new();
+    let mut frames_seen = 0u64;
+    let mut initialized = false;
+    let mut last_heartbeat = Instant::now();
+    let mut tick = 0u64;
+    while tick < setup.ticks_total {
+        if Node::stopping(stop) {
+            node.report.interrupted = true;
+            break;
+        }
+        // 1. The fleet clock.
+        match cfg.clock.mode {
+            ClockMode::Lockstep if tick > 0 => {
+                let mut next_note = node.wall_s() + 5.0;
+                loop {
+                    let waiting = node.lockstep.waiting_for(tick - 1);
+                    if waiting.is_empty() || Node::stopping(stop) {
+                        break;
+                    }
+                    node.pump(Duration::from_millis(20));
+                    let now = node.wall_s();
+                    if now > next_note {
+                        tracing::info!(tick, ?waiting, "waiting for peers");
+                        next_note = now + 5.0;
+                    }
+                    for p in
+                        node.lockstep
+                            .release_silent(tick - 1, now, cfg.clock.barrier_timeout_s)
+                    {
+                        tracing::warn!(peer = p, "silent for too long: no longer waiting for it");
+                        let e = node.report.peers.push(p, "silent", now, node.fleet_t);
+                        node.note(Some(e));
+                    }
+                }
+                node.drain();
+                // 2. Everything the peers sent up to the previous tick.
+                node.deliver(grid.end_of(tick - 1));
+            }
+            ClockMode::Lockstep => {}
+            ClockMode::Realtime => {
+                let due = pacer.due(grid.end_of(tick));
+                while Instant::now() < due && !Node::stopping(stop) {
+                    let left = due.saturating_duration_since(Instant::now());
+                    node.pump(left.min(Duration::from_millis(20)));
+                }
+                node.drain();
+                node.deliver(f64::INFINITY);
+                node.report.max_lag_s = node.report.max_lag_s.max(pacer.lag_s(grid.end_of(tick)));
+            }
+        }
+        let t_end = grid.end_of(tick);
+        node.fleet_t = Some(t_end);
+
+        // 3. This tick's sensor data.
+        while let Some(ev) = events.next_if(|e| event_time(e) <= t_end) {
+            match ev {
+                SimEvent::Imu(s) => {
+                    if let Err(e) = est.feed_imu(s) {
+                        node.report.run.rejected.push(e.to_string());
+                    }
+                }
+                SimEvent::Camera(c) => {
+                    let index = frames_seen;
+                    frames_seen += 1;
+                    if !initialized {
+                        if c.truth.t.is_finite() && c.truth.t >= start_t {
+                            est.initialize(&initial_state(spec, &c.truth));
+                            initialized = true;
+                        }
+                        let env = node.outbox.tracks(index, &c.frame, est.calibration());
+                        node.publish(env);
+                        continue;
+                    }
+                    match est.feed_frame(c.frame.clone()) {
+                        Ok(()) => queued.push_back((index, c.frame)),
+                        Err(e) => node.report.run.rejected.push(e.to_string()),
+                    }
+                }
+            }
+            for out in est.poll() {
+                let Some((index, frame)) = queued.pop_front() else {
+                    break;
+                };
+                let mut envs = node.outbox.tracks(index, &frame, est.calibration());
+                match out {
+                    Ok(o) => {
+                        let oldest = est
+                            .state()
+                            .and_then(|s| s.clones.values().next().map(|c| c.t_cam));
+                        if let Some(plan) = node.outbox.snapshot_due(index, frame.t, oldest) {
+                            if let Some(w) = est.camera_window(plan.landmarks) {
+                                envs.extend(node.outbox.snapshot(index, &frame, plan, &w));
+                            }
+                        }
+                        log_estimate(&mut node, &o, truth);
+                        record(&mut node.report.run, truth, o);
+                    }
+                    Err(e) => node.report.run.rejected.push(e.to_string()),
+                }
+                node.publish(envs);
+            }
+        }
+
+        // 4. Tick done.
+        let beat = match cfg.clock.mode {
+            ClockMode::Lockstep => true,
+            ClockMode::Realtime => {
+                last_heartbeat.elapsed().as_secs_f64() >= cfg.publish.heartbeat_period_s
+            }
+        };
+        if beat {
+            last_heartbeat = Instant::now();
+            let hb = node.outbox.heartbeat(
+                t_end,
+                AgentState::Running,
+                node.report.run.frames.len() as u64,
+                Some(tick),
+            );
+            node.publish(vec![hb]);
+        }
+        tick += 1;
+        node.report.ticks = tick;
+        if tick % 10 == 0 || tick == setup.ticks_total {
+            progress(Progress {
+                tick,
+                ticks_total: setup.ticks_total,
+                frames: node.report.run.frames.len() as u64,
+                lag_s: if cfg.clock.mode == ClockMode::Realtime {
+                    pacer.lag_s(t_end)
+                } else {
+                    0.0
+                },
+            });
+        }
+    }
+
+    // The end: say so, then keep listening while peers still run.
+    let t_last = node.fleet_t.unwrap_or(grid.t0_s);
+    let hb = node.outbox.heartbeat(
+        t_last,
+        AgentState::Finished,
+        node.report.run.frames.len() as u64,
+        tick.checked_sub(1),
+    );
+    node.publish(vec![hb]);
+    let linger_until = Instant::now() + Duration::from_secs_f64(cfg.clock.linger_timeout_s);
+    while !Node::stopping(stop) && Instant::now() < linger_until {
+        let alive = node.report.peers.alive();
+        let running: Vec<u32> = alive
+            .into_iter()
+            .filter(|p| !node.report.peers.peers.get(p).is_some_and(|s| s.finished))
+            .collect();
+        if running.is_empty() {
+            break;
+        }
+        node.pump(Duration::from_millis(20));
+    }
+    node.drain();
+    node.deliver(f64::INFINITY);
+    if Node::stopping(stop) {
+        node.report.interrupted = node.report.interrupted || tick < setup.ticks_total;
+    }
+    node.report.fleet_s = t_last - grid.t0_s;
+    node.report.wall_s = node.wall_s();
+    if let Some(log) = node.log.take() {
+        if let Err(e) = log.finish() {
+            tracing::warn!("MCAP log: {e}");
+        }
+    }
+    if let Err(e) = node.transport.close(Duration::from_secs(2)) {
+        tracing::warn!("closing the transport: {e}");
+    }
+    Ok(node.report)
+}
+
+fn log_estimate(node: &mut Node, o: &FrameOutput, truth: &simulator::truth::RobotTruth) {
+    let Some(log) = node.log.as_mut() else {
+        return;
+    };
+    let _ = log.pose("/estimate", "world", o.t, &o.rot, &o.pos);
+    let _ = log.covariance(o.t, &o.cov_ori, &o.cov_pos);
+    if let Some(gt) = truth.spline.pose(o.t) {
+        let _ = log.pose("/groundtruth", "world", o.t, &gt.rot, &gt.trans);
+    }
+}

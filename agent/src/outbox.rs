@@ -1,0 +1,319 @@
+//! What this agent tells its peers, built from its frames and its estimator
+//! (thesis Section 5.3): per frame the active tracks, descriptors of new tracks,
+//! a window snapshot every few frames, and keyframe windows with all their
+//! descriptors for the peers' histories.
+
+use crate::config::PublishConfig;
+use crate::estimator::camera_window::CameraWindow;
+use common::calibration::CameraCalibration;
+use common::measurement::FeatureFrame;
+use common::messages::{
+    AgentState, Body, CameraModelWire, CameraPose, DescriptorBatch, DescriptorEntry, Envelope,
+    Heartbeat, Landmark, MessageKind, PackedCovariance, StateSnapshot, TrackFrame, TrackPoint,
+};
+use std::collections::{BTreeMap, HashSet};
+
+/// Builds the envelopes of one agent, numbering them per kind.
+#[derive(Debug)]
+pub struct Outbox {
+    fleet_id: String,
+    robot_id: u32,
+    cfg: PublishConfig,
+    seq: BTreeMap<MessageKind, u64>,
+    /// Track ids of the previous frame (a track is new when it was not there).
+    prev_ids: HashSet<u64>,
+    /// Newest clone time of the last keyframe window.
+    last_keyframe_end_s: Option<f64>,
+    /// Time of the last keyframe.
+    last_keyframe_s: Option<f64>,
+    /// Frame index of the last snapshot.
+    last_snapshot_frame: Option<u64>,
+}
+
+/// What snapshot a frame sends.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SnapshotPlan {
+    /// A keyframe window (for peers' histories).
+    pub keyframe: bool,
+    /// With the SLAM features.
+    pub landmarks: bool,
+}
+
+impl Outbox {
+    /// An outbox for robot `robot_id` of fleet `fleet_id`.
+    pub fn new(fleet_id: &str, robot_id: u32, cfg: PublishConfig) -> Self {
+        Self {
+            fleet_id: fleet_id.to_string(),
+            robot_id,
+            cfg,
+            seq: BTreeMap::new(),
+            prev_ids: HashSet::new(),
+            last_keyframe_end_s: None,
+            last_keyframe_s: None,
+            last_snapshot_frame: None,
+        }
+    }
+
+    fn envelope(&mut self, stamp_s: f64, body: Body) -> Envelope {
+        let seq = self.seq.entry(body.kind()).or_insert(0);
+        let env = Envelope {
+            fleet_id: self.fleet_id.clone(),
+            robot_id: self.robot_id,
+            seq: *seq,
+            stamp_s,
+            sent_wall_ns: 0,
+            body,
+        };
+        *seq += 1;
+        env
+    }
+
+    /// The tracks of camera frame number `frame_index` (with normalized
+    /// coordinates from the current calibration), and the descriptors of the
+    /// tracks that start in it.
+    pub fn tracks(
+        &mut self,
+        frame_index: u64,
+        frame: &FeatureFrame,
+        calib: &CameraCalibration,
+    ) -> Vec<Envelope> {
+        let t = frame.t;
+        let features: Vec<TrackPoint> = frame
+            .features
+            .iter()
+            .filter_map(|f| {
+                let xy = calib.camera.undistort(&f.uv).ok()?;
+                Some(TrackPoint::new(f.id, &f.uv, &xy))
+            })
+            .collect();
+        let mut out = vec![self.envelope(
+            t,
+            Body::Tracks(TrackFrame {
+                frame_index,
+                t_s: t,
+                features,
+            }),
+        )];
+        let new: Vec<DescriptorEntry> = frame
+            .features
+            .iter()
+            .filter(|f| !self.prev_ids.contains(&f.id))
+            .map(|f| DescriptorEntry::new(f.id, f.descriptor))
+            .collect();
+        self.prev_ids = frame.features.iter().map(|f| f.id).collect();
+        if !new.is_empty() {
+            out.push(self.envelope(
+                t,
+                Body::Descriptors(DescriptorBatch {
+                    frame_index,
+                    t_s: t,
+                    keyframe: false,
+                    entries: new,
+                }),
+            ));
+        }
+        out
+    }
+
+    /// Whether frame `frame_index` at time `t` sends a snapshot, given the oldest
+    /// clone time of the window: at keyframes (with landmarks), and otherwise once
+    /// `snapshot_every_frames` frames have passed since the last snapshot.
+    pub fn snapshot_due(
+        &self,
+        frame_index: u64,
+        t: f64,
+        oldest_clone_t: Option<f64>,
+    ) -> Option<SnapshotPlan> {
+        let oldest = oldest_clone_t?;
+        let keyframe = match (self.last_keyframe_s, self.last_keyframe_end_s) {
+            (Some(last), Some(end)) => t - last >= self.cfg.keyframe_period_s && oldest > end,
+            _ => true,
+        };
+        let every = u64::from(self.cfg.snapshot_every_frames.max(1));
+        let periodic = self
+            .last_snapshot_frame
+            .is_none_or(|last| frame_index >= last + every);
+        (keyframe || periodic).then_some(SnapshotPlan {
+            keyframe,
+            landmarks: keyframe || self.cfg.landmarks_in_snapshots,
+        })
+    }
+
+    /// The snapshot of `window` as planned; a keyframe's descriptors (every
+    /// feature of `frame`) go first.
+    pub fn snapshot(
+        &mut self,
+        frame_index: u64,
+        frame: &FeatureFrame,
+        plan: SnapshotPlan,
+        window: &CameraWindow,
+    ) -> Vec<Envelope> {
+        let t = frame.t;
+        let mut out = Vec::new();
+        let Some(snapshot) = snapshot_of(frame_index, t, plan.keyframe, window, plan.landmarks)
+        else {
+            return out;
+        };
+        self.last_snapshot_frame = Some(frame_index);
+        if plan.keyframe {
+            self.last_keyframe_s = Some(t);
+            self.last_keyframe_end_s = window.poses.last().map(|p| p.t_cam);
+            let entries = frame
+                .features
+                .iter()
+                .map(|f| DescriptorEntry::new(f.id, f.descriptor))
+                .collect();
+            out.push(self.envelope(
+                t,
+                Body::Descriptors(DescriptorBatch {
+                    frame_index,
+                    t_s: t,
+                    keyframe: true,
+                    entries,
+                }),
+            ));
+        }
+        out.push(self.envelope(t, Body::Snapshot(snapshot)));
+        out
+    }
+
+    /// A heartbeat: the agent's state and the last tick it finished.
+    pub fn heartbeat(
+        &mut self,
+        stamp_s: f64,
+        state: AgentState,
+        frames_done: u64,
+        last_tick: Option<u64>,
+    ) -> Envelope {
+        self.envelope(
+            stamp_s,
+            Body::Heartbeat(Heartbeat {
+                state,
+                frames_done,
+                last_frame_index: last_tick,
+                last_t_s: Some(stamp_s),
+            }),
+        )
+    }
+
+    /// Messages sent so far, per kind.
+    pub fn sent_counts(&self) -> &BTreeMap<MessageKind, u64> {
+        &self.seq
+    }
+}
+
+/// The wire form of a window (covariance in f32), or `None` when it cannot be
+/// represented (a non-finite value: never sent).
+pub fn snapshot_of(
+    frame_index: u64,
+    t_s: f64,
+    keyframe: bool,
+    window: &CameraWindow,
+    with_landmarks: bool,
+) -> Option<StateSnapshot> {
+    let covariance = PackedCovariance::from_dmatrix(&window.cov).ok()?;
+    Some(StateSnapshot {
+        frame_index,
+        t_s,
+        keyframe,
+        camera: CameraModelWire::from(&window.calib.camera),
+        clones: window
+            .poses
+            .iter()
+            .map(|p| CameraPose::new(p.t_cam, &p.rot, &p.pos))
+            .collect(),
+        covariance,
+        landmarks: if with_landmarks {
+            window
+                .landmarks
+                .iter()
+                .map(|l| Landmark::new(l.id, &l.pos, &l.cov))
+                .collect()
+        } else {
+            Vec::new()
+        },
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimator::camera_window::CameraPoseEstimate;
+    use common::descriptor::Descriptor;
+    use common::measurement::FeatureObservation;
+    use nalgebra::{DMatrix, Matrix3, Vector2, Vector3};
+
+    fn frame(t: f64, ids: std::ops::Range<u64>) -> FeatureFrame {
+        FeatureFrame {
+            t,
+            camera: 0,
+            features: ids
+                .map(|id| FeatureObservation {
+                    id,
+                    uv: Vector2::new(300.0 + id as f64, 200.0),
+                    descriptor: Descriptor([id; 4]),
+                })
+                .collect(),
+        }
+    }
+
+    fn window(t_last: f64) -> CameraWindow {
+        let poses: Vec<CameraPoseEstimate> = (0..11)
+            .map(|i| CameraPoseEstimate {
+                key: i,
+                t_cam: t_last - 0.1 * (10 - i) as f64,
+                rot: Matrix3::identity(),
+                pos: Vector3::zeros(),
+            })
+            .collect();
+        CameraWindow {
+            t: t_last,
+            poses,
+            cov: DMatrix::identity(66, 66) * 1e-4,
+            landmarks: Vec::new(),
+            calib: CameraCalibration::euroc_cam0(),
+        }
+    }
+
+    #[test]
+    fn new_tracks_get_descriptors_once_and_keyframes_do_not_overlap() {
+        let cfg = PublishConfig::default();
+        let mut ob = Outbox::new("f", 2, cfg);
+        let calib = CameraCalibration::euroc_cam0();
+        let mut keyframes = Vec::new();
+        let mut snapshots = 0;
+        for k in 0..40u64 {
+            let t = 1.0 + 0.1 * k as f64;
+            // Tracks 0..50 persist; one new track per frame.
+            let f = frame(t, k..(k + 50));
+            let w = window(t);
+            let mut envelopes = ob.tracks(k, &f, &calib);
+            let plan = ob.snapshot_due(k, t, w.poses.first().map(|p| p.t_cam));
+            if let Some(plan) = plan {
+                envelopes.extend(ob.snapshot(k, &f, plan, &w));
+            }
+            let kinds: Vec<MessageKind> = envelopes.iter().map(|e| e.kind()).collect();
+            assert_eq!(kinds[0], MessageKind::Tracks);
+            let new_desc = envelopes.iter().find_map(|e| match &e.body {
+                Body::Descriptors(d) if !d.keyframe => Some(d.entries.len()),
+                _ => None,
+            });
+            assert_eq!(new_desc, Some(if k == 0 { 50 } else { 1 }));
+            if plan.is_some_and(|p| p.keyframe) {
+                keyframes.push(t);
+            }
+            snapshots += kinds
+                .iter()
+                .filter(|k| **k == MessageKind::Snapshot)
+                .count();
+        }
+        // Keyframes at t = 1.0, 2.1, 3.2, 4.3 (period 1 s, but windows of 1.0 s must
+        // not overlap), and one snapshot between keyframes (6 frames after each).
+        assert_eq!(keyframes.len(), 4, "{keyframes:?}");
+        for w in keyframes.windows(2) {
+            assert!(w[1] - w[0] > 1.0 + 1e-9);
+        }
+        assert_eq!(snapshots, 8);
+        assert_eq!(ob.sent_counts()[&MessageKind::Tracks], 40);
+    }
+}

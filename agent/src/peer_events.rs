@@ -1,0 +1,158 @@
+//! Who is out there: peers appearing, vanishing and coming back, as the
+//! transport's presence reports them and as their messages show; logged as JSON
+//! lines (`peer_events.jsonl`) and counted.
+
+use crate::transport::PresenceEvent;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::io::Write;
+
+/// One logged event.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct PeerEvent {
+    /// Seconds since the agent started (wall clock).
+    pub wall_s: f64,
+    /// The agent's fleet time when it happened, s (`None` before the first tick).
+    pub fleet_t_s: Option<f64>,
+    /// The peer.
+    pub peer: u32,
+    /// `appeared`, `vanished`, `reappeared`, `finished`, `released` (no longer
+    /// waited for in lockstep) or `silent`.
+    pub event: &'static str,
+}
+
+/// Presence of one peer.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct PeerPresence {
+    /// Currently alive.
+    pub alive: bool,
+    /// Times it appeared (1 for a peer that never left).
+    pub appearances: u32,
+    /// Times it vanished.
+    pub losses: u32,
+    /// It announced the end of its data.
+    pub finished: bool,
+}
+
+/// The presence of every peer and the event log.
+#[derive(Debug, Default)]
+pub struct PeerEvents {
+    /// Per peer.
+    pub peers: BTreeMap<u32, PeerPresence>,
+    /// Every event, in order.
+    pub log: Vec<PeerEvent>,
+}
+
+impl PeerEvents {
+    /// Applies a presence report; returns the logged event.
+    pub fn presence(
+        &mut self,
+        ev: PresenceEvent,
+        wall_s: f64,
+        fleet_t_s: Option<f64>,
+    ) -> Option<PeerEvent> {
+        let (peer, event) = match ev {
+            PresenceEvent::Appeared(p) => {
+                let st = self.peers.entry(p).or_default();
+                if st.alive {
+                    return None;
+                }
+                st.alive = true;
+                st.appearances += 1;
+                (
+                    p,
+                    if st.appearances > 1 {
+                        "reappeared"
+                    } else {
+                        "appeared"
+                    },
+                )
+            }
+            PresenceEvent::Vanished(p) => {
+                let st = self.peers.entry(p).or_default();
+                if !st.alive {
+                    return None;
+                }
+                st.alive = false;
+                st.losses += 1;
+                (p, "vanished")
+            }
+        };
+        Some(self.push(peer, event, wall_s, fleet_t_s))
+    }
+
+    /// A message from `peer`: a peer heard from is alive even if its presence
+    /// report has not come yet.
+    pub fn heard(&mut self, peer: u32, wall_s: f64, fleet_t_s: Option<f64>) -> Option<PeerEvent> {
+        if self.peers.get(&peer).is_some_and(|p| p.alive) {
+            return None;
+        }
+        self.presence(PresenceEvent::Appeared(peer), wall_s, fleet_t_s)
+    }
+
+    /// Logs any other event about `peer`.
+    pub fn push(
+        &mut self,
+        peer: u32,
+        event: &'static str,
+        wall_s: f64,
+        fleet_t_s: Option<f64>,
+    ) -> PeerEvent {
+        if event == "finished" {
+            self.peers.entry(peer).or_default().finished = true;
+        }
+        let e = PeerEvent {
+            wall_s,
+            fleet_t_s,
+            peer,
+            event,
+        };
+        self.log.push(e.clone());
+        e
+    }
+
+    /// Peers alive now.
+    pub fn alive(&self) -> Vec<u32> {
+        self.peers
+            .iter()
+            .filter(|(_, p)| p.alive)
+            .map(|(id, _)| *id)
+            .collect()
+    }
+
+    /// Writes the log as JSON lines.
+    pub fn write_jsonl(&self, w: &mut impl Write) -> std::io::Result<()> {
+        for e in &self.log {
+            serde_json::to_writer(&mut *w, e)?;
+            writeln!(w)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn appear_vanish_and_come_back() {
+        let mut p = PeerEvents::default();
+        let a = p.presence(PresenceEvent::Appeared(2), 0.1, None).unwrap();
+        assert_eq!(a.event, "appeared");
+        assert!(p.presence(PresenceEvent::Appeared(2), 0.2, None).is_none());
+        assert!(p.heard(2, 0.3, None).is_none());
+        assert_eq!(
+            p.presence(PresenceEvent::Vanished(2), 1.0, Some(5.0))
+                .unwrap()
+                .event,
+            "vanished"
+        );
+        assert!(p.alive().is_empty());
+        assert_eq!(p.heard(2, 2.0, Some(6.0)).unwrap().event, "reappeared");
+        assert_eq!(p.peers[&2].appearances, 2);
+        assert_eq!(p.peers[&2].losses, 1);
+        let mut out = Vec::new();
+        p.write_jsonl(&mut out).unwrap();
+        assert_eq!(String::from_utf8(out).unwrap().lines().count(), 3);
+    }
+}

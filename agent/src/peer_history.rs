@@ -1,0 +1,340 @@
+//! What an agent keeps of each peer (thesis Section 5.3.5): the peer's latest
+//! window for real-time common features, its recent track frames and
+//! descriptors, and the **keyframe windows** for historical loop closures.
+//!
+//! Policy, per peer:
+//! * **latest**: the newest snapshot, and the track frames and new-track
+//!   descriptors of the last `recent_tracks_s` seconds (a ring: older ones drop);
+//! * **history**: every keyframe window (non-overlapping windows, about 1 Hz), kept
+//!   with the track measurements made inside it (normalized coordinates only) and
+//!   the keyframe's descriptors; historical states are never updated;
+//! * **bound**: when a peer's history exceeds `max_mib_per_peer`, its oldest
+//!   keyframe windows are dropped first (counted), so memory per peer is bounded
+//!   whatever the mission length.
+
+use common::messages::{DescriptorBatch, DescriptorEntry, StateSnapshot, TrackFrame};
+use std::collections::{BTreeMap, HashMap, VecDeque};
+
+/// One track measurement kept in a history window (normalized coordinates).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HistoricalObservation {
+    /// Peer's track id.
+    pub id: u64,
+    /// Undistorted normalized image coordinates.
+    pub xy_norm: [f32; 2],
+}
+
+/// The measurements of one frame inside a keyframe window.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HistoricalFrame {
+    /// Camera time, s (matches a clone of the window).
+    pub t_s: f64,
+    /// The measurements.
+    pub observations: Vec<HistoricalObservation>,
+}
+
+/// A stored non-overlapping window of a peer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct KeyframeWindow {
+    /// The window (camera poses, covariance, landmarks).
+    pub snapshot: StateSnapshot,
+    /// Track measurements made at the window's clone times.
+    pub frames: Vec<HistoricalFrame>,
+    /// The keyframe's descriptors (for the peer's vocabulary database).
+    pub descriptors: Vec<DescriptorEntry>,
+}
+
+impl KeyframeWindow {
+    /// Approximate heap bytes held.
+    pub fn bytes(&self) -> usize {
+        let s = &self.snapshot;
+        std::mem::size_of::<Self>()
+            + s.clones.len() * std::mem::size_of::<common::messages::CameraPose>()
+            + s.covariance.lower.len() * 4
+            + s.landmarks.len() * std::mem::size_of::<common::messages::Landmark>()
+            + self
+                .frames
+                .iter()
+                .map(|f| {
+                    std::mem::size_of::<HistoricalFrame>()
+                        + f.observations.len() * std::mem::size_of::<HistoricalObservation>()
+                })
+                .sum::<usize>()
+            + self.descriptors.len() * std::mem::size_of::<DescriptorEntry>()
+    }
+}
+
+/// Everything kept of one peer.
+#[derive(Clone, Debug, Default)]
+pub struct PeerHistory {
+    /// The newest snapshot (any kind).
+    pub latest: Option<StateSnapshot>,
+    /// Recent track frames, oldest first.
+    pub recent: VecDeque<TrackFrame>,
+    /// Descriptors of recently started tracks, by track id.
+    pub recent_descriptors: HashMap<u64, (f64, [u64; 4])>,
+    /// Keyframe windows by their newest clone time (bit pattern of the f64, which
+    /// orders like the time for non-negative times; see [`time_key`]).
+    pub keyframes: BTreeMap<u64, KeyframeWindow>,
+    /// Keyframe descriptors that arrived before their snapshot, by frame index.
+    pending_keyframe_descriptors: BTreeMap<u64, Vec<DescriptorEntry>>,
+    /// Bytes held by `keyframes`.
+    pub history_bytes: usize,
+    /// Keyframe windows dropped by the memory bound.
+    pub dropped_keyframes: u64,
+    /// Keyframe windows stored in total.
+    pub stored_keyframes: u64,
+}
+
+/// A sortable key of a fleet time (monotonic for finite times).
+pub fn time_key(t_s: f64) -> u64 {
+    let b = t_s.to_bits();
+    if b >> 63 == 1 {
+        !b
+    } else {
+        b | (1 << 63)
+    }
+}
+
+/// Limits of a [`PeerHistory`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HistoryLimits {
+    /// History bytes per peer before the oldest keyframes are dropped.
+    pub max_bytes: usize,
+    /// How long recent track frames and descriptors are kept, s.
+    pub recent_s: f64,
+}
+
+impl PeerHistory {
+    /// Adds a track frame; drops recent frames older than `recent_s`.
+    pub fn add_tracks(&mut self, frame: TrackFrame, limits: &HistoryLimits) {
+        let newest = frame.t_s;
+        self.recent.push_back(frame);
+        while self
+            .recent
+            .front()
+            .is_some_and(|f| f.t_s < newest - limits.recent_s)
+        {
+            self.recent.pop_front();
+        }
+        self.recent_descriptors
+            .retain(|_, (t, _)| *t >= newest - limits.recent_s);
+    }
+
+    /// Adds descriptors: new-track descriptors go to the recent map, keyframe
+    /// descriptors wait for (or join) their keyframe window.
+    pub fn add_descriptors(&mut self, batch: DescriptorBatch) {
+        if !batch.keyframe {
+            for e in &batch.entries {
+                self.recent_descriptors.insert(e.id, (batch.t_s, e.bits));
+            }
+            return;
+        }
+        let key = batch.frame_index;
+        match self
+            .keyframes
+            .values_mut()
+            .rev()
+            .find(|k| k.snapshot.frame_index == key)
+        {
+            Some(kf) => kf.descriptors = batch.entries,
+            None => {
+                self.pending_keyframe_descriptors.insert(key, batch.entries);
+                // Only the newest few can still find their snapshot.
+                while self.pending_keyframe_descriptors.len() > 8 {
+                    self.pending_keyframe_descriptors.pop_first();
+                }
+            }
+        }
+    }
+
+    /// Adds a snapshot; a keyframe snapshot becomes a history window with the
+    /// recent measurements at its clone times.
+    pub fn add_snapshot(&mut self, snap: StateSnapshot, limits: &HistoryLimits) {
+        if snap.keyframe {
+            let mut frames = Vec::with_capacity(snap.clones.len());
+            for clone in &snap.clones {
+                if let Some(f) = self.recent.iter().find(|f| f.t_s == clone.t_s) {
+                    frames.push(HistoricalFrame {
+                        t_s: f.t_s,
+                        observations: f
+                            .features
+                            .iter()
+                            .map(|p| HistoricalObservation {
+                                id: p.id,
+                                xy_norm: p.xy_norm,
+                            })
+                            .collect(),
+                    });
+                }
+            }
+            let descriptors = self
+                .pending_keyframe_descriptors
+                .remove(&snap.frame_index)
+                .unwrap_or_default();
+            let kf = KeyframeWindow {
+                snapshot: snap.clone(),
+                frames,
+                descriptors,
+            };
+            self.history_bytes += kf.bytes();
+            self.stored_keyframes += 1;
+            let key = time_key(snap.clones.last().map_or(snap.t_s, |c| c.t_s));
+            if let Some(old) = self.keyframes.insert(key, kf) {
+                self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
+            }
+            while self.history_bytes > limits.max_bytes {
+                let Some((_, old)) = self.keyframes.pop_first() else {
+                    break;
+                };
+                self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
+                self.dropped_keyframes += 1;
+            }
+        }
+        if self.latest.as_ref().is_none_or(|l| l.t_s <= snap.t_s) {
+            self.latest = Some(snap);
+        }
+    }
+
+    /// Approximate bytes held for this peer (history and recent data).
+    pub fn bytes(&self) -> usize {
+        let recent: usize = self
+            .recent
+            .iter()
+            .map(|f| {
+                std::mem::size_of::<TrackFrame>()
+                    + f.features.len() * std::mem::size_of::<common::messages::TrackPoint>()
+            })
+            .sum();
+        let latest = self.latest.as_ref().map_or(0, |s| {
+            s.covariance.lower.len() * 4
+                + s.clones.len() * std::mem::size_of::<common::messages::CameraPose>()
+        });
+        self.history_bytes + recent + latest + self.recent_descriptors.len() * 48
+    }
+
+    /// The keyframe windows whose time span `[oldest clone, newest clone]` overlaps
+    /// `[from_s, to_s]`, oldest first.
+    pub fn keyframes_between(&self, from_s: f64, to_s: f64) -> Vec<&KeyframeWindow> {
+        self.keyframes
+            .range(time_key(from_s)..)
+            .map(|(_, k)| k)
+            .take_while(|k| k.snapshot.clones.first().is_some_and(|c| c.t_s <= to_s))
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use common::messages::{
+        CameraModelWire, CameraPose, DistortionWire, PackedCovariance, TrackPoint,
+    };
+    use nalgebra::{DMatrix, Matrix3, Vector3};
+
+    fn tracks(t: f64, n: usize) -> TrackFrame {
+        TrackFrame {
+            frame_index: (t * 10.0).round() as u64,
+            t_s: t,
+            features: (0..n as u64)
+                .map(|id| TrackPoint {
+                    id,
+                    uv_px: [1.0, 2.0],
+                    xy_norm: [0.1, 0.2],
+                })
+                .collect(),
+        }
+    }
+
+    fn snapshot(t_last: f64, keyframe: bool) -> StateSnapshot {
+        let clones: Vec<CameraPose> = (0..11)
+            .map(|i| {
+                CameraPose::new(
+                    t_last - 0.1 * (10 - i) as f64,
+                    &Matrix3::identity(),
+                    &Vector3::zeros(),
+                )
+            })
+            .collect();
+        StateSnapshot {
+            frame_index: (t_last * 10.0).round() as u64,
+            t_s: t_last,
+            keyframe,
+            camera: CameraModelWire {
+                model: DistortionWire::Radtan,
+                intrinsics: [450.0, 450.0, 370.0, 240.0, 0.0, 0.0, 0.0, 0.0],
+                width: 752,
+                height: 480,
+            },
+            covariance: PackedCovariance::from_dmatrix(&DMatrix::identity(66, 66)).unwrap(),
+            clones,
+            landmarks: Vec::new(),
+        }
+    }
+
+    fn limits(max_bytes: usize) -> HistoryLimits {
+        HistoryLimits {
+            max_bytes,
+            recent_s: 2.0,
+        }
+    }
+
+    #[test]
+    fn keyframe_windows_keep_their_measurements_and_descriptors() {
+        let mut h = PeerHistory::default();
+        let l = limits(usize::MAX);
+        // Tracks at the clone times of a window ending at t = 2.0 (exact times).
+        for i in 0..=20 {
+            let t = 2.0 - 0.1 * (20 - i) as f64;
+            h.add_tracks(tracks(t, 100), &l);
+        }
+        let snap = snapshot(2.0, true);
+        h.add_descriptors(DescriptorBatch {
+            frame_index: snap.frame_index,
+            t_s: 2.0,
+            keyframe: true,
+            entries: vec![DescriptorEntry {
+                id: 3,
+                bits: [1; 4],
+            }],
+        });
+        h.add_snapshot(snap, &l);
+        assert_eq!(h.keyframes.len(), 1);
+        let kf = h.keyframes.values().next().unwrap();
+        assert_eq!(kf.frames.len(), 11);
+        assert_eq!(kf.descriptors.len(), 1);
+        assert_eq!(h.keyframes_between(1.5, 1.6).len(), 1);
+        assert!(h.keyframes_between(2.5, 3.0).is_empty());
+        // Recent frames older than 2 s were dropped.
+        assert!(h.recent.front().unwrap().t_s >= 0.0 - 1e-9);
+        assert!(h.latest.is_some());
+    }
+
+    #[test]
+    fn memory_bound_drops_the_oldest_windows_first() {
+        let mut h = PeerHistory::default();
+        let one = {
+            let mut probe = PeerHistory::default();
+            probe.add_snapshot(snapshot(1.0, true), &limits(usize::MAX));
+            probe.history_bytes
+        };
+        let l = limits(one * 5 + one / 2);
+        for k in 1..=20 {
+            h.add_snapshot(snapshot(1.2 * k as f64, true), &l);
+        }
+        assert_eq!(h.keyframes.len(), 5);
+        assert_eq!(h.dropped_keyframes, 15);
+        assert_eq!(h.stored_keyframes, 20);
+        assert!(h.history_bytes <= l.max_bytes);
+        let oldest = h.keyframes.values().next().unwrap().snapshot.t_s;
+        assert!((oldest - 1.2 * 16.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn time_keys_sort_like_times() {
+        let ts = [-5.0, -0.1, 0.0, 0.1, 3.0, 1e6];
+        for w in ts.windows(2) {
+            assert!(time_key(w[0]) < time_key(w[1]));
+        }
+    }
+}

@@ -1,0 +1,34 @@
+//! The configurations shipped in `deploy/` load: the example agent configuration
+//! with the agent's own loader, the Zenoh router-setup files with Zenoh's.
+
+use agent::config::AgentConfig;
+use agent::transport::ZenohSettings;
+use std::path::PathBuf;
+
+fn repo(path: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join(path)
+}
+
+#[test]
+fn example_agent_configuration_loads() {
+    let cfg = AgentConfig::load(&repo("deploy/config/robot1.yaml")).expect("robot1.yaml");
+    assert_eq!(cfg.robot_id, 1);
+    assert!(!cfg.clock.peers.contains(&1));
+}
+
+#[test]
+fn zenoh_router_setup_files_load() {
+    for f in [
+        "deploy/zenoh/agent-via-router.json5",
+        "deploy/zenoh/zenohd-router.json5",
+    ] {
+        let s = ZenohSettings {
+            config: repo(f).display().to_string(),
+            listen: Vec::new(),
+            connect: Vec::new(),
+        };
+        agent::transport::zenoh::load_config(&s).unwrap_or_else(|e| panic!("{f}: {e}"));
+    }
+}

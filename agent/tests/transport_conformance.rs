@@ -1,0 +1,655 @@
+//! One conformance suite, run against every transport: in-process, Zenoh (peers on
+//! free loopback ports, synchronous API) and iceoryx2 (a fleet id per test, so the
+//! tests can run in parallel). Each test opens two or three endpoints in this process.
+//!
+//! `cargo test -p agent --release --test transport_conformance`
+
+use agent::transport::{
+    open, Iceoryx2Settings, Iceoryx2Transport, InprocHub, PresenceEvent, Received, Transport,
+    TransportError, TransportKind, TransportSettings, ZenohSettings,
+};
+use common::messages::MessageKind;
+use std::collections::{BTreeMap, BTreeSet};
+use std::net::TcpListener;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::time::{Duration, Instant};
+
+type TestResult = Result<(), Box<dyn std::error::Error>>;
+
+/// Longest wait for something that must happen (a message, a peer).
+const PATIENCE: Duration = Duration::from_secs(10);
+/// How long to listen for something that must not happen.
+const QUIET: Duration = Duration::from_millis(300);
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Backend {
+    Inproc,
+    Zenoh,
+    Iceoryx2,
+}
+
+/// The endpoints of one test: a fleet id of its own, a hub, and for Zenoh one free
+/// loopback port per endpoint, each endpoint connecting to all the others.
+struct Net {
+    backend: Backend,
+    fleet_id: String,
+    hub: InprocHub,
+    ports: Vec<u16>,
+}
+
+impl Net {
+    fn new(backend: Backend, test: &str, endpoints: usize) -> Result<Self, std::io::Error> {
+        static NEXT: AtomicU32 = AtomicU32::new(0);
+        let fleet_id = format!(
+            "{test}-{}-{}",
+            std::process::id(),
+            NEXT.fetch_add(1, Ordering::Relaxed)
+        );
+        let mut ports = Vec::new();
+        if backend == Backend::Zenoh {
+            // Bound together so that they differ, released before the sessions bind.
+            let listeners = (0..endpoints)
+                .map(|_| TcpListener::bind("127.0.0.1:0"))
+                .collect::<Result<Vec<_>, _>>()?;
+            for l in &listeners {
+                ports.push(l.local_addr()?.port());
+            }
+        }
+        Ok(Self {
+            backend,
+            fleet_id,
+            hub: InprocHub::new(),
+            ports,
+        })
+    }
+
+    /// Endpoint `index` of this net, in this test's fleet as `robot_id`.
+    fn join(&self, index: usize, robot_id: u32) -> Result<Box<dyn Transport>, TransportError> {
+        self.join_fleet(&self.fleet_id.clone(), index, robot_id)
+    }
+
+    /// Endpoint `index` of this net in any fleet (same network, same hub).
+    fn join_fleet(
+        &self,
+        fleet_id: &str,
+        index: usize,
+        robot_id: u32,
+    ) -> Result<Box<dyn Transport>, TransportError> {
+        let settings = settings_for(self.backend, fleet_id, &self.ports, index, robot_id);
+        open(&settings, Some(&self.hub))
+    }
+
+    /// Joins robots `1..=n` and waits until each sees all the others.
+    fn join_all(&self, n: usize) -> Result<Vec<Box<dyn Transport>>, Box<dyn std::error::Error>> {
+        let mut endpoints = Vec::new();
+        for i in 0..n {
+            endpoints.push(self.join(i, i as u32 + 1)?);
+        }
+        for (i, t) in endpoints.iter_mut().enumerate() {
+            let others: BTreeSet<u32> = (1..=n as u32).filter(|r| *r != i as u32 + 1).collect();
+            wait_until_present(t.as_mut(), &others)?;
+        }
+        Ok(endpoints)
+    }
+}
+
+/// The settings of endpoint `index`: for Zenoh, it listens on `ports[index]` and
+/// connects to all the other ports.
+fn settings_for(
+    backend: Backend,
+    fleet_id: &str,
+    ports: &[u16],
+    index: usize,
+    robot_id: u32,
+) -> TransportSettings {
+    let endpoint = |port: &u16| format!("tcp/127.0.0.1:{port}");
+    TransportSettings {
+        fleet_id: fleet_id.to_owned(),
+        robot_id,
+        kind: match backend {
+            Backend::Inproc => TransportKind::Inproc,
+            Backend::Zenoh => TransportKind::Zenoh,
+            Backend::Iceoryx2 => TransportKind::Iceoryx2,
+        },
+        zenoh: ZenohSettings {
+            config: "loopback".to_owned(),
+            listen: ports.get(index).map(endpoint).into_iter().collect(),
+            connect: (ports.iter().enumerate())
+                .filter(|(i, _)| *i != index)
+                .map(|(_, p)| endpoint(p))
+                .collect(),
+        },
+        iceoryx2: Iceoryx2Settings::default(),
+    }
+}
+
+/// Collects presence events until every robot of `robots` has appeared.
+fn wait_until_present(t: &mut dyn Transport, robots: &BTreeSet<u32>) -> Result<(), String> {
+    let start = Instant::now();
+    let mut present = BTreeSet::new();
+    while !robots.is_subset(&present) {
+        for event in t.presence() {
+            match event {
+                PresenceEvent::Appeared(r) => present.insert(r),
+                PresenceEvent::Vanished(r) => present.remove(&r),
+            };
+        }
+        if start.elapsed() > PATIENCE {
+            return Err(format!(
+                "{}: only {present:?} of {robots:?} appeared",
+                t.name()
+            ));
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    Ok(())
+}
+
+/// Receives exactly `n` messages, waiting at most [`PATIENCE`] for each.
+fn receive_n(t: &mut dyn Transport, n: usize) -> Result<Vec<Received>, Box<dyn std::error::Error>> {
+    let mut got = Vec::with_capacity(n);
+    while got.len() < n {
+        match t.receive(PATIENCE)? {
+            Some(m) => got.push(m),
+            None => {
+                return Err(format!("{}: {} of {n} messages arrived", t.name(), got.len()).into())
+            }
+        }
+    }
+    Ok(got)
+}
+
+/// Everything that arrives within [`QUIET`].
+fn receive_rest(t: &mut dyn Transport) -> Result<Vec<Received>, TransportError> {
+    let mut got = Vec::new();
+    while let Some(m) = t.receive(QUIET)? {
+        got.push(m);
+    }
+    Ok(got)
+}
+
+fn close_all(endpoints: &mut [Box<dyn Transport>]) -> Result<(), TransportError> {
+    for t in endpoints {
+        t.close(Duration::from_secs(5))?;
+    }
+    Ok(())
+}
+
+fn delivers_every_kind_to_every_peer_with_the_senders_id(backend: Backend) -> TestResult {
+    let net = Net::new(backend, "every-kind", 3)?;
+    let mut endpoints = net.join_all(3)?;
+    for (i, t) in endpoints.iter_mut().enumerate() {
+        for (k, kind) in MessageKind::ALL.into_iter().enumerate() {
+            t.publish(kind, &[i as u8 + 1, k as u8])?;
+        }
+    }
+    for (i, t) in endpoints.iter_mut().enumerate() {
+        let me = i as u32 + 1;
+        let mut got: Vec<(u32, MessageKind, Vec<u8>)> = receive_n(t.as_mut(), 8)?
+            .into_iter()
+            .map(|m| (m.from_robot, m.kind, m.bytes))
+            .collect();
+        got.sort();
+        let mut expected = Vec::new();
+        for sender in (1..=3u32).filter(|r| *r != me) {
+            for (k, kind) in MessageKind::ALL.into_iter().enumerate() {
+                expected.push((sender, kind, vec![sender as u8, k as u8]));
+            }
+        }
+        expected.sort();
+        assert_eq!(got, expected, "robot {me}");
+        assert!(
+            receive_rest(t.as_mut())?.is_empty(),
+            "robot {me}: nothing more"
+        );
+    }
+    close_all(&mut endpoints)?;
+    Ok(())
+}
+
+fn never_delivers_a_message_to_its_sender(backend: Backend) -> TestResult {
+    let net = Net::new(backend, "no-self", 2)?;
+    let mut endpoints = net.join_all(2)?;
+    for kind in MessageKind::ALL {
+        endpoints[0].publish(kind, b"from robot 1")?;
+    }
+    assert_eq!(receive_n(endpoints[1].as_mut(), 4)?.len(), 4);
+    assert!(receive_rest(endpoints[0].as_mut())?.is_empty());
+    close_all(&mut endpoints)?;
+    Ok(())
+}
+
+fn keeps_each_senders_order(backend: Backend) -> TestResult {
+    let net = Net::new(backend, "fifo", 3)?;
+    let mut endpoints = net.join_all(3)?;
+    const PER_SENDER: u32 = 200;
+    for seq in 0..PER_SENDER {
+        let kind = MessageKind::ALL[(seq % 4) as usize];
+        for sender in endpoints.iter_mut().take(2) {
+            sender.publish(kind, &seq.to_le_bytes())?;
+        }
+    }
+    // Robot 3 hears both senders; each (sender, kind) stream must be increasing.
+    let got = receive_n(endpoints[2].as_mut(), 2 * PER_SENDER as usize)?;
+    let mut last: BTreeMap<(u32, MessageKind), u32> = BTreeMap::new();
+    for m in &got {
+        let seq = u32::from_le_bytes(m.bytes.as_slice().try_into()?);
+        if let Some(previous) = last.insert((m.from_robot, m.kind), seq) {
+            assert!(
+                previous < seq,
+                "robot {} {:?}: {seq} after {previous}",
+                m.from_robot,
+                m.kind
+            );
+        }
+    }
+    assert_eq!(last.len(), 8, "2 senders x 4 kinds");
+    close_all(&mut endpoints)?;
+    Ok(())
+}
+
+fn delivers_a_burst_of_1000_messages_without_loss(backend: Backend) -> TestResult {
+    const BURST: u32 = 1000;
+    let net = Net::new(backend, "burst", 2)?;
+    let mut endpoints = net.join_all(2)?;
+    let mut receiver = endpoints.pop().ok_or("two endpoints")?;
+    // The receiver drains while the sender publishes, as an agent's loop does.
+    let draining = std::thread::spawn(move || -> Result<Vec<u32>, String> {
+        let got = receive_n(receiver.as_mut(), BURST as usize).map_err(|e| e.to_string())?;
+        receiver
+            .close(Duration::from_secs(5))
+            .map_err(|e| e.to_string())?;
+        got.iter()
+            .map(|m| {
+                let seq: [u8; 4] = m.bytes[..4].try_into().map_err(|_| "short payload")?;
+                Ok(u32::from_le_bytes(seq))
+            })
+            .collect()
+    });
+    let mut payload = vec![0u8; 1024];
+    for seq in 0..BURST {
+        payload[..4].copy_from_slice(&seq.to_le_bytes());
+        endpoints[0].publish(MessageKind::Tracks, &payload)?;
+    }
+    let got = draining.join().map_err(|_| "receiver panicked")??;
+    assert_eq!(got, (0..BURST).collect::<Vec<_>>());
+    close_all(&mut endpoints)?;
+    Ok(())
+}
+
+fn carries_a_500_kb_payload(backend: Backend) -> TestResult {
+    let net = Net::new(backend, "large", 2)?;
+    let mut endpoints = net.join_all(2)?;
+    let payload: Vec<u8> = (0..500_000u32)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 24) as u8)
+        .collect();
+    endpoints[0].publish(MessageKind::Snapshot, &payload)?;
+    let got = receive_n(endpoints[1].as_mut(), 1)?;
+    assert_eq!(got[0].from_robot, 1);
+    assert_eq!(got[0].kind, MessageKind::Snapshot);
+    assert!(got[0].bytes == payload, "payload changed on the way");
+    close_all(&mut endpoints)?;
+    Ok(())
+}
+
+fn reports_a_peer_appearing_and_vanishing(backend: Backend) -> TestResult {
+    let net = Net::new(backend, "presence", 2)?;
+    let mut first = net.join(0, 1)?;
+    assert!(first.presence().is_empty(), "nobody else yet");
+    let mut second = net.join(1, 2)?;
+    wait_until_present(first.as_mut(), &BTreeSet::from([2]))?;
+    wait_until_present(second.as_mut(), &BTreeSet::from([1]))?;
+    second.close(Duration::from_secs(5))?;
+    let start = Instant::now();
+    loop {
+        if first.presence().contains(&PresenceEvent::Vanished(2)) {
+            break;
+        }
+        assert!(start.elapsed() < PATIENCE, "robot 2 never vanished");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    first.close(Duration::from_secs(5))?;
+    Ok(())
+}
+
+fn does_not_deliver_another_fleets_messages(backend: Backend) -> TestResult {
+    let net = Net::new(backend, "fleets", 3)?;
+    let mut ours = net.join_all(2)?;
+    let other_fleet = format!("{}-other", net.fleet_id);
+    // Same network (hub, machine, connected peers), another fleet id.
+    let mut theirs = net.join_fleet(&other_fleet, 2, 3)?;
+    // Give Zenoh time to connect the stranger, so that isolation is really tested.
+    std::thread::sleep(QUIET);
+    for kind in MessageKind::ALL {
+        theirs.publish(kind, b"other fleet")?;
+    }
+    ours[1].publish(MessageKind::Heartbeat, b"our fleet")?;
+    let mut got = receive_n(ours[0].as_mut(), 1)?;
+    got.extend(receive_rest(ours[0].as_mut())?);
+    assert_eq!(got.len(), 1, "{got:?}");
+    assert_eq!(got[0].bytes, b"our fleet");
+    let stranger_seen = ours[0]
+        .presence()
+        .into_iter()
+        .any(|e| matches!(e, PresenceEvent::Appeared(3) | PresenceEvent::Vanished(3)));
+    assert!(!stranger_seen, "robot 3 of the other fleet showed up");
+    theirs.close(Duration::from_secs(5))?;
+    close_all(&mut ours)?;
+    Ok(())
+}
+
+fn receive_times_out_with_nothing_promptly(backend: Backend) -> TestResult {
+    let net = Net::new(backend, "timeout", 2)?;
+    let mut endpoints = net.join_all(2)?;
+    let t = endpoints[0].as_mut();
+    assert!(t.receive(Duration::ZERO)?.is_none());
+    let start = Instant::now();
+    assert!(t.receive(Duration::from_millis(50))?.is_none());
+    let waited = start.elapsed();
+    assert!(
+        waited >= Duration::from_millis(50),
+        "returned early: {waited:?}"
+    );
+    assert!(waited < Duration::from_secs(2), "returned late: {waited:?}");
+    close_all(&mut endpoints)?;
+    Ok(())
+}
+
+fn works_with_no_peer_at_all(backend: Backend) -> TestResult {
+    let net = Net::new(backend, "alone", 1)?;
+    let mut alone = net.join(0, 7)?;
+    for kind in MessageKind::ALL {
+        alone.publish(kind, &[1, 2, 3])?;
+    }
+    alone.publish(MessageKind::Snapshot, &[])?;
+    assert!(alone.receive(Duration::from_millis(100))?.is_none());
+    assert!(alone.presence().is_empty());
+    alone.close(Duration::from_secs(5))?;
+    assert!(
+        alone.close(Duration::from_secs(5)).is_ok(),
+        "closing twice is harmless"
+    );
+    assert!(alone.publish(MessageKind::Tracks, &[1]).is_err(), "closed");
+    Ok(())
+}
+
+macro_rules! conformance {
+    ($($test:ident),* $(,)?) => {
+        mod inproc {
+            $( #[test] fn $test() -> super::TestResult { super::$test(super::Backend::Inproc) } )*
+        }
+        mod zenoh {
+            $( #[test] fn $test() -> super::TestResult { super::$test(super::Backend::Zenoh) } )*
+        }
+        mod iceoryx2 {
+            $( #[test] fn $test() -> super::TestResult { super::$test(super::Backend::Iceoryx2) } )*
+        }
+    };
+}
+
+conformance!(
+    delivers_every_kind_to_every_peer_with_the_senders_id,
+    never_delivers_a_message_to_its_sender,
+    keeps_each_senders_order,
+    delivers_a_burst_of_1000_messages_without_loss,
+    carries_a_500_kb_payload,
+    reports_a_peer_appearing_and_vanishing,
+    does_not_deliver_another_fleets_messages,
+    receive_times_out_with_nothing_promptly,
+    works_with_no_peer_at_all,
+);
+
+#[test]
+fn iceoryx2_refuses_a_payload_over_its_limit() -> TestResult {
+    let net = Net::new(Backend::Iceoryx2, "too-large", 1)?;
+    let mut t = net.join(0, 1)?;
+    let too_large = vec![0u8; Iceoryx2Settings::default().max_message_bytes + 1];
+    assert!(matches!(
+        t.publish(MessageKind::Snapshot, &too_large),
+        Err(TransportError::TooLarge { .. })
+    ));
+    t.close(Duration::from_secs(1))?;
+    Ok(())
+}
+
+#[test]
+fn every_zenoh_file_in_broker_free_config_loads() -> TestResult {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../broker-free-config");
+    let mut loaded = 0;
+    for entry in std::fs::read_dir(&dir)? {
+        let path = entry?.path();
+        if path.extension().is_some_and(|e| e == "json5") {
+            ::zenoh::Config::from_file(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+            // The same file named by path, as an agent would.
+            let settings = ZenohSettings {
+                config: path.display().to_string(),
+                ..ZenohSettings::default()
+            };
+            agent::transport::zenoh::load_config(&settings)?;
+            loaded += 1;
+        }
+    }
+    assert_eq!(loaded, 4, "loopback, lan, explicit-peers, tls");
+    Ok(())
+}
+
+#[test]
+fn the_iceoryx2_file_in_broker_free_config_loads() -> TestResult {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../broker-free-config/iceoryx2.toml");
+    agent::transport::iceoryx2::load_config(Some(&path.display().to_string()))?;
+    Ok(())
+}
+
+/// A robot that stops reading must not stop the others from publishing: its queue
+/// fills, the publisher waits for it once, then drops its messages (counted).
+#[test]
+fn iceoryx2_publishing_goes_on_past_a_peer_that_stopped_reading() -> TestResult {
+    let net = Net::new(Backend::Iceoryx2, "stalled", 2)?;
+    let settings = Iceoryx2Settings::default();
+    let mut sender = Iceoryx2Transport::open(&net.fleet_id, 1, &settings)?;
+    let mut stalled = net.join(1, 2)?;
+    wait_until_present(&mut sender, &BTreeSet::from([2]))?;
+    let sent = settings.buffer_per_peer + 44;
+    for seq in 0..sent as u32 {
+        sender.publish(MessageKind::Tracks, &seq.to_le_bytes())?;
+    }
+    assert_eq!(sender.dropped(), 44, "what did not fit in the peer's queue");
+    let got = receive_n(stalled.as_mut(), settings.buffer_per_peer)?;
+    let first: Vec<u32> = got
+        .iter()
+        .map(|m| m.bytes.as_slice().try_into().map(u32::from_le_bytes))
+        .collect::<Result<_, _>>()?;
+    assert_eq!(
+        first,
+        (0..settings.buffer_per_peer as u32).collect::<Vec<_>>()
+    );
+    sender.close(Duration::from_secs(1))?;
+    stalled.close(Duration::from_secs(1))?;
+    Ok(())
+}
+
+/// Environment variable that turns the ignored helper test below into a peer:
+/// `<backend> <fleet-id> <port>,<port>` (ports empty for iceoryx2).
+const HELPER_ENV: &str = "TRANSPORT_CONFORMANCE_PEER";
+/// The robot id of the helper peer.
+const HELPER_ROBOT: u32 = 9;
+
+/// Not a test: the peer process that `a_killed_peer_vanishes` starts and kills.
+#[test]
+#[ignore = "helper process of a_killed_peer_vanishes, started with TRANSPORT_CONFORMANCE_PEER"]
+fn helper_peer_that_waits_to_be_killed() -> TestResult {
+    let Ok(spec) = std::env::var(HELPER_ENV) else {
+        return Ok(());
+    };
+    let mut fields = spec.split(' ');
+    let backend = match fields.next() {
+        Some("zenoh") => Backend::Zenoh,
+        Some("iceoryx2") => Backend::Iceoryx2,
+        other => return Err(format!("no out-of-process peer for {other:?}").into()),
+    };
+    let fleet_id = fields.next().ok_or("fleet id")?;
+    let ports: Vec<u16> = (fields.next().unwrap_or_default().split(','))
+        .filter(|p| !p.is_empty())
+        .map(str::parse)
+        .collect::<Result<_, _>>()?;
+    let mut peer = open(
+        &settings_for(backend, fleet_id, &ports, 1, HELPER_ROBOT),
+        None,
+    )?;
+    loop {
+        peer.receive(Duration::from_secs(1))?;
+    }
+}
+
+/// A peer process that is killed (no goodbye) is reported vanished: Zenoh by its
+/// link and liveliness token, iceoryx2 by its dead node, whose resources are then
+/// removed so that publishing does not wait for its full queue.
+fn a_killed_peer_vanishes<T: Transport>(
+    backend: Backend,
+    open_watcher: impl FnOnce(&Net) -> Result<T, TransportError>,
+) -> Result<T, Box<dyn std::error::Error>> {
+    let net = Net::new(backend, "killed", 2)?;
+    let mut watcher = open_watcher(&net)?;
+    let ports: Vec<String> = net.ports.iter().map(u16::to_string).collect();
+    let backend_name = format!("{backend:?}").to_lowercase();
+    let mut child = std::process::Command::new(std::env::current_exe()?)
+        .args([
+            "--exact",
+            "helper_peer_that_waits_to_be_killed",
+            "--ignored",
+        ])
+        .env(
+            HELPER_ENV,
+            format!("{backend_name} {} {}", net.fleet_id, ports.join(",")),
+        )
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()?;
+    let appeared = wait_until_present(&mut watcher, &BTreeSet::from([HELPER_ROBOT]));
+    child.kill()?;
+    child.wait()?;
+    appeared?;
+    let start = Instant::now();
+    while !watcher
+        .presence()
+        .contains(&PresenceEvent::Vanished(HELPER_ROBOT))
+    {
+        assert!(start.elapsed() < PATIENCE, "the killed peer never vanished");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    // Nobody reads any more: publishing must neither block nor fail.
+    for seq in 0..600u32 {
+        watcher.publish(MessageKind::Tracks, &seq.to_le_bytes())?;
+    }
+    watcher.close(Duration::from_secs(5))?;
+    Ok(watcher)
+}
+
+#[test]
+fn zenoh_reports_a_killed_peer_vanished() -> TestResult {
+    a_killed_peer_vanishes(Backend::Zenoh, |net| net.join(0, 1))?;
+    Ok(())
+}
+
+#[test]
+fn iceoryx2_reports_a_killed_peer_vanished_and_cleans_it_up() -> TestResult {
+    let watcher = a_killed_peer_vanishes(Backend::Iceoryx2, |net| {
+        Iceoryx2Transport::open(&net.fleet_id, 1, &Iceoryx2Settings::default())
+    })?;
+    // The dead peer's subscriber went with its node: nothing waited for it or was
+    // dropped for it.
+    assert_eq!(watcher.dropped(), 0);
+    Ok(())
+}
+
+/// `broker-free-config/zenoh-tls.json5` as shipped (only the certificate paths
+/// changed): two peers with certificates of one CA talk over mutual TLS. The
+/// certificates are made with the `openssl` command.
+#[test]
+fn zenoh_tls_config_connects_peers_with_mutual_certificates() -> TestResult {
+    let dir = tempfile::tempdir()?;
+    let sh = |args: &[&str]| -> Result<(), Box<dyn std::error::Error>> {
+        let status = std::process::Command::new("openssl")
+            .args(args)
+            .current_dir(dir.path())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()?;
+        if !status.success() {
+            return Err(format!("openssl {args:?}: {status}").into());
+        }
+        Ok(())
+    };
+    let ec = [
+        "-newkey",
+        "ec",
+        "-pkeyopt",
+        "ec_paramgen_curve:prime256v1",
+        "-nodes",
+    ];
+    sh(&[
+        &["req", "-x509"][..],
+        &ec,
+        &["-keyout", "ca-key.pem", "-out", "ca.pem"],
+        &["-days", "2", "-subj", "/CN=fleet-ca"],
+    ]
+    .concat())?;
+    sh(&[
+        &["req"][..],
+        &ec,
+        &["-keyout", "robot-key.pem", "-out", "robot.csr"],
+        &["-subj", "/CN=robot"],
+    ]
+    .concat())?;
+    std::fs::write(
+        dir.path().join("ext.cnf"),
+        "basicConstraints=CA:FALSE\nsubjectAltName=IP:127.0.0.1,DNS:localhost\n\
+         extendedKeyUsage=serverAuth,clientAuth\n",
+    )?;
+    sh(&[
+        "x509",
+        "-req",
+        "-in",
+        "robot.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca-key.pem",
+        "-CAcreateserial",
+        "-out",
+        "robot-cert.pem",
+        "-days",
+        "2",
+        "-extfile",
+        "ext.cnf",
+    ])?;
+
+    let shipped = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../broker-free-config/zenoh-tls.json5"),
+    )?;
+    let certs = format!("{}/", dir.path().display());
+    let config_path = dir.path().join("zenoh-tls.json5");
+    std::fs::write(&config_path, shipped.replace("/etc/fleet-vio/tls/", &certs))?;
+
+    let net = Net::new(Backend::Zenoh, "tls", 2)?;
+    let tls = |port: &u16| format!("tls/127.0.0.1:{port}");
+    let mut endpoints = Vec::new();
+    for i in 0..2 {
+        let mut settings = settings_for(Backend::Zenoh, &net.fleet_id, &net.ports, i, i as u32 + 1);
+        settings.zenoh = ZenohSettings {
+            config: config_path.display().to_string(),
+            listen: vec![tls(&net.ports[i])],
+            connect: vec![tls(&net.ports[1 - i])],
+        };
+        endpoints.push(open(&settings, None)?);
+    }
+    wait_until_present(endpoints[0].as_mut(), &BTreeSet::from([2]))?;
+    wait_until_present(endpoints[1].as_mut(), &BTreeSet::from([1]))?;
+    endpoints[0].publish(MessageKind::Heartbeat, b"over tls")?;
+    let got = receive_n(endpoints[1].as_mut(), 1)?;
+    assert_eq!(got[0].bytes, b"over tls");
+    close_all(&mut endpoints)?;
+    Ok(())
+}

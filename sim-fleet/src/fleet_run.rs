@@ -1,0 +1,514 @@
+//! `sim-fleet run`: one agent **process** per robot (Zenoh or iceoryx2; threads of
+//! this process for the in-process transport), supervised, with progress, and
+//! their outputs collected into `DIR/summary.json`.
+//!
+//! Layout of `DIR`: `scenario.yaml` (the scenario as run, with derived robots),
+//! `robot<i>/config.yaml` (each agent's configuration: a user can start the same
+//! agent by hand with `agent --config`), `robot<i>/agent.log` (its log), the
+//! agent's outputs in `robot<i>/`, and `summary.json`.
+
+use agent::config::{
+    AgentConfig, ClockConfig, ClockMode, EstimatorSection, HistoryConfig, InputConfig, InputSource,
+    PublishConfig, TransportSection,
+};
+use agent::node::{run_node, RobotSetup};
+use agent::transport::{InprocHub, TransportKind, ZenohSettings};
+use anyhow::{bail, Context, Result};
+use common::summary::{MetricSet, RobotSummary, RunSummary};
+use indicatif::{ProgressBar, ProgressStyle};
+use simulator::scenario::RobotSpec;
+use simulator::Scenario;
+use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// Arguments of `sim-fleet run`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct RunArgs {
+    /// Scenario file (YAML).
+    pub scenario: PathBuf,
+    /// Number of robots; beyond the scenario's list, more are derived by flying
+    /// the scenario's trajectories again, each copy starting later (see
+    /// `--derived-delay-s`).
+    #[arg(long)]
+    pub robots: Option<usize>,
+    /// Transport between the agents.
+    #[arg(long, default_value = "zenoh", value_parser = ["zenoh", "iceoryx2", "inproc"])]
+    pub transport: String,
+    /// Lockstep on the fleet clock (the default): deterministic, bit-identical
+    /// across transports.
+    #[arg(long, conflicts_with = "realtime")]
+    pub lockstep: bool,
+    /// Real time, paced to the wall clock times RATE (1 = real time).
+    #[arg(long, value_name = "RATE")]
+    pub realtime: Option<f64>,
+    /// Seed (default: the scenario's).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Estimator variant (indp, indp-slam).
+    #[arg(long, default_value = "indp-slam")]
+    pub variant: String,
+    /// Output folder.
+    #[arg(long, default_value = "out/fleet")]
+    pub out: PathBuf,
+    /// Fleet id (default: `fleet-<process id>`, so concurrent runs never mix).
+    #[arg(long)]
+    pub fleet_id: Option<String>,
+    /// Zenoh configuration: a built-in name (loopback, lan, explicit-peers, tls)
+    /// or a json5 file. With `loopback`, each agent gets its own 127.0.0.1 port
+    /// and connects to all the others.
+    #[arg(long, default_value = "loopback")]
+    pub zenoh_config: String,
+    /// Start of each derived copy relative to the previous copy, s.
+    #[arg(long, default_value_t = 3.0)]
+    pub derived_delay_s: f64,
+    /// The agent binary (default: `agent` next to this program).
+    #[arg(long)]
+    pub agent_bin: Option<PathBuf>,
+    /// Only write the scenario and the agents' configurations, and print the
+    /// commands that would run them.
+    #[arg(long)]
+    pub dry_run: bool,
+}
+
+/// The scenario with `n` robots: the first `n` of the list, then copies of
+/// the list flown again, copy `c` starting `c * delay_s` later. Trajectory paths
+/// become absolute so the file works from any folder.
+pub fn derive_scenario(base: &Scenario, n: usize, delay_s: f64) -> Scenario {
+    let mut sc = base.clone();
+    let list: Vec<RobotSpec> = (0..base.robots.len())
+        .filter_map(|i| {
+            let mut r = base.robots.get(i)?.clone();
+            r.trajectory = base.trajectory_path(i)?;
+            r.trajectory = std::fs::canonicalize(&r.trajectory).unwrap_or(r.trajectory);
+            r.name = Some(base.robot_name(i));
+            Some(r)
+        })
+        .collect();
+    sc.robots = (0..n)
+        .filter_map(|i| {
+            let copy = i / list.len().max(1);
+            let mut r = list.get(i % list.len().max(1))?.clone();
+            if copy > 0 {
+                r.start_time_s += copy as f64 * delay_s;
+                r.name = r.name.map(|name| format!("{name}+{copy}"));
+            }
+            Some(r)
+        })
+        .collect();
+    sc
+}
+
+/// Free TCP ports on 127.0.0.1 (bound, then released).
+fn free_ports(n: usize) -> Result<Vec<u16>> {
+    let listeners: Vec<std::net::TcpListener> = (0..n)
+        .map(|_| std::net::TcpListener::bind("127.0.0.1:0"))
+        .collect::<std::io::Result<_>>()
+        .context("finding free loopback ports")?;
+    listeners
+        .iter()
+        .map(|l| Ok(l.local_addr()?.port()))
+        .collect()
+}
+
+/// Every agent's configuration for a run.
+pub fn agent_configs(
+    args: &RunArgs,
+    scenario_path: &Path,
+    n: usize,
+    out: &Path,
+) -> Result<Vec<AgentConfig>> {
+    let kind = match args.transport.as_str() {
+        "zenoh" => TransportKind::Zenoh,
+        "iceoryx2" => TransportKind::Iceoryx2,
+        _ => TransportKind::Inproc,
+    };
+    let fleet_id = args
+        .fleet_id
+        .clone()
+        .unwrap_or_else(|| format!("fleet-{}", std::process::id()));
+    let ports = if kind == TransportKind::Zenoh && args.zenoh_config == "loopback" {
+        free_ports(n)?
+    } else {
+        Vec::new()
+    };
+    let clock = |me: u32| ClockConfig {
+        mode: if args.realtime.is_some() {
+            ClockMode::Realtime
+        } else {
+            ClockMode::Lockstep
+        },
+        realtime_rate: args.realtime.unwrap_or(1.0),
+        peers: (0..n as u32).filter(|p| *p != me).collect(),
+        ..ClockConfig::default()
+    };
+    Ok((0..n)
+        .map(|i| {
+            let me = i as u32;
+            let zenoh = ZenohSettings {
+                config: args.zenoh_config.clone(),
+                listen: ports
+                    .get(i)
+                    .map(|p| vec![format!("tcp/127.0.0.1:{p}")])
+                    .unwrap_or_default(),
+                connect: ports
+                    .iter()
+                    .enumerate()
+                    .filter(|(j, _)| *j != i)
+                    .map(|(_, p)| format!("tcp/127.0.0.1:{p}"))
+                    .collect(),
+            };
+            AgentConfig {
+                robot_id: me,
+                fleet_id: fleet_id.clone(),
+                output_dir: out.join(format!("robot{i}")),
+                transport: TransportSection {
+                    kind,
+                    zenoh,
+                    iceoryx2: Default::default(),
+                },
+                input: InputConfig {
+                    source: InputSource::Simulator,
+                    scenario: scenario_path.to_path_buf(),
+                    robot_index: Some(i),
+                    seed: args.seed,
+                    mcap: None,
+                },
+                estimator: EstimatorSection {
+                    variant: args.variant.clone(),
+                    ..EstimatorSection::default()
+                },
+                clock: clock(me),
+                publish: PublishConfig::default(),
+                history: HistoryConfig::default(),
+                mcap_log: true,
+            }
+        })
+        .collect())
+}
+
+fn agent_binary(args: &RunArgs) -> Result<PathBuf> {
+    if let Some(b) = &args.agent_bin {
+        return Ok(b.clone());
+    }
+    let me = std::env::current_exe().context("locating this program")?;
+    let dir = me.parent().context("this program has no folder")?;
+    let candidates = [dir.join("agent"), dir.join("..").join("agent")];
+    candidates
+        .iter()
+        .find(|p| p.is_file())
+        .cloned()
+        .with_context(|| {
+            format!(
+                "no `agent` binary next to {} (build it: cargo build --release -p agent, or pass --agent-bin)",
+                me.display()
+            )
+        })
+}
+
+/// Runs `sim-fleet run`.
+pub fn run_fleet(args: &RunArgs) -> Result<()> {
+    if let Some(r) = args.realtime {
+        if !(r.is_finite() && r > 0.0) {
+            bail!("--realtime must be a rate > 0 (got {r})");
+        }
+    }
+    let base = Scenario::load(&args.scenario)?;
+    let n = args.robots.unwrap_or(base.robots.len());
+    if n == 0 {
+        bail!("--robots must be at least 1");
+    }
+    let scenario = derive_scenario(&base, n, args.derived_delay_s);
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let out = std::fs::canonicalize(&args.out)?;
+    let scenario_path = out.join("scenario.yaml");
+    std::fs::write(&scenario_path, serde_yaml::to_string(&scenario)?)
+        .with_context(|| format!("writing {}", scenario_path.display()))?;
+    let configs = agent_configs(args, &scenario_path, n, &out)?;
+    let mut config_paths = Vec::new();
+    for cfg in &configs {
+        std::fs::create_dir_all(&cfg.output_dir)?;
+        let p = cfg.output_dir.join("config.yaml");
+        std::fs::write(&p, serde_yaml::to_string(cfg)?)
+            .with_context(|| format!("writing {}", p.display()))?;
+        config_paths.push(p);
+    }
+    let wall = Instant::now();
+    if args.dry_run {
+        let bin = agent_binary(args).unwrap_or_else(|_| PathBuf::from("agent"));
+        for p in &config_paths {
+            println!("{} --config {}", bin.display(), p.display());
+        }
+        return Ok(());
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register_conditional_shutdown(sig, 1, Arc::clone(&stop))?;
+        signal_hook::flag::register(sig, Arc::clone(&stop))?;
+    }
+    let bar = ProgressBar::new(0);
+    if let Ok(style) = ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} ticks  {msg}",
+    ) {
+        bar.set_style(style);
+    }
+    let failures = if args.transport == "inproc" {
+        run_threads(&configs, &stop, &bar)?
+    } else {
+        run_processes(args, &configs, &config_paths, &stop, &bar)?
+    };
+    bar.finish_and_clear();
+    let summary = collect(&scenario, args, &configs, wall.elapsed().as_secs_f64());
+    summary.write_json(out.join("summary.json"))?;
+    print_summary(&summary, &out);
+    if !failures.is_empty() {
+        bail!("agents failed: {}", failures.join("; "));
+    }
+    Ok(())
+}
+
+/// Progress of every agent, for the bar.
+#[derive(Default)]
+struct Board {
+    ticks: BTreeMap<usize, (u64, u64)>,
+    done: usize,
+    max_lag_s: f64,
+}
+
+impl Board {
+    fn show(&self, bar: &ProgressBar, n: usize) {
+        let (pos, len) = self
+            .ticks
+            .values()
+            .fold((0, 0), |(p, l), (a, b)| (p + a, l + b));
+        bar.set_length(len);
+        bar.set_position(pos);
+        bar.set_message(format!(
+            "{}/{} agents done, max lag {:.2} s",
+            self.done, n, self.max_lag_s
+        ));
+    }
+}
+
+fn run_processes(
+    args: &RunArgs,
+    configs: &[AgentConfig],
+    paths: &[PathBuf],
+    stop: &AtomicBool,
+    bar: &ProgressBar,
+) -> Result<Vec<String>> {
+    let bin = agent_binary(args)?;
+    let board = Arc::new(Mutex::new(Board::default()));
+    let n = configs.len();
+    let mut children: Vec<(usize, Child)> = Vec::new();
+    let mut readers = Vec::new();
+    for (i, (cfg, path)) in configs.iter().zip(paths).enumerate() {
+        let log = std::fs::File::create(cfg.output_dir.join("agent.log"))?;
+        let mut child = Command::new(&bin)
+            .arg("--config")
+            .arg(path)
+            .arg("--progress")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::from(log))
+            .spawn()
+            .with_context(|| format!("starting {}", bin.display()))?;
+        if let Some(stdout) = child.stdout.take() {
+            let board = Arc::clone(&board);
+            readers.push(std::thread::spawn(move || {
+                for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                    let parts: Vec<&str> = line.split_whitespace().collect();
+                    if let ["progress", tick, total, _frames, lag] = parts.as_slice() {
+                        if let (Ok(t), Ok(l), Ok(lag)) =
+                            (tick.parse(), total.parse(), lag.parse::<f64>())
+                        {
+                            if let Ok(mut b) = board.lock() {
+                                b.ticks.insert(i, (t, l));
+                                b.max_lag_s = b.max_lag_s.max(lag);
+                            }
+                        }
+                    }
+                }
+            }));
+        }
+        children.push((i, child));
+    }
+    let mut failures = Vec::new();
+    let mut signalled = false;
+    while !children.is_empty() {
+        if stop.load(Ordering::Relaxed) && !signalled {
+            signalled = true;
+            for (_, c) in &children {
+                // SIGTERM, so that agents flush their outputs.
+                let _ = Command::new("kill")
+                    .args(["-TERM", &c.id().to_string()])
+                    .status();
+            }
+        }
+        let mut still = Vec::new();
+        for (i, mut c) in children {
+            match c.try_wait() {
+                Ok(Some(status)) => {
+                    if !status.success() {
+                        failures.push(format!(
+                            "robot {i} exited with {status} (see {})",
+                            configs[i].output_dir.join("agent.log").display()
+                        ));
+                    }
+                    if let Ok(mut b) = board.lock() {
+                        b.done += 1;
+                    }
+                }
+                Ok(None) => still.push((i, c)),
+                Err(e) => failures.push(format!("robot {i}: {e}")),
+            }
+        }
+        children = still;
+        if let Ok(b) = board.lock() {
+            b.show(bar, n);
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    for r in readers {
+        let _ = r.join();
+    }
+    Ok(failures)
+}
+
+fn run_threads(
+    configs: &[AgentConfig],
+    stop: &Arc<AtomicBool>,
+    bar: &ProgressBar,
+) -> Result<Vec<String>> {
+    let hub = InprocHub::new();
+    let board = Arc::new(Mutex::new(Board::default()));
+    let n = configs.len();
+    let mut handles = Vec::new();
+    for (i, cfg) in configs.iter().enumerate() {
+        let cfg = cfg.clone();
+        let transport = agent::transport::open(&cfg.transport_settings(), Some(&hub))?;
+        let stop = Arc::clone(stop);
+        let board = Arc::clone(&board);
+        handles.push(std::thread::spawn(move || -> Result<()> {
+            let setup = RobotSetup::load(&cfg)?;
+            let report = run_node(&cfg, &setup, transport, &stop, |p| {
+                if let Ok(mut b) = board.lock() {
+                    b.ticks.insert(i, (p.tick, p.ticks_total));
+                    b.max_lag_s = b.max_lag_s.max(p.lag_s);
+                }
+            })?;
+            agent::agent_output::write_outputs(&report, cfg.robot_id, "inproc", &cfg.output_dir)?;
+            if let Ok(mut b) = board.lock() {
+                b.done += 1;
+            }
+            Ok(())
+        }));
+    }
+    let mut failures = Vec::new();
+    while handles.iter().any(|h| !h.is_finished()) {
+        if let Ok(b) = board.lock() {
+            b.show(bar, n);
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    for (i, h) in handles.into_iter().enumerate() {
+        match h.join() {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => failures.push(format!("robot {i}: {e:#}")),
+            Err(_) => failures.push(format!("robot {i}: panicked")),
+        }
+    }
+    Ok(failures)
+}
+
+/// Reads every agent's `summary.json` into the run's summary.
+fn collect(
+    scenario: &Scenario,
+    args: &RunArgs,
+    configs: &[AgentConfig],
+    wall_s: f64,
+) -> RunSummary {
+    let mut robots = Vec::new();
+    let mut sim_s: Option<f64> = None;
+    let mut seed = args.seed.unwrap_or(scenario.seed);
+    for (i, cfg) in configs.iter().enumerate() {
+        match RunSummary::read_json(cfg.output_dir.join("summary.json")) {
+            Ok(s) => {
+                seed = s.seed;
+                sim_s = Some(sim_s.unwrap_or(0.0).max(s.sim_s.unwrap_or(0.0)));
+                robots.extend(s.robots);
+            }
+            Err(e) => {
+                tracing::warn!("robot {i}: no summary ({e})");
+                robots.push(RobotSummary {
+                    id: i as u32,
+                    trajectory: scenario.robot_name(i),
+                    metrics: MetricSet::default(),
+                });
+            }
+        }
+    }
+    let sets: Vec<MetricSet> = robots.iter().map(|r| r.metrics.clone()).collect();
+    RunSummary {
+        scenario: scenario.name.clone(),
+        variant: Some(args.variant.clone()),
+        seed,
+        transport: Some(args.transport.clone()),
+        wall_s: Some(wall_s),
+        sim_s,
+        mean: MetricSet::mean_of(&sets),
+        robots,
+    }
+}
+
+fn print_summary(s: &RunSummary, out: &Path) {
+    let f = |v: Option<f64>, d: usize| v.map_or("-".to_string(), |v| format!("{v:.d$}"));
+    println!(
+        "{} robots over {}, {} s of fleet time in {} s",
+        s.robots.len(),
+        s.transport.as_deref().unwrap_or("?"),
+        f(s.sim_s, 1),
+        f(s.wall_s, 1)
+    );
+    println!("robot  trajectory            ATE deg  ATE m   NEES ori  NEES pos  KB/s sent  msgs in  dropped");
+    for r in &s.robots {
+        let m = &r.metrics;
+        println!(
+            "{:<6} {:<21} {:>7}  {:>6}  {:>8}  {:>8}  {:>9}  {:>7}  {:>7}",
+            r.id,
+            r.trajectory,
+            f(m.ate_ori_deg, 3),
+            f(m.ate_pos_m, 3),
+            f(m.nees_ori, 2),
+            f(m.nees_pos, 2),
+            f(m.bytes_per_s_sent.map(|b| b / 1000.0), 1),
+            m.messages_received.map_or("-".into(), |v| v.to_string()),
+            m.messages_dropped.map_or("-".into(), |v| v.to_string()),
+        );
+    }
+    println!("summary: {}", out.join("summary.json").display());
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn derived_robots_repeat_the_list_later() {
+        let base: Scenario = serde_yaml::from_str(
+            "name: t\nrobots:\n  - trajectory: /a.txt\n  - trajectory: /b.txt\n    start_time_s: 1.0\n",
+        )
+        .unwrap();
+        let sc = derive_scenario(&base, 5, 3.0);
+        assert_eq!(sc.robots.len(), 5);
+        let starts: Vec<f64> = sc.robots.iter().map(|r| r.start_time_s).collect();
+        assert_eq!(starts, vec![0.0, 1.0, 3.0, 4.0, 6.0]);
+        assert_eq!(sc.robots[4].name.as_deref(), Some("a+2"));
+        let two = derive_scenario(&base, 1, 3.0);
+        assert_eq!(two.robots.len(), 1);
+    }
+}

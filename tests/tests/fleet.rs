@@ -1,0 +1,291 @@
+//! Agents as real processes: `sim-fleet run` over Zenoh (loopback, peer mode)
+//! and iceoryx2, a killed and restarted agent, hostile payloads, and lockstep
+//! determinism across runs and transports.
+#![allow(clippy::unwrap_used)] // helpers outside #[test] functions
+
+use integration_tests::{bin, write_loop_trajectory};
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// A three-robot scenario on a `duration_s` loop (robots start 0, 2 and 4 s apart).
+fn scenario(dir: &Path, duration_s: f64) -> PathBuf {
+    write_loop_trajectory(&dir.join("loop.txt"), duration_s).unwrap();
+    let p = dir.join("three.yaml");
+    std::fs::write(
+        &p,
+        "name: three\nrobots:\n  - trajectory: loop.txt\n  - trajectory: loop.txt\n    start_time_s: 2.0\n  - trajectory: loop.txt\n    start_time_s: 4.0\nsensors:\n  camera:\n    max_features: 60\n",
+    )
+    .unwrap();
+    p
+}
+
+fn json(path: &Path) -> Value {
+    let text =
+        std::fs::read_to_string(path).unwrap_or_else(|e| panic!("reading {}: {e}", path.display()));
+    serde_json::from_str(&text).unwrap()
+}
+
+fn fleet_run(scenario: &Path, out: &Path, extra: &[&str]) -> Value {
+    let output = Command::new(bin("sim-fleet"))
+        .arg("run")
+        .arg(scenario)
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "sim-fleet run failed:\n{}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    json(&out.join("summary.json"))
+}
+
+/// Every agent received every message every peer sent, kind by kind.
+fn assert_complete_delivery(out: &Path, robots: usize) {
+    let stats: Vec<Value> = (0..robots)
+        .map(|i| json(&out.join(format!("robot{i}")).join("transport_stats.json")))
+        .collect();
+    for (me, st) in stats.iter().enumerate() {
+        for (peer, pst) in stats.iter().enumerate() {
+            if peer == me {
+                continue;
+            }
+            for kind in ["Tracks", "Descriptors", "Snapshot", "Heartbeat"] {
+                let sent = pst["net"]["kinds"][kind]["sent"].as_u64().unwrap_or(0);
+                let got = st["net"]["received_from"][peer.to_string()][kind]
+                    .as_u64()
+                    .unwrap_or(0);
+                assert!(sent > 0, "robot {peer} sent no {kind}");
+                assert_eq!(
+                    got, sent,
+                    "robot {me} received {got} of the {sent} {kind} messages robot {peer} sent"
+                );
+            }
+        }
+        assert_eq!(st["net"]["sequence_gaps"], 0, "robot {me} saw gaps");
+    }
+}
+
+fn assert_valid_estimates(summary: &Value, robots: usize) {
+    let list = summary["robots"].as_array().unwrap();
+    assert_eq!(list.len(), robots);
+    for r in list {
+        assert!(r["frames"].as_u64().unwrap() > 50, "{r}");
+        let ate = r["ate_pos_m"].as_f64().unwrap();
+        assert!(
+            ate.is_finite() && ate < 1.0,
+            "robot {}: ATE {ate} m",
+            r["id"]
+        );
+    }
+}
+
+#[test]
+fn three_agents_over_zenoh_on_loopback_receive_everything() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 20.0);
+    let out = dir.path().join("zenoh");
+    let summary = fleet_run(&sc, &out, &["--transport", "zenoh", "--seed", "3"]);
+    assert_eq!(summary["transport"], "zenoh");
+    assert_valid_estimates(&summary, 3);
+    assert_complete_delivery(&out, 3);
+    for i in 0..3 {
+        assert!(out.join(format!("robot{i}/agent.mcap")).is_file());
+        let events =
+            std::fs::read_to_string(out.join(format!("robot{i}/peer_events.jsonl"))).unwrap();
+        assert_eq!(events.matches("\"appeared\"").count(), 2, "{events}");
+    }
+}
+
+#[test]
+fn three_agents_over_iceoryx2_receive_everything() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 20.0);
+    let out = dir.path().join("iox");
+    let summary = fleet_run(&sc, &out, &["--transport", "iceoryx2", "--seed", "3"]);
+    assert_eq!(summary["transport"], "iceoryx2");
+    assert_valid_estimates(&summary, 3);
+    assert_complete_delivery(&out, 3);
+}
+
+/// The metrics that do not depend on wall-clock timing.
+fn deterministic_part(summary: &Value) -> Vec<Value> {
+    summary["robots"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| {
+            serde_json::json!([
+                r["ate_ori_deg"],
+                r["ate_pos_m"],
+                r["nees_ori"],
+                r["nees_pos"],
+                r["rpe"],
+                r["frames"],
+                r["bytes_sent"],
+                r["messages_sent"],
+                r["messages_received"]
+            ])
+        })
+        .collect()
+}
+
+#[test]
+fn lockstep_runs_are_identical_across_runs_and_transports() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 12.0);
+    let a = fleet_run(
+        &sc,
+        &dir.path().join("a"),
+        &["--transport", "zenoh", "--seed", "5"],
+    );
+    let b = fleet_run(
+        &sc,
+        &dir.path().join("b"),
+        &["--transport", "zenoh", "--seed", "5"],
+    );
+    let c = fleet_run(
+        &sc,
+        &dir.path().join("c"),
+        &["--transport", "inproc", "--seed", "5"],
+    );
+    assert_eq!(deterministic_part(&a), deterministic_part(&b));
+    assert_eq!(deterministic_part(&a), deterministic_part(&c));
+    // The estimates themselves, bit for bit.
+    for i in 0..3 {
+        let est = |run: &str| {
+            std::fs::read_to_string(dir.path().join(run).join(format!("robot{i}/estimate.txt")))
+                .unwrap()
+        };
+        assert_eq!(est("a"), est("b"));
+        assert_eq!(est("a"), est("c"));
+    }
+}
+
+/// Writes the agents' configurations (`--dry-run`) and returns their paths.
+fn configs(sc: &Path, out: &Path, extra: &[&str]) -> Vec<PathBuf> {
+    let output = Command::new(bin("sim-fleet"))
+        .arg("run")
+        .arg(sc)
+        .arg("--out")
+        .arg(out)
+        .arg("--dry-run")
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(output.status.success());
+    (0..3)
+        .map(|i| out.join(format!("robot{i}")).join("config.yaml"))
+        .collect()
+}
+
+fn start_agent(config: &Path, log: &Path) -> Child {
+    Command::new(bin("agent"))
+        .arg("--config")
+        .arg(config)
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(log).unwrap())
+        .spawn()
+        .unwrap()
+}
+
+fn wait(child: &mut Child, limit: Duration) -> bool {
+    let t = Instant::now();
+    while t.elapsed() < limit {
+        if let Ok(Some(status)) = child.try_wait() {
+            return status.success();
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let _ = child.kill();
+    false
+}
+
+#[test]
+fn a_killed_agent_is_seen_leaving_and_coming_back_and_the_others_finish() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 24.0);
+    let out = dir.path().join("kill");
+    // Real time at 4x: 24 s of data take about 6 s, time to kill and restart.
+    let cfgs = configs(&sc, &out, &["--transport", "zenoh", "--realtime", "4"]);
+    let mut agents: Vec<Child> = cfgs
+        .iter()
+        .enumerate()
+        .map(|(i, c)| start_agent(c, &out.join(format!("robot{i}.log"))))
+        .collect();
+    std::thread::sleep(Duration::from_millis(2500));
+    agents[2].kill().unwrap();
+    agents[2].wait().unwrap();
+    std::thread::sleep(Duration::from_millis(1000));
+    let mut restarted = start_agent(&cfgs[2], &out.join("robot2-again.log"));
+    for (i, a) in agents.iter_mut().take(2).enumerate() {
+        assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
+    }
+    assert!(
+        wait(&mut restarted, Duration::from_secs(120)),
+        "restarted robot failed"
+    );
+    for i in 0..2 {
+        let dir = out.join(format!("robot{i}"));
+        let events = std::fs::read_to_string(dir.join("peer_events.jsonl")).unwrap();
+        let about_2: Vec<&str> = events
+            .lines()
+            .filter(|l| l.contains("\"peer\":2"))
+            .collect();
+        let kinds: Vec<&str> = about_2
+            .iter()
+            .filter_map(|l| {
+                ["appeared", "vanished", "reappeared"]
+                    .into_iter()
+                    .find(|k| l.contains(&format!("\"{k}\"")))
+            })
+            .collect();
+        assert_eq!(
+            kinds,
+            ["appeared", "vanished", "reappeared"],
+            "robot {i}: {events}"
+        );
+        let s = json(&dir.join("summary.json"));
+        let r = &s["robots"][0];
+        assert!(r["frames"].as_u64().unwrap() > 150, "{r}");
+        assert!(r["ate_pos_m"].as_f64().unwrap().is_finite());
+        assert!(r["peer_losses"].as_u64().unwrap() >= 1);
+    }
+}
+
+#[test]
+fn malformed_and_foreign_messages_are_dropped_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 16.0);
+    let out = dir.path().join("probe");
+    let cfgs = configs(&sc, &out, &["--transport", "zenoh", "--realtime", "2"]);
+    let mut agents: Vec<Child> = cfgs
+        .iter()
+        .enumerate()
+        .map(|(i, c)| start_agent(c, &out.join(format!("robot{i}.log"))))
+        .collect();
+    let probe = Command::new(bin("agent"))
+        .args(["probe", "--config"])
+        .arg(&cfgs[0])
+        .args(["--malformed", "3", "--foreign-fleet", "someone-else"])
+        .output()
+        .unwrap();
+    assert!(
+        probe.status.success(),
+        "{}",
+        String::from_utf8_lossy(&probe.stderr)
+    );
+    for (i, a) in agents.iter_mut().enumerate() {
+        assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
+    }
+    let st = json(&out.join("robot0").join("transport_stats.json"));
+    assert_eq!(st["net"]["dropped"]["malformed"], 3, "{}", st["net"]);
+    assert_eq!(st["net"]["dropped"]["foreign_fleet"], 1, "{}", st["net"]);
+    let s = json(&out.join("robot0").join("summary.json"));
+    assert!(s["robots"][0]["frames"].as_u64().unwrap() > 100);
+}
