@@ -225,6 +225,7 @@ impl Node {
     fn pump(&mut self, timeout: Duration) -> bool {
         for ev in self.transport.presence() {
             let e = self.report.peers.presence(ev, self.wall_s(), self.fleet_t);
+            self.note(e);
             if let crate::transport::PresenceEvent::Vanished(p) = ev {
                 if self.lockstep.release(p) {
                     self.report
@@ -233,7 +234,6 @@ impl Node {
                     tracing::info!(peer = p, "gone: no longer waiting for it");
                 }
             }
-            self.note(e);
         }
         let msg = match self.transport.receive(timeout) {
             Ok(Some(m)) => m,
