@@ -289,3 +289,76 @@ fn malformed_and_foreign_messages_are_dropped_and_counted() {
     let s = json(&out.join("robot0").join("summary.json"));
     assert!(s["robots"][0]["frames"].as_u64().unwrap() > 100);
 }
+
+/// A lone agent's configuration: no peers, the given input.
+fn lone_config(dir: &Path, scenario: &Path, input: &str, clock: &str) -> PathBuf {
+    let p = dir.join("lone.yaml");
+    std::fs::write(
+        &p,
+        format!(
+            "robot_id: 0\nfleet_id: lone-{}\noutput_dir: lone-out\ntransport:\n  kind: zenoh\n  zenoh:\n    listen: [\"tcp/127.0.0.1:0\"]\ninput:\n  scenario: {}\n{input}clock:\n{clock}",
+            std::process::id(),
+            scenario.display()
+        ),
+    )
+    .unwrap();
+    p
+}
+
+#[test]
+fn an_agent_replays_an_mcap_recording() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 16.0);
+    let sim = dir.path().join("sim");
+    let status = Command::new(bin("sim-fleet"))
+        .args(["simulate"])
+        .arg(&sc)
+        .arg("--out")
+        .arg(&sim)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let input = format!(
+        "  source: mcap\n  mcap: {}\n",
+        sim.join("robot0/measurements.mcap").display()
+    );
+    let cfg = lone_config(dir.path(), &sc, &input, "  mode: lockstep\n");
+    let mut agent = start_agent(&cfg, &dir.path().join("lone.log"));
+    assert!(wait(&mut agent, Duration::from_secs(60)), "replay failed");
+    let s = json(&dir.path().join("lone-out/summary.json"));
+    let r = &s["robots"][0];
+    assert!(r["frames"].as_u64().unwrap() > 100, "{r}");
+    assert!(r["ate_pos_m"].as_f64().unwrap() < 0.5, "{r}");
+}
+
+#[test]
+fn sigterm_stops_an_agent_with_its_outputs_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 30.0);
+    let cfg = lone_config(
+        dir.path(),
+        &sc,
+        "  source: simulator\n",
+        "  mode: realtime\n  realtime_rate: 1.0\n",
+    );
+    let mut agent = start_agent(&cfg, &dir.path().join("lone.log"));
+    std::thread::sleep(Duration::from_secs(4));
+    let status = Command::new("kill")
+        .args(["-TERM", &agent.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    assert!(wait(&mut agent, Duration::from_secs(15)), "no clean exit");
+    let out = dir.path().join("lone-out");
+    let st = json(&out.join("transport_stats.json"));
+    assert_eq!(st["interrupted"], true);
+    let est = std::fs::read_to_string(out.join("estimate.txt")).unwrap();
+    assert!(est.lines().count() > 5, "{est}");
+    assert!(
+        json(&out.join("summary.json"))["robots"][0]["frames"]
+            .as_u64()
+            .unwrap()
+            > 5
+    );
+    assert!(out.join("agent.mcap").is_file());
+}
