@@ -18,6 +18,7 @@ pub mod slam_feature;
 pub mod state;
 pub mod static_init;
 pub mod triangulation;
+pub mod updater_ci;
 pub mod updater_msckf;
 pub mod updater_slam;
 pub mod updater_zupt;

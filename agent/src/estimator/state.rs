@@ -478,13 +478,56 @@ impl State {
             return Err(StateError::Dimension("residual length".into()));
         }
         let (s, pht) = self.innovation(vars, h, r)?;
+        self.apply_update(s, &pht, res, 1.0)
+    }
+
+    /// CI-EKF update (thesis Eqs. 5.15-5.17): this robot's prior covariance is
+    /// inflated to `P / ω` and the innovation covariance is
+    /// `S = H P Hᵀ / ω + r_others`, where `r_others` already holds the peers'
+    /// terms `Σ H_o P_o H_oᵀ / ω_o` and the measurement noise. Only this robot's
+    /// state and covariance change: `δx = P Hᵀ S⁻¹ r / ω`,
+    /// `P ← P / ω − P Hᵀ S⁻¹ H P / ω²`.
+    pub fn ci_update(
+        &mut self,
+        vars: &[Var],
+        h: &DMatrix<f64>,
+        res: &DVector<f64>,
+        r_others: &DMatrix<f64>,
+        omega: f64,
+    ) -> Result<(), StateError> {
+        if res.len() != h.nrows() {
+            return Err(StateError::Dimension("residual length".into()));
+        }
+        if !(omega > 0.0 && omega <= 1.0) {
+            return Err(StateError::Dimension(format!(
+                "CI weight {omega} not in (0, 1]"
+            )));
+        }
+        let zero = DMatrix::zeros(h.nrows(), h.nrows());
+        let (hph, pht) = self.innovation(vars, h, &zero)?;
+        let s = hph / omega + r_others;
+        self.apply_update(s, &(pht / omega), res, omega)
+    }
+
+    /// The common tail of the updates: with `S = L Lᵀ` and
+    /// `W = L⁻¹ (P' Hᵀ)ᵀ` for the prior `P' = P / ω`: `P ← P' − Wᵀ W`,
+    /// `δx = Wᵀ L⁻¹ r`. `L⁻¹` is small (m x m); forming it makes `W` one dense
+    /// product.
+    fn apply_update(
+        &mut self,
+        s: DMatrix<f64>,
+        pht: &DMatrix<f64>,
+        res: &DVector<f64>,
+        omega: f64,
+    ) -> Result<(), StateError> {
         let chol = s.cholesky().ok_or(StateError::NotPositiveDefinite)?;
-        // With S = L Lᵀ and W = L⁻¹ (P Hᵀ)ᵀ: P ← P − Wᵀ W, δx = Wᵀ L⁻¹ r. L⁻¹ is
-        // small (m x m); forming it makes W one dense product.
         let l_inv = lower_triangular_inverse(&chol.l());
         let w = &l_inv * pht.transpose();
         let lr = &l_inv * res;
         let dx = w.tr_mul(&lr);
+        if omega != 1.0 {
+            self.cov /= omega;
+        }
         self.subtract_gram_lower(&w);
         self.cov.fill_upper_triangle_with_lower_triangle();
         self.floor_diagonal();
