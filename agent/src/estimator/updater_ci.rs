@@ -225,6 +225,26 @@ mod tests {
         assert!((a.imu.pos - b.imu.pos).norm() < 1e-12);
     }
 
+    /// Covariance of the actual error after an update of robot i alone with gain
+    /// `k`, under the true joint prior: `e⁺ = (I − K H_i) e_i − K H_o e_o − K n`.
+    fn actual_error_cov(
+        k: &DMatrix<f64>,
+        h_i: &DMatrix<f64>,
+        h_o: &DMatrix<f64>,
+        p_i: &DMatrix<f64>,
+        p_o: &DMatrix<f64>,
+        p_io: &DMatrix<f64>,
+        r: &DMatrix<f64>,
+    ) -> DMatrix<f64> {
+        let a = DMatrix::identity(p_i.nrows(), p_i.nrows()) - k * h_i;
+        let b = -(k * h_o);
+        &a * p_i * a.transpose()
+            + &b * p_o * b.transpose()
+            + &a * p_io * b.transpose()
+            + &b * p_io.transpose() * a.transpose()
+            + k * r * k.transpose()
+    }
+
     /// The CI bound holds whatever the true cross-covariance: the covariance
     /// this robot reports after the update is at least the actual covariance of
     /// its error, computed with the true correlated joint prior.
@@ -266,14 +286,7 @@ mod tests {
             // The gain used: K = (P_i/ω_i) H_iᵀ S⁻¹.
             let s_ci = &h_i * &p_i * h_i.transpose() / wi + &h_o * &p_o * h_o.transpose() / wo + &r;
             let k = &p_i / wi * h_i.transpose() * s_ci.try_inverse().unwrap();
-            // Actual error: e⁺ = (I − K H_i) e_i − K H_o e_o − K n.
-            let a = DMatrix::identity(ni, ni) - &k * &h_i;
-            let b = -(&k * &h_o);
-            let actual = &a * &p_i * a.transpose()
-                + &b * &p_o * b.transpose()
-                + &a * &p_io * b.transpose()
-                + &b * p_io.transpose() * a.transpose()
-                + &k * &r * k.transpose();
+            let actual = actual_error_cov(&k, &h_i, &h_o, &p_i, &p_o, &p_io, &r);
             let gap = s.cov() - actual;
             let gap = (&gap + gap.transpose()) * 0.5;
             let min_eig = gap.symmetric_eigen().eigenvalues.min();
@@ -286,13 +299,8 @@ mod tests {
             // some trials, so the bound above is not vacuous.
             let s_naive = &h_i * &p_i * h_i.transpose() + &h_o * &p_o * h_o.transpose() + &r;
             let k = &p_i * h_i.transpose() * s_naive.try_inverse().unwrap();
+            let actual = actual_error_cov(&k, &h_i, &h_o, &p_i, &p_o, &p_io, &r);
             let a = DMatrix::identity(ni, ni) - &k * &h_i;
-            let b = -(&k * &h_o);
-            let actual = &a * &p_i * a.transpose()
-                + &b * &p_o * b.transpose()
-                + &a * &p_io * b.transpose()
-                + &b * p_io.transpose() * a.transpose()
-                + &k * &r * k.transpose();
             let reported = &a * &p_i;
             let gap = &reported - actual;
             let gap = (&gap + gap.transpose()) * 0.5;
