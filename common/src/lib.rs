@@ -6,6 +6,7 @@
 //! * [`camera`]: pinhole + radtan / equidistant models with Jacobians.
 //! * [`calibration`]: a camera's intrinsics, camera-IMU extrinsics and time offset.
 //! * [`descriptor`]: 256-bit binary descriptors.
+//! * [`epipolar`]: fundamental matrix (eight-point, Sampson error, RANSAC).
 //! * [`estimator_options`]: the estimator's options and their defaults.
 //! * [`measurement`]: IMU samples and camera feature frames.
 //! * [`trajectory`]: TUM / EuRoC ground-truth readers and a TUM writer.
@@ -18,6 +19,7 @@ pub mod calibration;
 pub mod camera;
 pub mod conventions;
 pub mod descriptor;
+pub mod epipolar;
 pub mod estimator_options;
 pub mod measurement;
 pub mod messages;
