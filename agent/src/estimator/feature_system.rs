@@ -3,8 +3,9 @@
 //! update and the delayed initialization of SLAM features.
 
 use super::feature_db::Feature;
+use super::filter::Filter;
 use super::projection::{predict, project};
-use super::state::{State, Var};
+use super::state::{Means, Var};
 use super::triangulation::{triangulate, CameraObservation, TriangulationOptions};
 use nalgebra::{DMatrix, DVector, Vector3};
 
@@ -21,14 +22,14 @@ pub struct Columns {
 
 impl Columns {
     /// The window layout of `state`.
-    pub fn window(state: &State) -> Self {
-        let mut vars = Vec::with_capacity(2 + state.clones.len());
+    pub fn window<F: Filter + ?Sized>(state: &F) -> Self {
+        let mut vars = Vec::with_capacity(2 + state.means().clones.len());
         for v in [Var::Extrinsic, Var::Intrinsics] {
             if state.has(v) {
                 vars.push(v);
             }
         }
-        vars.extend(state.clones.keys().map(|k| Var::Clone(*k)));
+        vars.extend(state.means().clones.keys().map(|k| Var::Clone(*k)));
         Self::of(vars)
     }
 
@@ -69,7 +70,7 @@ pub struct FeatureSystem {
 /// and stacks its measurements. Jacobians use the clones' first estimates when
 /// `use_fej`. `None` when the feature cannot be triangulated or projected.
 pub fn build(
-    state: &State,
+    state: &Means,
     feature: &Feature,
     cols: &Columns,
     use_fej: bool,

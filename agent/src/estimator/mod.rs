@@ -7,9 +7,11 @@
 
 pub mod camera_window;
 pub mod chi2;
+pub mod covariance;
 pub mod feature_classes;
 pub mod feature_db;
 pub mod feature_system;
+pub mod filter;
 pub mod linalg;
 pub mod options;
 pub mod projection;
