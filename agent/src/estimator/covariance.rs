@@ -393,7 +393,7 @@ impl<K: StateVar> Covariance<K> {
     /// `W = L⁻¹ (P' Hᵀ)ᵀ` for the prior `P' = P / ω`: `P ← P' − Wᵀ W`,
     /// `δx = Wᵀ L⁻¹ r`. `L⁻¹` is small (m x m); forming it makes `W` one dense
     /// product.
-    fn kalman_update(
+    pub(crate) fn kalman_update(
         &mut self,
         s: DMatrix<f64>,
         pht: &DMatrix<f64>,

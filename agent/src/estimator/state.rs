@@ -383,6 +383,33 @@ impl State {
         Ok(())
     }
 
+    /// The tail of a CI-EKF update whose pieces are already computed: innovation
+    /// covariance `s` (with the `1/ω` inflation) and `P Hᵀ / ω`.
+    pub(crate) fn ci_apply(
+        &mut self,
+        s: DMatrix<f64>,
+        pht_over_omega: &DMatrix<f64>,
+        res: &DVector<f64>,
+        omega: f64,
+    ) -> Result<(), StateError> {
+        let dx = self.cov.kalman_update(s, pht_over_omega, res, omega)?;
+        self.apply_correction(&dx);
+        Ok(())
+    }
+
+    /// EKF update that also returns the correction it applied.
+    pub fn ekf_update_dx(
+        &mut self,
+        vars: &[Var],
+        h: &DMatrix<f64>,
+        res: &DVector<f64>,
+        r: &DMatrix<f64>,
+    ) -> Result<DVector<f64>, StateError> {
+        let dx = self.cov.ekf_update(vars, h, res, r)?;
+        self.apply_correction(&dx);
+        Ok(dx)
+    }
+
     /// Adds `new` from an invertible linearized measurement (delayed
     /// initialization, see [`Covariance::initialize_invertible`]); returns the
     /// mean correction for the caller to apply.
