@@ -61,7 +61,10 @@ impl PeerWindow {
     pub fn from_snapshot(peer: u32, key: u64, snap: &StateSnapshot) -> Option<Self> {
         let n = snap.clones.len();
         let cov = snap.covariance.to_dmatrix();
-        if n == 0 || cov.nrows() != 6 * n || (0..6 * n).any(|i| !(cov[(i, i)] > 0.0)) {
+        if n == 0
+            || cov.nrows() != 6 * n
+            || (0..6 * n).any(|i| cov[(i, i)].is_nan() || cov[(i, i)] <= 0.0)
+        {
             return None;
         }
         let poses = snap
@@ -75,7 +78,7 @@ impl PeerWindow {
             .collect();
         let k = &snap.camera.intrinsics;
         let focal_px = (k[0] * k[1]).abs().sqrt();
-        if !(focal_px > 1.0) {
+        if focal_px.is_nan() || focal_px <= 1.0 {
             return None;
         }
         Some(Self {
