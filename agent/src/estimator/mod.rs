@@ -23,6 +23,7 @@ pub mod static_init;
 pub mod triangulation;
 pub mod updater_ci;
 pub mod updater_common;
+pub mod updater_common_slam;
 pub mod updater_msckf;
 pub mod updater_slam;
 pub mod updater_zupt;

@@ -140,3 +140,25 @@ impl Scene {
             .collect()
     }
 }
+
+impl Scene {
+    /// Puts landmarks `ids` into our state as global SLAM features at the truth,
+    /// uncorrelated, with covariance `var` per axis.
+    pub fn add_slam_features(&mut self, ids: &[usize], var: f64) {
+        for &l in ids {
+            let id = l as u64;
+            self.state
+                .augment(Var::Feature(id), &[], &(DMatrix::identity(3, 3) * var))
+                .ok();
+            let p = self.landmarks[l];
+            self.state.features.insert(
+                id,
+                super::state::SlamFeature {
+                    pos: p,
+                    pos_fej: p,
+                    anchor: None,
+                },
+            );
+        }
+    }
+}
