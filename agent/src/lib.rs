@@ -10,6 +10,7 @@
 pub mod agent_log;
 pub mod agent_output;
 pub mod config;
+pub mod cooperation;
 pub mod estimator;
 pub mod fleet_clock;
 pub mod inbox;
