@@ -29,6 +29,26 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
 use vocabulary::{MatchParams, Vocabulary};
 
+/// The vocabulary for random binary descriptors (the simulator's landmarks),
+/// trained once per process from a fixed seed: every agent of a simulated fleet
+/// has the same one without a file.
+pub fn builtin_vocabulary() -> Option<Arc<Vocabulary>> {
+    static VOCABULARY: std::sync::OnceLock<Option<Arc<Vocabulary>>> = std::sync::OnceLock::new();
+    VOCABULARY
+        .get_or_init(|| {
+            vocabulary::synthetic::random_descriptor_vocabulary(
+                1,
+                200,
+                100,
+                &vocabulary::TrainParams::default(),
+            )
+            .map(Arc::new)
+            .map_err(|e| tracing::warn!("no built-in vocabulary: {e}"))
+            .ok()
+        })
+        .clone()
+}
+
 /// The peers' data as received: their histories by robot id.
 pub type Peers = BTreeMap<u32, PeerHistory>;
 
@@ -284,10 +304,14 @@ impl Cooperation {
                     let is_used = |k: &(u64, u64)| used.is_some_and(|u| u.contains(k));
                     if slam && self.opts.slam_constraint && constraint.is_none() {
                         let w = &ev.participants[p];
-                        if let Some(lm) = w.landmark(link.peer_track) {
+                        if let Some(j) = w.landmarks.iter().position(|l| l.id == link.peer_track) {
                             let key = (w.key, link.peer_track | CONSTRAINT_FLAG);
                             if !is_used(&key) && taken.insert((link.peer, key.0, key.1)) {
-                                constraint = Some(SlamConstraint { id, landmark: *lm });
+                                constraint = Some(SlamConstraint {
+                                    id,
+                                    participant: p,
+                                    landmark: j,
+                                });
                                 consumed.keys.push((link.peer, key.0, key.1));
                             }
                             continue;

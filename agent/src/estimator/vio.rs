@@ -506,29 +506,15 @@ impl Estimator {
             .map(|c| c.evidence(msckf_ids, &slam_ids, peers))
             .unwrap_or_default();
 
-        // 5. Common VIO features (CI-EKF), then the independent ones (MSCKF).
-        let common_vio = cooperative::common_vio(
-            state,
-            &self.features,
-            &ev,
-            &opts,
-            &self.chi2,
-            &self.tri,
-            &mut coop,
-        );
+        // 5. MSCKF update with the independent VIO features.
         let t = Instant::now();
+        let common: Vec<u64> = ev.vio.iter().map(|c| c.id).collect();
         let independent: Vec<u64> = msckf_used
             .iter()
-            .chain(ev.vio.iter().map(|c| &c.id))
             .copied()
-            .filter(|id| !common_vio.contains(id))
-            .fold(Vec::new(), |mut v, id| {
-                if !v.contains(&id) {
-                    v.push(id);
-                }
-                v
-            });
-        let msckf = updater_msckf::update(
+            .filter(|id| !common.contains(id))
+            .collect();
+        let mut msckf = updater_msckf::update(
             state,
             &self.features,
             &independent,
@@ -552,9 +538,30 @@ impl Estimator {
         );
         timing.slam_update_ms = ms(t);
 
-        // 7. Common SLAM features: constraints and the peers' measurements.
-        let (common_slam, constraints) =
-            cooperative::common_slam(state, &ev, &opts, &self.chi2, &mut coop);
+        // 7. What the peers saw: common VIO and SLAM features, SLAM constraints,
+        //    in one CI-EKF update; common tracks it could not use go to the MSCKF.
+        let used = cooperative::update(
+            state,
+            &self.features,
+            &ev,
+            &opts,
+            &self.chi2,
+            &self.tri,
+            &mut coop,
+        );
+        if !used.vio_fallback.is_empty() {
+            let fallback = updater_msckf::update(
+                state,
+                &self.features,
+                &used.vio_fallback,
+                &opts,
+                &self.chi2,
+                &self.tri,
+            );
+            msckf.used += fallback.used;
+            msckf.rejected_chi2 += fallback.rejected_chi2;
+            msckf.failed += fallback.failed;
+        }
 
         // 8. Delayed initialization of new SLAM features.
         let t = Instant::now();
@@ -563,7 +570,7 @@ impl Estimator {
                 slam.initialized += 1;
             } else {
                 slam.init_failed += 1;
-                if !independent.contains(id) {
+                if !independent.contains(id) && !common.contains(id) {
                     // Not initialized: its measurements are still useful, once.
                     let _ = updater_msckf::update(
                         state,
@@ -583,7 +590,7 @@ impl Estimator {
         let t = Instant::now();
         clean_up(&mut self.features, state, &classes, opts.max_clones);
         if let Some(c) = self.coop.as_mut() {
-            cooperative::finish(c, &ev, (&common_vio, &common_slam, &constraints), &mut coop);
+            cooperative::finish(c, &ev, &used, &mut coop);
             let (db, st) = (&self.features, &*state);
             c.retain_tracks(|id| db.contains(id) || st.features.contains_key(&id), peers);
         }
@@ -594,8 +601,11 @@ impl Estimator {
         timing.marginalize_ms = ms(t);
         timing.total_ms = ms(t_start);
 
-        timing.cooperation_ms =
-            coop.matching_ms + coop.common_vio_ms + coop.common_slam_ms + coop.constraint_ms;
+        timing.cooperation_ms = coop.matching_ms
+            + coop.common_vio_ms
+            + coop.common_slam_ms
+            + coop.constraint_ms
+            + coop.ci_update_ms;
         Ok(output(state, timing, msckf, slam, coop, false))
     }
 }
