@@ -9,6 +9,7 @@
 
 pub mod agent_log;
 pub mod agent_output;
+pub mod central;
 pub mod config;
 pub mod cooperation;
 pub mod estimator;

@@ -287,10 +287,7 @@ impl Cooperation {
                 let mut obs = Vec::new();
                 let mut consumed = Consumed::default();
                 let mut constraint = None;
-                for link in self.links_of(id) {
-                    if !self.allowed(link, slam) {
-                        continue;
-                    }
+                for link in &self.chosen_links(id, slam, peers) {
                     let Some(h) = peers.get(&link.peer) else {
                         continue;
                     };
@@ -347,6 +344,47 @@ impl Cooperation {
             }
         }
         ev
+    }
+
+    /// The links of our track `id` whose measurements this class may use: every
+    /// window link, and per peer the `max_keyframes_per_track` keyframe links
+    /// with the most measurements of the peer's track (a landmark the peer kept
+    /// in view spans several of its keyframe windows; each window is one more
+    /// CI participant, which inflates our covariance once more).
+    fn chosen_links(&self, id: u64, slam: bool, peers: &Peers) -> Vec<Link> {
+        let mut out: Vec<Link> = Vec::new();
+        let mut historical: Vec<(u32, usize, Link)> = Vec::new();
+        for link in self.links_of(id) {
+            if !self.allowed(link, slam) {
+                continue;
+            }
+            match link.source {
+                LinkSource::Window => out.push(*link),
+                LinkSource::Keyframe(k) => {
+                    let count = peers
+                        .get(&link.peer)
+                        .and_then(|h| h.keyframes.get(&k))
+                        .map_or(0, |kf| {
+                            kf.frames
+                                .iter()
+                                .filter(|f| f.observations.iter().any(|o| o.id == link.peer_track))
+                                .count()
+                        });
+                    historical.push((link.peer, count, *link));
+                }
+            }
+        }
+        // Most measurements first; ties to the newest keyframe (larger key).
+        historical.sort_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)).then(b.2.cmp(&a.2)));
+        let mut per_peer: BTreeMap<u32, usize> = BTreeMap::new();
+        for (peer, count, link) in historical {
+            let n = per_peer.entry(peer).or_default();
+            if count > 0 && *n < self.opts.max_keyframes_per_track {
+                *n += 1;
+                out.push(link);
+            }
+        }
+        out
     }
 
     /// Whether a link may be used for this class under the options.

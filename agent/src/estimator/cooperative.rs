@@ -28,6 +28,10 @@ pub struct CoopFrameStats {
     pub participants: usize,
     /// Of which historical keyframe windows.
     pub historical_participants: usize,
+    /// Participants of the CI-EKF update (windows' poses and landmark sets).
+    pub ci_participants: usize,
+    /// Our CI weight `ω_i` in that update (1 without one).
+    pub omega_own: f64,
     /// Matching and loop-closure detection, ms.
     pub matching_ms: f64,
     /// Common VIO rows (triangulation, projection, gating), ms.
@@ -115,7 +119,12 @@ pub fn update(
     updater_common::apply_own_rows(state, &mut vio, &mut slam_rows);
     let mut rows = std::mem::take(&mut vio.ci);
     rows.extend(slam_rows);
-    let ok = ci_system::update(state, &rows, p, &opts.cooperation).is_ok();
+    let result = ci_system::update(state, &rows, p, &opts.cooperation);
+    let ok = result.is_ok();
+    if let Ok(Some(o)) = &result {
+        stats.ci_participants = o.omega_peers.len();
+        stats.omega_own = o.omega_own;
+    }
     stats.ci_update_ms = ms(t);
     stats.common_vio = vio.outcome.stats;
     stats.common_slam = slam.stats;

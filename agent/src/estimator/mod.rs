@@ -14,6 +14,8 @@ pub mod feature_classes;
 pub mod feature_db;
 pub mod feature_system;
 pub mod filter;
+pub mod frame_output;
+pub mod inputs;
 pub mod linalg;
 pub mod options;
 pub mod peer_window;
