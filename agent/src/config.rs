@@ -4,7 +4,7 @@
 
 use crate::runner::Variant;
 use crate::transport::{Iceoryx2Settings, TransportKind, TransportSettings, ZenohSettings};
-use common::estimator_options::{EstimatorOptions, FeatureRepresentation};
+use common::estimator_options::{CommonProjection, EstimatorOptions, FeatureRepresentation};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -164,6 +164,21 @@ pub struct EstimatorSection {
     /// SLAM feature representation: `global` or `anchored`.
     #[serde(default)]
     pub feat_rep_slam: Option<FeatureRepresentation>,
+    /// Override of the variant: common VIO features.
+    #[serde(default)]
+    pub common_vio: Option<bool>,
+    /// Override of the variant: common SLAM features.
+    #[serde(default)]
+    pub common_slam: Option<bool>,
+    /// Override of the variant: SLAM-to-SLAM constraint update.
+    #[serde(default)]
+    pub slam_constraint: Option<bool>,
+    /// Override of the variant: historical features (loop closures to peers).
+    #[serde(default)]
+    pub historical: Option<bool>,
+    /// Projection of common VIO features: `two_stage` or `combined`.
+    #[serde(default)]
+    pub projection: Option<CommonProjection>,
     /// Vocabulary file for historical loop closures (`vocab train` output);
     /// without it, a vocabulary for random binary descriptors (the simulator's)
     /// is built in memory.
@@ -204,6 +219,20 @@ impl EstimatorSection {
         if let Some(v) = self.feat_rep_slam {
             o.feature_representation = v;
         }
+        let c = &mut o.cooperation;
+        for (flag, value) in [
+            (&mut c.common_vio, self.common_vio),
+            (&mut c.common_slam, self.common_slam),
+            (&mut c.slam_constraint, self.slam_constraint),
+            (&mut c.historical, self.historical),
+        ] {
+            if let Some(v) = value {
+                *flag = v;
+            }
+        }
+        if let Some(p) = self.projection {
+            c.projection = p;
+        }
     }
 }
 
@@ -225,6 +254,11 @@ impl Default for EstimatorSection {
             calib_cam_timeoffset: None,
             try_zupt: None,
             feat_rep_slam: None,
+            common_vio: None,
+            common_slam: None,
+            slam_constraint: None,
+            historical: None,
+            projection: None,
             vocabulary: None,
         }
     }
@@ -319,10 +353,7 @@ pub struct PublishConfig {
 }
 
 fn default_snapshot_every() -> u32 {
-    std::env::var("FVIO_SNAP")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(6)
+    6
 }
 
 impl Default for PublishConfig {

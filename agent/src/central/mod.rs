@@ -20,6 +20,7 @@ use crate::estimator::cooperative::{frame_features, CoopFrameStats};
 use crate::estimator::feature_classes::{classify, clean_up, record_measurements};
 use crate::estimator::feature_db::FeatureDb;
 use crate::estimator::filter::FilterView;
+use crate::estimator::frame_output::cpu_ms;
 use crate::estimator::inputs::{check_frame, check_imu, InputError};
 use crate::estimator::propagator::{propagate, PropagateError};
 use crate::estimator::state::{ImuState, Means, Var};
@@ -209,6 +210,7 @@ impl CentralEstimator {
     /// other robots' tracks, update (common features jointly), marginalize.
     fn process_frame(&mut self, r: usize, frame: &FeatureFrame) -> Result<FrameOutput, FrameError> {
         let t_start = Instant::now();
+        let cpu_start = cpu_time::ThreadTime::try_now().ok();
         let opts = self.opts.clone();
         let rid = r as u16;
         let mut timing = crate::estimator::vio::FrameTiming::default();
@@ -243,6 +245,7 @@ impl CentralEstimator {
             if updater_zupt::try_update(&mut slot, &readings, &opts, &self.chi2) {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
+                timing.cpu_ms = cpu_ms(cpu_start);
                 return Ok(self.output(
                     rid,
                     timing,
@@ -376,6 +379,7 @@ impl CentralEstimator {
         self.forget_ended_links();
         timing.marginalize_ms = ms(t);
         timing.total_ms = ms(t_start);
+        timing.cpu_ms = cpu_ms(cpu_start);
         timing.cooperation_ms = coop.matching_ms + coop.common_vio_ms + coop.common_slam_ms;
         Ok(self.output(rid, timing, msckf, slam, coop, false))
     }

@@ -348,12 +348,14 @@ impl Cooperation {
 
     /// The links of our track `id` whose measurements this class may use: every
     /// window link, and per peer the `max_keyframes_per_track` keyframe links
-    /// with the most measurements of the peer's track (a landmark the peer kept
-    /// in view spans several of its keyframe windows; each window is one more
-    /// CI participant, which inflates our covariance once more).
+    /// whose windows the peer was most certain of (smallest position variance;
+    /// at least two measurements of the peer's track). A landmark the peer kept
+    /// in view, or saw on several passes, is in several of its keyframe
+    /// windows; each window is one more CI participant, which inflates our
+    /// covariance once more, so only the most informative are used.
     fn chosen_links(&self, id: u64, slam: bool, peers: &Peers) -> Vec<Link> {
         let mut out: Vec<Link> = Vec::new();
-        let mut historical: Vec<(u32, usize, Link)> = Vec::new();
+        let mut historical: Vec<(u32, f64, Link)> = Vec::new();
         for link in self.links_of(id) {
             if !self.allowed(link, slam) {
                 continue;
@@ -361,25 +363,30 @@ impl Cooperation {
             match link.source {
                 LinkSource::Window => out.push(*link),
                 LinkSource::Keyframe(k) => {
-                    let count = peers
-                        .get(&link.peer)
-                        .and_then(|h| h.keyframes.get(&k))
-                        .map_or(0, |kf| {
-                            kf.frames
-                                .iter()
-                                .filter(|f| f.observations.iter().any(|o| o.id == link.peer_track))
-                                .count()
-                        });
-                    historical.push((link.peer, count, *link));
+                    let Some(kf) = peers.get(&link.peer).and_then(|h| h.keyframes.get(&k)) else {
+                        continue;
+                    };
+                    let count = kf
+                        .frames
+                        .iter()
+                        .filter(|f| f.observations.iter().any(|o| o.id == link.peer_track))
+                        .count();
+                    if count >= 2 {
+                        historical.push((link.peer, position_variance(&kf.snapshot), *link));
+                    }
                 }
             }
         }
-        // Most measurements first; ties to the newest keyframe (larger key).
-        historical.sort_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)).then(b.2.cmp(&a.2)));
+        // Most certain window first; ties to the newest keyframe (larger key).
+        historical.sort_by(|a, b| {
+            a.0.cmp(&b.0)
+                .then(a.1.total_cmp(&b.1))
+                .then(b.2.cmp(&a.2))
+        });
         let mut per_peer: BTreeMap<u32, usize> = BTreeMap::new();
-        for (peer, count, link) in historical {
+        for (peer, _, link) in historical {
             let n = per_peer.entry(peer).or_default();
-            if count > 0 && *n < self.opts.max_keyframes_per_track {
+            if *n < self.opts.max_keyframes_per_track {
                 *n += 1;
                 out.push(link);
             }
@@ -454,6 +461,14 @@ impl Cooperation {
             s.used = s.used.split_off(&(time_key(oldest - 1.0), 0));
         }
     }
+}
+
+/// Sum of the position variances of a window's camera poses, m².
+fn position_variance(snap: &common::messages::StateSnapshot) -> f64 {
+    (0..snap.clones.len())
+        .flat_map(|i| (3..6).map(move |j| 6 * i + j))
+        .filter_map(|d| snap.covariance.get(d, d))
+        .sum()
 }
 
 /// The participant behind `link`: its index in `ev.participants` (added now if

@@ -21,8 +21,11 @@ pub struct FrameTiming {
     pub marginalize_ms: f64,
     /// Cooperative matching and updates (also in [`FrameOutput::coop`]).
     pub cooperation_ms: f64,
-    /// Everything.
+    /// Everything (wall clock).
     pub total_ms: f64,
+    /// Everything, in this thread's CPU time (what benchmarks with several
+    /// agents per core compare).
+    pub cpu_ms: f64,
 }
 
 /// The estimate after one frame.
@@ -87,4 +90,9 @@ impl FrameOutput {
             timing,
         }
     }
+}
+
+/// Thread CPU time since `start`, ms (0 where the platform has no thread clock).
+pub fn cpu_ms(start: Option<cpu_time::ThreadTime>) -> f64 {
+    start.map_or(0.0, |t| t.elapsed().as_secs_f64() * 1e3)
 }

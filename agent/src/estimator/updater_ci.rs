@@ -198,17 +198,7 @@ pub fn update(
             }),
         }
     };
-    let naive = std::env::var("FVIO_NAIVE").is_ok();
-    let omega = if naive { 1.0 } else { omega };
-    let r_others = if naive {
-        let mut r = pieces.r.clone();
-        for t in &pieces.peers {
-            r += t;
-        }
-        r
-    } else {
-        pieces.r_others(omega)
-    };
+    let r_others = pieces.r_others(omega);
     let s = &pieces.hph / omega + &r_others;
     let chol = s
         .clone()

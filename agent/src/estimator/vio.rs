@@ -8,6 +8,7 @@ use super::cooperative::{self, frame_features, CoopFrameStats};
 use super::feature_classes::{classify, clean_up, record_measurements, FeatureClasses};
 use super::feature_db::FeatureDb;
 use super::filter::Filter;
+use super::frame_output::cpu_ms;
 pub use super::frame_output::{FrameOutput, FrameTiming};
 pub use super::inputs::InputError;
 use super::inputs::{check_frame, check_imu};
@@ -258,6 +259,7 @@ impl Estimator {
         peers: &Peers,
     ) -> Result<FrameOutput, FrameError> {
         let t_start = Instant::now();
+        let cpu_start = cpu_time::ThreadTime::try_now().ok();
         let mut timing = FrameTiming::default();
         let opts = self.opts.clone();
         let Some(state) = self.state.as_mut() else {
@@ -286,6 +288,7 @@ impl Estimator {
             if updater_zupt::try_update(state, &readings, &opts, &self.chi2) {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
+                timing.cpu_ms = cpu_ms(cpu_start);
                 return Ok(output(
                     state,
                     timing,
@@ -420,6 +423,7 @@ impl Estimator {
         }
         timing.marginalize_ms = ms(t);
         timing.total_ms = ms(t_start);
+        timing.cpu_ms = cpu_ms(cpu_start);
 
         timing.cooperation_ms = coop.matching_ms
             + coop.common_vio_ms
