@@ -74,6 +74,18 @@ struct RunArgs {
     /// Output folder.
     #[arg(long, default_value = "out/agent")]
     out: PathBuf,
+    /// Hybrid run: this real IMU recording (EuRoC CSV, in the trajectory
+    /// file's clock) replaces the simulated IMU; the camera stays simulated.
+    #[arg(long, value_name = "CSV")]
+    real_imu: Option<PathBuf>,
+    /// EuRoC ground truth with bias columns, for the real IMU's biases at the
+    /// start (default: the robot's trajectory file when it is a .csv).
+    #[arg(long, value_name = "CSV")]
+    real_imu_biases: Option<PathBuf>,
+    /// Render camera images and make the features with the image frontend
+    /// (needs the `vision` feature).
+    #[arg(long)]
+    render: bool,
 }
 
 fn main() -> Result<()> {
@@ -216,14 +228,57 @@ fn probe(args: &ProbeArgs) -> Result<()> {
     Ok(())
 }
 
+/// A rendered run through the image frontend, with the tracks' accuracy printed.
+#[cfg(feature = "vision")]
+fn rendered(
+    fleet: &Fleet,
+    robot: usize,
+    opts: agent::estimator::EstimatorOptions,
+) -> Result<agent::runner::RobotRun> {
+    let r = agent::image_runner::run_robot_rendered(fleet, robot, opts, Default::default())?;
+    let q = &r.tracks;
+    println!(
+        "frontend: {} images, {:.0} features/image, {:.2} ms/image; KLT reprojection error vs the rendered truth: mean {:.3} px, median {:.3} px, p95 {:.3} px, {:.2}% over 3 px ({} observations)",
+        q.frames,
+        q.features_per_frame,
+        q.ms_per_frame,
+        q.reprojection_mean_px,
+        q.reprojection_median_px,
+        q.reprojection_p95_px,
+        100.0 * q.outlier_fraction,
+        q.observations
+    );
+    Ok(r.run)
+}
+
+#[cfg(not(feature = "vision"))]
+fn rendered(
+    _: &Fleet,
+    _: usize,
+    _: agent::estimator::EstimatorOptions,
+) -> Result<agent::runner::RobotRun> {
+    anyhow::bail!("rendered images need the image frontend: build with `--features agent/vision`")
+}
+
 fn run(args: &RunArgs) -> Result<()> {
     let wall = Instant::now();
-    let scenario = Scenario::load(&args.scenario)?;
+    let mut scenario = Scenario::load(&args.scenario)?;
+    scenario.render.enabled |= args.render;
     let seed = args.seed.unwrap_or(scenario.seed);
     let variant: Variant = args.variant.parse()?;
     let fleet = Fleet::build(&scenario, seed)?;
     let opts = options_for(&scenario.estimator, &fleet, variant);
-    let run = run_robot(&fleet, args.robot, opts)?;
+    let run = if let Some(imu) = &args.real_imu {
+        let default_biases = scenario
+            .trajectory_path(args.robot)
+            .filter(|p| p.extension().is_some_and(|e| e == "csv"));
+        let biases = args.real_imu_biases.clone().or(default_biases);
+        agent::hybrid::run_robot_hybrid(&fleet, args.robot, opts, imu, biases.as_deref())?
+    } else if fleet.renderer.is_some() {
+        rendered(&fleet, args.robot, opts)?
+    } else {
+        run_robot(&fleet, args.robot, opts)?
+    };
     for r in run.rejected.iter().take(5) {
         tracing::warn!("rejected: {r}");
     }

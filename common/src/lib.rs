@@ -6,6 +6,7 @@
 //! * [`camera`]: pinhole + radtan / equidistant models with Jacobians.
 //! * [`calibration`]: a camera's intrinsics, camera-IMU extrinsics and time offset.
 //! * [`descriptor`]: 256-bit binary descriptors.
+//! * [`image`]: 8-bit grayscale images and their PNG encoding.
 //! * [`estimator_options`]: the estimator's options and their defaults.
 //! * [`measurement`]: IMU samples and camera feature frames.
 //! * [`trajectory`]: TUM / EuRoC ground-truth readers and a TUM writer.
@@ -19,6 +20,7 @@ pub mod camera;
 pub mod conventions;
 pub mod descriptor;
 pub mod estimator_options;
+pub mod image;
 pub mod measurement;
 pub mod messages;
 pub mod metrics;

@@ -304,6 +304,7 @@ pub fn read_stream(path: &Path) -> Result<Vec<SimEvent>, McapIoError> {
                     truth,
                     landmark_ids,
                     outlier,
+                    image: None,
                 })));
             }
             _ => {}
