@@ -15,6 +15,8 @@ pub mod agent_output;
 pub mod config;
 pub mod dataset;
 #[cfg(feature = "vision")]
+pub mod dataset_cli;
+#[cfg(feature = "vision")]
 pub mod dataset_run;
 pub mod estimator;
 pub mod fleet_clock;

@@ -32,6 +32,10 @@ struct Cli {
 enum Command {
     /// Run one robot of a simulated scenario standalone (no peers) and score it.
     Run(RunArgs),
+    /// Run on a real sequence in the EuRoC ASL layout (EuRoC MAV, TUM-VI):
+    /// images through the frontend, IMU into the estimator, static start.
+    #[cfg(feature = "vision")]
+    Dataset(agent::dataset_cli::DatasetArgs),
     /// Robustness probe: join a fleet as another robot and send it malformed
     /// payloads and a message of a foreign fleet (they must be dropped and
     /// counted, and the agents must keep running).
@@ -101,6 +105,8 @@ fn main() -> Result<()> {
     match (&cli.command, &cli.config) {
         (Some(Command::Run(args)), _) => run(args),
         (Some(Command::Probe(args)), _) => probe(args),
+        #[cfg(feature = "vision")]
+        (Some(Command::Dataset(args)), _) => agent::dataset_cli::run_dataset_command(args),
         (None, Some(config)) => run_agent(config, cli.progress),
         (None, None) => {
             println!("agent {} (see --help)", env!("CARGO_PKG_VERSION"));

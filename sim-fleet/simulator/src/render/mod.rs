@@ -274,3 +274,98 @@ fn pixel_rays(calib: &CameraCalibration) -> Vec<PixelRay> {
         })
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::world::camera_pose;
+    use crate::{Fleet, Scenario, SimEvent};
+    use std::path::PathBuf;
+
+    fn rendered_v1_01() -> Fleet {
+        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scenarios/v1_01_easy.yaml");
+        let mut sc = Scenario::load(&path).expect("scenario");
+        sc.render.enabled = true;
+        Fleet::build(&sc, 7).expect("fleet")
+    }
+
+    #[test]
+    fn rendered_frames_are_textured_and_pixels_cast_back_onto_their_points() {
+        let fleet = rendered_v1_01();
+        let renderer = fleet.renderer.clone().expect("renderer");
+        let truth = &fleet.truths[0];
+        let cam = fleet.true_calibration.clone();
+        let mut checked = 0;
+        for ev in fleet.stream(0).expect("stream").take(4000) {
+            let SimEvent::Camera(c) = ev else { continue };
+            assert!(
+                c.frame.features.is_empty(),
+                "rendered frames carry no simulated features"
+            );
+            let img = c.image.as_ref().expect("image");
+            assert_eq!((img.width(), img.height()), (752, 480));
+            let px = img.data();
+            let mean = px.iter().map(|&v| f64::from(v)).sum::<f64>() / px.len() as f64;
+            let var = px
+                .iter()
+                .map(|&v| (f64::from(v) - mean).powi(2))
+                .sum::<f64>()
+                / px.len() as f64;
+            assert!(var.sqrt() > 20.0, "a textured image, std {}", var.sqrt());
+            let black = px.iter().filter(|&&v| v == 0).count();
+            assert!(
+                black < px.len() / 100,
+                "the room surrounds the camera: {black} black pixels"
+            );
+            let pose = camera_pose(truth, &cam, c.truth.t).expect("pose");
+            for uv in [
+                Vector2::new(5.0, 7.0),
+                Vector2::new(376.0, 240.0),
+                Vector2::new(740.5, 470.25),
+            ] {
+                let p = renderer.raycast(&pose, &uv).expect("hit");
+                let back = cam
+                    .camera
+                    .project(&pose.inverse().transform_point(&p))
+                    .expect("in front");
+                assert!((back - uv).norm() < 1e-6, "{uv} -> {back}");
+            }
+            checked += 1;
+        }
+        assert!(checked >= 3, "{checked} frames");
+    }
+
+    #[test]
+    fn rendering_is_a_pure_function_of_the_seed() {
+        let a = rendered_v1_01();
+        let b = rendered_v1_01();
+        let first = |f: &Fleet| {
+            f.stream(0)
+                .expect("stream")
+                .find_map(|e| match e {
+                    SimEvent::Camera(c) => c.image.clone(),
+                    SimEvent::Imu(_) => None,
+                })
+                .expect("image")
+        };
+        assert_eq!(first(&a), first(&b));
+    }
+
+    #[test]
+    fn bad_render_settings_are_refused() {
+        let bad = RenderSpec {
+            texture_px: 1000,
+            ..RenderSpec::default()
+        };
+        assert!(bad
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("power of two"));
+        let bad = RenderSpec {
+            texel_m: -1.0,
+            ..RenderSpec::default()
+        };
+        assert!(bad.validate().is_err());
+    }
+}

@@ -1,0 +1,151 @@
+//! The MCAP file an agent writes is something Foxglove opens: two agents on
+//! rendered images (in-process transport) write their logs, and robot 0's is
+//! read back, schema by schema.
+
+#![allow(clippy::expect_used, clippy::unwrap_used)]
+
+use agent::agent_output::write_outputs;
+use agent::config::AgentConfig;
+use agent::node::{run_node, RobotSetup};
+use agent::transport::InprocHub;
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+/// A 14 s loop (20 Hz, TUM), radius 2.5 m, turning with the path.
+fn write_loop(path: &Path) {
+    let mut text = String::from("# t x y z qx qy qz qw\n");
+    for k in 0..=280 {
+        let s = f64::from(k) / 20.0;
+        let (x, y, z) = (
+            2.5 * (0.3 * s).cos(),
+            2.5 * (0.3 * s).sin(),
+            1.2 + 0.2 * (0.6 * s).sin(),
+        );
+        let yaw = 0.3 * s + 1.57;
+        text.push_str(&format!(
+            "{:.3} {x:.6} {y:.6} {z:.6} 0 0 {:.9} {:.9}\n",
+            50.0 + s,
+            (yaw / 2.0).sin(),
+            (yaw / 2.0).cos()
+        ));
+    }
+    std::fs::write(path, text).unwrap();
+}
+
+fn config(dir: &Path, robot: u32, peer: u32) -> AgentConfig {
+    let p = dir.join(format!("robot{robot}.yaml"));
+    std::fs::write(
+        &p,
+        format!(
+            "robot_id: {robot}\nfleet_id: log-{}\noutput_dir: {}\ntransport:\n  kind: inproc\ninput:\n  source: simulator\n  scenario: {}\n  robot_index: {robot}\nclock:\n  mode: lockstep\n  peers: [{peer}]\nimages:\n  mcap_every: 4\n",
+            std::process::id(),
+            dir.join(format!("robot{robot}")).display(),
+            dir.join("two.yaml").display()
+        ),
+    )
+    .unwrap();
+    AgentConfig::load(&p).unwrap()
+}
+
+#[test]
+fn an_agent_on_images_writes_foxglove_schemas_a_reader_counts_back() {
+    let dir = tempfile::tempdir().unwrap();
+    write_loop(&dir.path().join("loop.txt"));
+    std::fs::write(
+        dir.path().join("two.yaml"),
+        "name: two\nrobots:\n  - trajectory: loop.txt\n  - trajectory: loop.txt\n    start_time_s: 1.0\nrender:\n  enabled: true\nestimator:\n  start_after_motion_m: 0.5\n",
+    )
+    .unwrap();
+    let hub = InprocHub::new();
+    let stop = Arc::new(AtomicBool::new(false));
+    let handles: Vec<_> = [(0u32, 1u32), (1, 0)]
+        .into_iter()
+        .map(|(me, peer)| {
+            let cfg = config(dir.path(), me, peer);
+            let transport = agent::transport::open(&cfg.transport_settings(), Some(&hub)).unwrap();
+            let stop = Arc::clone(&stop);
+            std::thread::spawn(move || {
+                let setup = RobotSetup::load(&cfg).unwrap();
+                let report = run_node(&cfg, &setup, transport, &stop, |_| {}).unwrap();
+                write_outputs(&report, cfg.robot_id, "inproc", &cfg.output_dir).unwrap();
+                report.run.frames.len()
+            })
+        })
+        .collect();
+    let frames: Vec<usize> = handles.into_iter().map(|h| h.join().unwrap()).collect();
+    assert!(frames[0] > 80, "{frames:?}");
+
+    let bytes = std::fs::read(dir.path().join("robot0/agent.mcap")).unwrap();
+    let mut by_schema: BTreeMap<String, usize> = BTreeMap::new();
+    let mut by_topic: BTreeMap<String, usize> = BTreeMap::new();
+    let mut peer_in_scene = false;
+    let mut image_size = None;
+    for m in mcap::MessageStream::new(&bytes).unwrap() {
+        let m = m.unwrap();
+        let schema = m.channel.schema.as_ref().unwrap();
+        assert_eq!(schema.encoding, "jsonschema");
+        assert_eq!(m.channel.message_encoding, "json");
+        let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+        *by_schema.entry(schema.name.clone()).or_default() += 1;
+        *by_topic.entry(m.channel.topic.clone()).or_default() += 1;
+        match schema.name.as_str() {
+            "foxglove.SceneUpdate" => {
+                peer_in_scene |= v["entities"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|e| e["id"] == "peer_1");
+            }
+            "foxglove.CompressedImage" if image_size.is_none() => {
+                assert_eq!(v["format"], "png");
+                let png = decode_base64(v["data"].as_str().unwrap());
+                let img = common::image::GrayImage::from_png(&png).unwrap();
+                image_size = Some((img.width(), img.height()));
+            }
+            "foxglove.ImageAnnotations" => {
+                let n = v["points"][0]["points"].as_array().unwrap().len();
+                assert!(n > 100, "{n} tracked features drawn");
+            }
+            _ => {}
+        }
+    }
+    println!("{by_topic:?}");
+    let f = frames[0];
+    assert_eq!(by_topic["/estimate"], f);
+    assert_eq!(by_topic["/groundtruth"], f);
+    assert_eq!(by_schema["fleet.PoseCovariance"], f);
+    assert_eq!(by_topic["/estimate/path"], f.div_ceil(10));
+    assert_eq!(by_topic["/groundtruth/path"], f.div_ceil(10));
+    assert_eq!(by_schema["foxglove.SceneUpdate"], f.div_ceil(10));
+    let images = by_schema["foxglove.CompressedImage"];
+    assert!(images >= f / 4, "{images} images for {f} frames");
+    assert_eq!(by_schema["foxglove.ImageAnnotations"], images);
+    assert!(by_schema["foxglove.Log"] >= 1, "peer events");
+    assert!(by_topic.keys().any(|t| t.starts_with("/peers/1/")));
+    assert!(peer_in_scene, "the peer's pose is in the scene");
+    assert_eq!(image_size, Some((752, 480)));
+}
+
+fn decode_base64(s: &str) -> Vec<u8> {
+    let val = |c: u8| match c {
+        b'A'..=b'Z' => c - b'A',
+        b'a'..=b'z' => c - b'a' + 26,
+        b'0'..=b'9' => c - b'0' + 52,
+        b'+' => 62,
+        _ => 63,
+    };
+    let bytes: Vec<u8> = s.bytes().filter(|&c| c != b'=').collect();
+    let mut out = Vec::new();
+    for chunk in bytes.chunks(4) {
+        let n = chunk
+            .iter()
+            .enumerate()
+            .fold(0u32, |n, (i, &c)| n | (u32::from(val(c)) << (18 - 6 * i)));
+        for k in 0..chunk.len().saturating_sub(1) {
+            out.push((n >> (16 - 8 * k)) as u8);
+        }
+    }
+    out
+}
