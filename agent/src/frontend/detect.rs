@@ -5,13 +5,16 @@
 
 use super::{Detector, FrontendOptions};
 use nalgebra::Vector2;
-use opencv::core::{KeyPoint, Mat, Point2f, Vector};
+use opencv::core::{KeyPoint, Mat, Point2f, Rect, ToInputArray, Vector};
 use opencv::prelude::*;
 use opencv::{features2d, imgproc};
 
 /// Shi-Tomasi quality level: corners weaker than this fraction of the best
 /// are not candidates.
 const SHI_TOMASI_QUALITY: f64 = 0.005;
+/// A cell's search area reaches this far into its neighbours, pixels (FAST's
+/// circle radius is 3).
+const CELL_PAD_PX: f64 = 4.0;
 
 /// A candidate corner and its strength (higher is better).
 struct Candidate {
@@ -68,7 +71,43 @@ impl Occupancy {
     }
 }
 
-/// Up to `want` new features in `img`, given the tracked ones.
+/// The detection grid over an image: cell index of a point and pixel rectangle
+/// of a cell.
+struct Grid {
+    cols: usize,
+    rows: usize,
+    width: f64,
+    height: f64,
+}
+
+impl Grid {
+    fn cell(&self, p: &Vector2<f64>) -> usize {
+        let c = ((p.x / self.width) * self.cols as f64).floor().max(0.0) as usize;
+        let r = ((p.y / self.height) * self.rows as f64).floor().max(0.0) as usize;
+        r.min(self.rows - 1) * self.cols + c.min(self.cols - 1)
+    }
+
+    /// Pixel rectangle `[x0, x1) x [y0, y1)` of cell `k`, cut to `border` from
+    /// the image edges and grown by `pad` (so corner detectors see whole
+    /// neighbourhoods at the cell's edges).
+    fn rect(&self, k: usize, border: f64, pad: f64) -> Option<Rect> {
+        let (c, r) = ((k % self.cols) as f64, (k / self.cols) as f64);
+        let (cw, ch) = (
+            self.width / self.cols as f64,
+            self.height / self.rows as f64,
+        );
+        let x0 = (c * cw - pad).max(border).floor();
+        let y0 = (r * ch - pad).max(border).floor();
+        let x1 = ((c + 1.0) * cw + pad).min(self.width - border).ceil();
+        let y1 = ((r + 1.0) * ch + pad).min(self.height - border).ceil();
+        (x1 - x0 >= 8.0 && y1 - y0 >= 8.0)
+            .then(|| Rect::new(x0 as i32, y0 as i32, (x1 - x0) as i32, (y1 - y0) as i32))
+    }
+}
+
+/// Up to `want` new features in `img`, given the tracked ones. Only the grid
+/// cells below their share are searched (most cells are full in steady state,
+/// which keeps detection cheap).
 pub fn detect_new(
     img: &Mat,
     existing: &[Vector2<f64>],
@@ -79,8 +118,12 @@ pub fn detect_new(
         return Ok(Vec::new());
     }
     let (width, height) = (img.cols().max(0) as u32, img.rows().max(0) as u32);
-    let mut candidates = candidates(img, want, opts)?;
-    candidates.sort_by(|a, b| b.strength.total_cmp(&a.strength));
+    let grid = Grid {
+        cols: opts.grid_cols,
+        rows: opts.grid_rows,
+        width: f64::from(width),
+        height: f64::from(height),
+    };
     let border = f64::from(opts.border_px);
     let inside = |p: &Vector2<f64>| {
         p.x >= border
@@ -91,19 +134,31 @@ pub fn detect_new(
     let mut occupancy = Occupancy::new(width, height, opts.min_distance_px);
     let cells = opts.grid_cols * opts.grid_rows;
     let mut per_cell = vec![0usize; cells];
-    let grid_cell = |p: &Vector2<f64>| {
-        let c = ((p.x / f64::from(width)) * opts.grid_cols as f64).floor() as usize;
-        let r = ((p.y / f64::from(height)) * opts.grid_rows as f64).floor() as usize;
-        r.min(opts.grid_rows - 1) * opts.grid_cols + c.min(opts.grid_cols - 1)
-    };
     for p in existing {
         occupancy.add(*p);
-        per_cell[grid_cell(p)] += 1;
+        per_cell[grid.cell(p)] += 1;
     }
     let quota = opts.num_features.div_ceil(cells);
+    let mut candidates = Vec::new();
+    for (k, &n) in per_cell.iter().enumerate() {
+        if n >= quota {
+            continue;
+        }
+        if let Some(rect) = grid.rect(k, border, CELL_PAD_PX) {
+            let roi = Mat::roi(img, rect)?;
+            let offset = Vector2::new(f64::from(rect.x), f64::from(rect.y));
+            for mut c in cell_candidates(&roi, quota, opts)? {
+                c.uv += offset;
+                if grid.cell(&c.uv) == k {
+                    candidates.push(c);
+                }
+            }
+        }
+    }
+    candidates.sort_by(|a, b| b.strength.total_cmp(&a.strength));
     let mut out = Vec::with_capacity(want);
     // First pass: the grid quota spreads the features; second pass: fill up
-    // where texture allows, if some cells had too little.
+    // from the same cells if some had too little texture for their share.
     for respect_quota in [true, false] {
         for cand in &candidates {
             if out.len() >= want {
@@ -113,7 +168,7 @@ pub fn detect_new(
             if !inside(&p) || !occupancy.free(&p) {
                 continue;
             }
-            let cell = grid_cell(&p);
+            let cell = grid.cell(&p);
             if respect_quota && per_cell[cell] >= quota {
                 continue;
             }
@@ -125,8 +180,12 @@ pub fn detect_new(
     Ok(out)
 }
 
-/// Corner candidates of the configured detector.
-fn candidates(img: &Mat, want: usize, opts: &FrontendOptions) -> opencv::Result<Vec<Candidate>> {
+/// Corner candidates of the configured detector in one cell's image.
+fn cell_candidates(
+    img: &impl ToInputArray,
+    quota: usize,
+    opts: &FrontendOptions,
+) -> opencv::Result<Vec<Candidate>> {
     match opts.detector {
         Detector::Fast => {
             let mut kps = Vector::<KeyPoint>::new();
@@ -141,7 +200,7 @@ fn candidates(img: &Mat, want: usize, opts: &FrontendOptions) -> opencv::Result<
         }
         Detector::ShiTomasi => {
             let mut corners = Vector::<Point2f>::new();
-            let max = i32::try_from(4 * want + 4 * opts.num_features).unwrap_or(i32::MAX);
+            let max = i32::try_from(4 * quota).unwrap_or(i32::MAX);
             imgproc::good_features_to_track(
                 img,
                 &mut corners,
@@ -153,7 +212,7 @@ fn candidates(img: &Mat, want: usize, opts: &FrontendOptions) -> opencv::Result<
                 false,
                 0.04,
             )?;
-            // Returned strongest first: rank is the strength.
+            // Returned strongest first: the rank is the strength.
             let n = corners.len() as f32;
             Ok(corners
                 .iter()

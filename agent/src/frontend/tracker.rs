@@ -75,6 +75,12 @@ pub struct FrontendStats {
     pub detected: usize,
     /// Wall-clock cost of the frame, ms.
     pub ms: f64,
+    /// Of which: preprocessing, pyramid, KLT and RANSAC, ms.
+    pub track_ms: f64,
+    /// Detection of new features, ms.
+    pub detect_ms: f64,
+    /// ORB descriptors, ms.
+    pub describe_ms: f64,
 }
 
 /// One processed frame.
@@ -176,17 +182,9 @@ impl Frontend {
             None => Vec::new(),
         };
         stats.tracked = tracks.len();
+        stats.track_ms = ms_since(started);
         let keyframe = self.frames % self.opts.keyframe_interval == 0;
-        let gray = img.data_bytes()?.to_vec();
-        let width = image.width() as usize;
-        if keyframe && !tracks.is_empty() {
-            let uv: Vec<Vector2<f64>> = tracks.iter().map(|t| t.uv).collect();
-            let fresh = self.orb.describe(&img, &gray, width, &uv)?;
-            for (tr, d) in tracks.iter_mut().zip(fresh) {
-                tr.descriptor = d.unwrap_or(tr.descriptor);
-            }
-        }
-        let new_ids = self.detect(&img, &gray, width, &mut tracks)?;
+        let new_ids = self.top_up(&img, keyframe, &mut tracks, &mut stats)?;
         stats.detected = new_ids.len();
         self.frames += 1;
         let features = tracks
@@ -198,7 +196,7 @@ impl Frontend {
             })
             .collect();
         self.prev = Some(Previous { t, pyramid, tracks });
-        stats.ms = started.elapsed().as_secs_f64() * 1e3;
+        stats.ms = ms_since(started);
         Ok(FrontendOutput {
             frame: FeatureFrame {
                 t,
@@ -271,8 +269,11 @@ impl Frontend {
             return Ok(Vec::new());
         }
         let start: Vec<Vector2<f64>> = prev.tracks.iter().map(|t| t.uv).collect();
-        let (fwd, ok_f) = self.klt(&prev.pyramid, pyramid, &points_of(&start))?;
-        let (back, ok_b) = self.klt(pyramid, &prev.pyramid, &points_of(&fwd))?;
+        let starts = points_of(&start);
+        let (fwd, ok_f) = self.klt(&prev.pyramid, pyramid, &starts, None)?;
+        // Back from where the points landed, starting at where they came from:
+        // a good track converges at once, a bad one drifts away.
+        let (back, ok_b) = self.klt(pyramid, &prev.pyramid, &points_of(&fwd), Some(&starts))?;
         let (w, h) = (f64::from(self.camera.width), f64::from(self.camera.height));
         let mut kept = Vec::with_capacity(start.len());
         let mut prev_uv = Vec::with_capacity(start.len());
@@ -308,15 +309,21 @@ impl Frontend {
         Ok(kept)
     }
 
-    /// Pyramidal Lucas-Kanade from `from` to `to`: the points and whether each
-    /// was found.
+    /// Pyramidal Lucas-Kanade from `from` to `to`, optionally from initial
+    /// guesses: the points and whether each was found.
     fn klt(
         &self,
         from: &Vector<Mat>,
         to: &Vector<Mat>,
         points: &Vector<Point2f>,
+        guess: Option<&Vector<Point2f>>,
     ) -> Result<(Vec<Vector2<f64>>, Vec<bool>), FrontendError> {
-        let mut next = Vector::<Point2f>::new();
+        let mut next = guess.cloned().unwrap_or_default();
+        let flags = if guess.is_some() {
+            video::OPTFLOW_USE_INITIAL_FLOW
+        } else {
+            0
+        };
         let mut status = Vector::<u8>::new();
         let mut err = Vector::<f32>::new();
         let criteria = TermCriteria::new(
@@ -334,34 +341,55 @@ impl Frontend {
             Size::new(self.opts.klt_window_px, self.opts.klt_window_px),
             self.opts.klt_pyramid_levels,
             criteria,
-            0,
+            flags,
             KLT_MIN_EIGENVALUE,
         )?;
         let found = status.iter().map(|s| s != 0).collect();
         Ok((pixels_of(&next), found))
     }
 
-    /// Steps 4 and 5: new features where tracks are missing, with their ORB
-    /// descriptors (a point ORB cannot describe is not kept). Returns the new ids.
-    fn detect(
+    /// Steps 4 and 5: new features where tracks are missing, then one ORB pass
+    /// over the new points and, at keyframes, the tracked ones (a new point ORB
+    /// cannot describe is not kept; a tracked one keeps its descriptor).
+    /// Returns the new ids.
+    fn top_up(
         &mut self,
         img: &Mat,
-        gray: &[u8],
-        width: usize,
+        keyframe: bool,
         tracks: &mut Vec<Track>,
+        stats: &mut FrontendStats,
     ) -> Result<Vec<u64>, FrontendError> {
+        let started = Instant::now();
         let want = self.opts.num_features.saturating_sub(tracks.len());
         let existing: Vec<Vector2<f64>> = tracks.iter().map(|t| t.uv).collect();
         let fresh = detect_new(img, &existing, want, &self.opts)?;
-        let descriptors = self.orb.describe(img, gray, width, &fresh)?;
+        stats.detect_ms = ms_since(started);
+        let started = Instant::now();
+        let mut points = fresh.clone();
+        if keyframe {
+            points.extend(existing);
+        }
+        let gray = img.data_bytes()?;
+        let width = usize::try_from(img.cols()).unwrap_or(0);
+        let mut descriptors = self.orb.describe(img, gray, width, &points)?.into_iter();
+        let new_descriptors: Vec<Option<Descriptor>> =
+            descriptors.by_ref().take(fresh.len()).collect();
+        for (tr, d) in tracks.iter_mut().zip(descriptors) {
+            tr.descriptor = d.unwrap_or(tr.descriptor);
+        }
         let mut ids = Vec::new();
-        for (uv, d) in fresh.into_iter().zip(descriptors) {
+        for (uv, d) in fresh.into_iter().zip(new_descriptors) {
             let Some(descriptor) = d else { continue };
             let id = self.next_id;
             self.next_id += 1;
             tracks.push(Track { id, uv, descriptor });
             ids.push(id);
         }
+        stats.describe_ms = ms_since(started);
         Ok(ids)
     }
+}
+
+fn ms_since(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
 }
