@@ -28,6 +28,9 @@ pub enum LogError {
     /// MCAP error.
     #[error("agent log: {0}")]
     Mcap(#[from] mcap::McapError),
+    /// An image could not be encoded.
+    #[error("agent log: {0}")]
+    Image(#[from] common::image::ImageError),
 }
 
 const POSE_IN_FRAME: &str = r#"{"title":"foxglove.PoseInFrame","type":"object","properties":{"timestamp":{"type":"object","properties":{"sec":{"type":"integer","minimum":0},"nsec":{"type":"integer","minimum":0,"maximum":999999999}}},"frame_id":{"type":"string"},"pose":{"type":"object","properties":{"position":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}},"orientation":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"},"w":{"type":"number"}}}}}}}"#;

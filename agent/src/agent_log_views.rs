@@ -13,6 +13,7 @@ use common::so3::xyzw_from_rot;
 use common::trajectory::StampedPose;
 use nalgebra::{Matrix3, Vector3};
 use serde_json::{json, Value};
+use simulator::mcap_io::COMPRESSED_IMAGE_SCHEMA;
 
 const TIME: &str = r#"{"type":"object","properties":{"sec":{"type":"integer","minimum":0},"nsec":{"type":"integer","minimum":0,"maximum":999999999}}}"#;
 const VEC3: &str = r#"{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}}"#;
@@ -52,12 +53,6 @@ fn scene_update_schema() -> String {
     )
 }
 
-fn compressed_image_schema() -> String {
-    format!(
-        r#"{{"title":"foxglove.CompressedImage","type":"object","properties":{{"timestamp":{TIME},"frame_id":{{"type":"string"}},"data":{{"type":"string","contentEncoding":"base64"}},"format":{{"type":"string"}}}}}}"#
-    )
-}
-
 fn image_annotations_schema() -> String {
     let points = format!(
         r#"{{"type":"object","properties":{{"timestamp":{TIME},"type":{{"type":"integer","description":"1 points, 2 line loop, 3 line strip, 4 line list"}},"points":{{"type":"array","items":{POINT2}}},"outline_color":{COLOR},"outline_colors":{{"type":"array","items":{COLOR}}},"fill_color":{COLOR},"thickness":{{"type":"number"}}}}}}"#
@@ -74,28 +69,6 @@ fn pose_json(rot: &Matrix3<f64>, pos: &Vector3<f64>) -> Value {
 
 fn color(r: f64, g: f64, b: f64) -> Value {
     json!({"r": r, "g": g, "b": b, "a": 1.0})
-}
-
-/// Standard base64 (RFC 4648, with padding).
-fn base64(bytes: &[u8]) -> String {
-    const ABC: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
-    for chunk in bytes.chunks(3) {
-        let b = [
-            chunk[0],
-            *chunk.get(1).unwrap_or(&0),
-            *chunk.get(2).unwrap_or(&0),
-        ];
-        let n = (u32::from(b[0]) << 16) | (u32::from(b[1]) << 8) | u32::from(b[2]);
-        for k in 0..4 {
-            if k <= chunk.len() {
-                out.push(ABC[((n >> (18 - 6 * k)) & 63) as usize] as char);
-            } else {
-                out.push('=');
-            }
-        }
-    }
-    out
 }
 
 /// A peer's newest camera pose, for the scene.
@@ -170,16 +143,13 @@ impl AgentLog {
 
     /// The camera image on `/camera/image` (PNG).
     pub fn image(&mut self, t: f64, image: &GrayImage) -> Result<(), LogError> {
-        let png = image.to_png().map_err(|e| LogError::Io {
-            path: "/camera/image".into(),
-            source: std::io::Error::other(e.to_string()),
-        })?;
+        let png = image.to_png()?;
         let ch = self.channel(
             "/camera/image",
             "foxglove.CompressedImage",
-            &compressed_image_schema(),
+            COMPRESSED_IMAGE_SCHEMA,
         )?;
-        let v = json!({"timestamp": stamp(t), "frame_id": "camera", "data": base64(&png), "format": "png"});
+        let v = json!({"timestamp": stamp(t), "frame_id": "camera", "data": common::base64::encode(&png), "format": "png"});
         self.put(ch, t, &v)
     }
 
@@ -214,23 +184,5 @@ impl AgentLog {
             "outline_colors": colors, "fill_color": color(0.1, 0.9, 0.2), "thickness": 4.0
         }]});
         self.put(ch, t, &v)
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn base64_matches_the_rfc_vectors() {
-        for (plain, coded) in [
-            ("", ""),
-            ("f", "Zg=="),
-            ("fo", "Zm8="),
-            ("foo", "Zm9v"),
-            ("foobar", "Zm9vYmFy"),
-        ] {
-            assert_eq!(base64(plain.as_bytes()), coded);
-        }
     }
 }

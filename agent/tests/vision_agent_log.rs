@@ -100,7 +100,7 @@ fn an_agent_on_images_writes_foxglove_schemas_a_reader_counts_back() {
             }
             "foxglove.CompressedImage" if image_size.is_none() => {
                 assert_eq!(v["format"], "png");
-                let png = decode_base64(v["data"].as_str().unwrap());
+                let png = common::base64::decode(v["data"].as_str().unwrap()).unwrap();
                 let img = common::image::GrayImage::from_png(&png).unwrap();
                 image_size = Some((img.width(), img.height()));
             }
@@ -126,26 +126,4 @@ fn an_agent_on_images_writes_foxglove_schemas_a_reader_counts_back() {
     assert!(by_topic.keys().any(|t| t.starts_with("/peers/1/")));
     assert!(peer_in_scene, "the peer's pose is in the scene");
     assert_eq!(image_size, Some((752, 480)));
-}
-
-fn decode_base64(s: &str) -> Vec<u8> {
-    let val = |c: u8| match c {
-        b'A'..=b'Z' => c - b'A',
-        b'a'..=b'z' => c - b'a' + 26,
-        b'0'..=b'9' => c - b'0' + 52,
-        b'+' => 62,
-        _ => 63,
-    };
-    let bytes: Vec<u8> = s.bytes().filter(|&c| c != b'=').collect();
-    let mut out = Vec::new();
-    for chunk in bytes.chunks(4) {
-        let n = chunk
-            .iter()
-            .enumerate()
-            .fold(0u32, |n, (i, &c)| n | (u32::from(val(c)) << (18 - 6 * i)));
-        for k in 0..chunk.len().saturating_sub(1) {
-            out.push((n >> (16 - 8 * k)) as u8);
-        }
-    }
-    out
 }

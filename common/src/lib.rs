@@ -4,6 +4,7 @@
 //!   file quaternion orders, stated once for the whole workspace.
 //! * [`so3`]: SO(3)/SE(3) math (`exp`, `log`, right Jacobians, skew).
 //! * [`camera`]: pinhole + radtan / equidistant models with Jacobians.
+//! * [`base64`]: bytes in JSON messages.
 //! * [`calibration`]: a camera's intrinsics, camera-IMU extrinsics and time offset.
 //! * [`descriptor`]: 256-bit binary descriptors.
 //! * [`image`]: 8-bit grayscale images and their PNG encoding.
@@ -15,6 +16,7 @@
 //! * [`summary`]: the `summary.json` schema shared by the agent and the fleet tools.
 #![warn(missing_docs)]
 
+pub mod base64;
 pub mod calibration;
 pub mod camera;
 pub mod conventions;
