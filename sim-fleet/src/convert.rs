@@ -122,7 +122,10 @@ mod tests {
         assert_eq!(cameras.len(), 95);
         assert_eq!(events.len() - cameras.len(), 29120);
         let first = cameras[0];
-        assert!(first.frame.t.abs() < 1e-6, "the first image is at the first ground-truth pose");
+        assert!(
+            first.frame.t.abs() < 1e-6,
+            "the first image is at the first ground-truth pose"
+        );
         assert!((first.truth.t - first.frame.t).abs() < 1e-9);
         let img = first.image.as_ref().unwrap();
         assert_eq!((img.width(), img.height()), (752, 480));
