@@ -47,6 +47,9 @@ pub enum FrontendError {
         /// Height of the camera.
         want_h: u32,
     },
+    /// The frame time is NaN or infinite.
+    #[error("frame time {0} is not finite")]
+    NonFiniteTime(f64),
     /// Frames must come in time order.
     #[error("frame at t={t} is not after the previous one at t={previous}")]
     TimeBackwards {
@@ -218,8 +221,11 @@ impl Frontend {
                 want_h: self.camera.height,
             });
         }
+        if !t.is_finite() {
+            return Err(FrontendError::NonFiniteTime(t));
+        }
         if let Some(prev) = &self.prev {
-            if !(t > prev.t) {
+            if t <= prev.t {
                 return Err(FrontendError::TimeBackwards {
                     t,
                     previous: prev.t,

@@ -133,7 +133,7 @@ impl Fleet {
             stream_rng(self.seed, Stream::Imu(robot)),
             truth.start_time(),
         );
-        self.stream_from(robot, ImuSource::Simulated(imu))
+        self.stream_from(robot, ImuSource::Simulated(Box::new(imu)))
     }
 
     /// A hybrid stream: recorded IMU `samples` (fleet clock, time order) with
@@ -197,7 +197,7 @@ impl Fleet {
 #[derive(Debug)]
 enum ImuSource {
     /// The IMU model of the scenario.
-    Simulated(ImuGenerator),
+    Simulated(Box<ImuGenerator>),
     /// A recording, latest sample first (popped from the back).
     Recorded {
         samples: Vec<ImuSample>,
