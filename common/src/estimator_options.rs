@@ -71,6 +71,113 @@ impl Default for CalibrationPrior {
     }
 }
 
+/// How common VIO features are projected before the CI-EKF update (thesis
+/// Section 5.3.3.2).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CommonProjection {
+    /// Per-robot nullspace projection first, the rows that do not involve us
+    /// dropped, then a second projection (Eqs. 5.18-5.19); our own rows go
+    /// through a standard EKF update.
+    #[default]
+    TwoStage,
+    /// One projection of every robot's stacked rows, all of them in the CI-EKF
+    /// update (the naive baseline the thesis compares against).
+    Combined,
+}
+
+/// How the covariance-intersection weights are chosen (thesis Eq. 5.14).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CiWeighting {
+    /// Each participant (a peer's window) gets `ci_peer_weight`; ours is the rest.
+    #[default]
+    FixedPeer,
+    /// Ours is `ci_own_weight`; the participants split the rest evenly.
+    FixedOwn,
+    /// Minimize the trace of the updated covariance.
+    MinTrace,
+    /// Minimize the determinant of the updated covariance.
+    MinDeterminant,
+}
+
+/// What a robot takes from its peers (thesis Section 5.3) and how.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CooperationOptions {
+    /// Common VIO features over the window: our lost or leaving tracks matched to
+    /// peers' tracks (CI-EKF, Section 5.3.3).
+    pub common_vio: bool,
+    /// Common SLAM features: our SLAM features updated with peers' measurements
+    /// (Section 5.3.4 case i; also case ii when `slam_constraint` is off).
+    pub common_slam: bool,
+    /// SLAM feature to peer SLAM feature: the position constraint update
+    /// (Eqs. 5.22-5.24) instead of the measurement update.
+    pub slam_constraint: bool,
+    /// Historical features: loop closures to peers' stored keyframe windows
+    /// (Section 5.3.5).
+    pub historical: bool,
+    /// Projection of common VIO features.
+    pub projection: CommonProjection,
+    /// How CI weights are chosen.
+    pub ci_weighting: CiWeighting,
+    /// Weight of each participant's covariance with `fixed_peer` (thesis
+    /// simulation: 0.001; the covariance is divided by it).
+    pub ci_peer_weight: f64,
+    /// Our weight with `fixed_own` (thesis real data: 0.99).
+    pub ci_own_weight: f64,
+    /// Weight of the peer's landmark in the constraint update (thesis: 0.005).
+    pub constraint_peer_weight: f64,
+    /// Synthetic noise of the constraint update, m (thesis: 0.02).
+    pub constraint_sigma_m: f64,
+    /// Largest Hamming distance of a descriptor match, bits (of 256).
+    pub max_descriptor_distance_bits: u32,
+    /// Ratio test: best distance below this fraction of the second best.
+    pub match_ratio: f64,
+    /// Fewest epipolar inliers to accept the matches to a peer's current frame.
+    pub min_window_inliers: usize,
+    /// Fewest epipolar inliers to accept a loop closure to a peer keyframe.
+    pub min_loop_inliers: usize,
+    /// Epipolar (Sampson) threshold of the fundamental-matrix RANSAC, px.
+    pub epipolar_threshold_px: f64,
+    /// Smallest bag-of-words score (L1, in [0, 1]) of a loop-closure candidate.
+    pub loop_min_score: f64,
+    /// Loop-closure candidates checked per peer and frame (best scores first).
+    pub loop_candidates: usize,
+}
+
+impl Default for CooperationOptions {
+    /// Nothing from peers (the independent variants); the thesis' weights.
+    fn default() -> Self {
+        Self {
+            common_vio: false,
+            common_slam: false,
+            slam_constraint: false,
+            historical: false,
+            projection: CommonProjection::TwoStage,
+            ci_weighting: CiWeighting::FixedPeer,
+            ci_peer_weight: 0.001,
+            ci_own_weight: 0.99,
+            constraint_peer_weight: 0.005,
+            constraint_sigma_m: 0.02,
+            max_descriptor_distance_bits: 64,
+            match_ratio: 0.8,
+            min_window_inliers: 10,
+            min_loop_inliers: 15,
+            epipolar_threshold_px: 2.0,
+            loop_min_score: 0.05,
+            loop_candidates: 2,
+        }
+    }
+}
+
+impl CooperationOptions {
+    /// Whether anything is taken from peers.
+    pub fn any(&self) -> bool {
+        self.common_vio || self.common_slam || self.historical
+    }
+}
+
 /// Everything that configures one estimator.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EstimatorOptions {
@@ -108,6 +215,8 @@ pub struct EstimatorOptions {
     pub calib_prior: CalibrationPrior,
     /// Largest IMU gap accepted, s.
     pub max_imu_gap_s: f64,
+    /// What is taken from peers.
+    pub cooperation: CooperationOptions,
 }
 
 impl Default for EstimatorOptions {
@@ -131,6 +240,7 @@ impl Default for EstimatorOptions {
             imu: ImuNoise::default(),
             calib_prior: CalibrationPrior::default(),
             max_imu_gap_s: 0.1,
+            cooperation: CooperationOptions::default(),
         }
     }
 }

@@ -7,6 +7,7 @@
 //! * [`base64`]: bytes in JSON messages.
 //! * [`calibration`]: a camera's intrinsics, camera-IMU extrinsics and time offset.
 //! * [`descriptor`]: 256-bit binary descriptors.
+//! * [`epipolar`]: fundamental matrix (eight-point, Sampson error, RANSAC).
 //! * [`image`]: 8-bit grayscale images and their PNG encoding.
 //! * [`estimator_options`]: the estimator's options and their defaults.
 //! * [`measurement`]: IMU samples and camera feature frames.
@@ -21,6 +22,7 @@ pub mod calibration;
 pub mod camera;
 pub mod conventions;
 pub mod descriptor;
+pub mod epipolar;
 pub mod estimator_options;
 pub mod image;
 pub mod measurement;

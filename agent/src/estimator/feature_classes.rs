@@ -3,9 +3,10 @@
 //! initialization), and after the updates the used or lost ones are cleaned up.
 
 use super::feature_db::{FeatureDb, FeatureMeasurement};
+use super::filter::Filter;
 use super::options::EstimatorOptions;
 use super::slam_feature;
-use super::state::{State, Var};
+use super::state::{Means, Var};
 use common::measurement::FeatureFrame;
 
 /// The features of one frame by the update they go to. A feature is in at most
@@ -24,7 +25,7 @@ pub struct FeatureClasses {
 
 /// Adds the frame's observations (undistorted with the current intrinsics) to the
 /// database under clone `key`. A track with an impossible jump restarts.
-pub fn record_measurements(db: &mut FeatureDb, state: &State, frame: &FeatureFrame, key: u64) {
+pub fn record_measurements(db: &mut FeatureDb, state: &Means, frame: &FeatureFrame, key: u64) {
     for f in &frame.features {
         let Ok(uvn) = state.calib.camera.undistort(&f.uv) else {
             continue;
@@ -48,7 +49,7 @@ pub fn record_measurements(db: &mut FeatureDb, state: &State, frame: &FeatureFra
 /// span the whole window and there is room for a SLAM feature).
 pub fn classify(
     db: &FeatureDb,
-    state: &State,
+    state: &Means,
     key: u64,
     opts: &EstimatorOptions,
     slam_allowed: bool,
@@ -107,9 +108,14 @@ pub fn classify(
 /// After the updates: forgets used tracks, keeps SLAM features' tracks empty
 /// (each measurement is used once), marginalizes lost SLAM features, and slides
 /// the window (re-anchoring anchored features first).
-pub fn clean_up(db: &mut FeatureDb, state: &mut State, c: &FeatureClasses, max_clones: usize) {
+pub fn clean_up<F: Filter + ?Sized>(
+    db: &mut FeatureDb,
+    state: &mut F,
+    c: &FeatureClasses,
+    max_clones: usize,
+) {
     for id in c.msckf_ids.iter().chain(c.slam_candidates.iter()) {
-        if !state.features.contains_key(id) {
+        if !state.means().features.contains_key(id) {
             db.remove(*id);
         }
     }
@@ -119,6 +125,7 @@ pub fn clean_up(db: &mut FeatureDb, state: &mut State, c: &FeatureClasses, max_c
         }
     }
     let lost_slam: Vec<u64> = state
+        .means()
         .features
         .keys()
         .copied()
@@ -128,15 +135,15 @@ pub fn clean_up(db: &mut FeatureDb, state: &mut State, c: &FeatureClasses, max_c
         let _ = state.marginalize(Var::Feature(id));
         db.remove(id);
     }
-    while state.clones.len() > max_clones {
-        let Some(&old) = state.clones.keys().next() else {
+    while state.means().clones.len() > max_clones {
+        let Some(&old) = state.means().clones.keys().next() else {
             break;
         };
-        if let Some(&newest) = state.clones.keys().next_back() {
+        if let Some(&newest) = state.means().clones.keys().next_back() {
             slam_feature::reanchor(state, old, newest);
         }
         let _ = state.marginalize(Var::Clone(old));
-        if let Some(&next) = state.clones.keys().next() {
+        if let Some(&next) = state.means().clones.keys().next() {
             db.remove_measurements_before(next);
         }
     }

@@ -3,8 +3,9 @@
 //! update and the delayed initialization of SLAM features.
 
 use super::feature_db::Feature;
+use super::filter::Filter;
 use super::projection::{predict, project};
-use super::state::{State, Var};
+use super::state::{Means, Var};
 use super::triangulation::{triangulate, CameraObservation, TriangulationOptions};
 use nalgebra::{DMatrix, DVector, Vector3};
 
@@ -21,14 +22,14 @@ pub struct Columns {
 
 impl Columns {
     /// The window layout of `state`.
-    pub fn window(state: &State) -> Self {
-        let mut vars = Vec::with_capacity(2 + state.clones.len());
+    pub fn window<F: Filter + ?Sized>(state: &F) -> Self {
+        let mut vars = Vec::with_capacity(2 + state.means().clones.len());
         for v in [Var::Extrinsic, Var::Intrinsics] {
             if state.has(v) {
                 vars.push(v);
             }
         }
-        vars.extend(state.clones.keys().map(|k| Var::Clone(*k)));
+        vars.extend(state.means().clones.keys().map(|k| Var::Clone(*k)));
         Self::of(vars)
     }
 
@@ -65,15 +66,52 @@ pub struct FeatureSystem {
     pub p_f: Vector3<f64>,
 }
 
+/// The measurements of `feature` at clones still in the window, as cameras
+/// (current estimates) with undistorted normalized coordinates, for
+/// triangulation.
+pub fn camera_observations(state: &Means, feature: &Feature) -> Vec<CameraObservation> {
+    let calib = &state.calib;
+    feature
+        .measurements
+        .iter()
+        .filter_map(|m| {
+            let c = state.clones.get(&m.clone_key)?;
+            Some(CameraObservation {
+                r_c_to_g: c.rot * calib.rot_c_to_i,
+                p_c_in_g: c.pos + c.rot * calib.p_c_in_i,
+                uvn: m.uvn,
+            })
+        })
+        .collect()
+}
+
 /// Triangulates `feature` from the clones still in the window (current estimates)
 /// and stacks its measurements. Jacobians use the clones' first estimates when
 /// `use_fej`. `None` when the feature cannot be triangulated or projected.
 pub fn build(
-    state: &State,
+    state: &Means,
     feature: &Feature,
     cols: &Columns,
     use_fej: bool,
     tri: &TriangulationOptions,
+) -> Option<FeatureSystem> {
+    let obs = camera_observations(state, feature);
+    if obs.len() < 2 {
+        return None;
+    }
+    let p_f = triangulate(&obs, tri).ok()?;
+    build_at(state, feature, cols, use_fej, &p_f)
+}
+
+/// Stacks the measurements of `feature` at clones in the window, linearized at
+/// the feature position `p_f` (e.g. triangulated from several robots' views).
+/// `None` when a measurement cannot be projected.
+pub fn build_at(
+    state: &Means,
+    feature: &Feature,
+    cols: &Columns,
+    use_fej: bool,
+    p_f: &Vector3<f64>,
 ) -> Option<FeatureSystem> {
     let calib = &state.calib;
     let meas: Vec<_> = feature
@@ -81,18 +119,10 @@ pub fn build(
         .iter()
         .filter_map(|m| state.clones.get(&m.clone_key).map(|c| (m, c)))
         .collect();
-    if meas.len() < 2 {
+    if meas.is_empty() {
         return None;
     }
-    let obs: Vec<CameraObservation> = meas
-        .iter()
-        .map(|(m, c)| CameraObservation {
-            r_c_to_g: c.rot * calib.rot_c_to_i,
-            p_c_in_g: c.pos + c.rot * calib.p_c_in_i,
-            uvn: m.uvn,
-        })
-        .collect();
-    let p_f = triangulate(&obs, tri).ok()?;
+    let p_f = *p_f;
     let rows = 2 * meas.len();
     let mut h_x = DMatrix::zeros(rows, cols.dim);
     let mut h_f = DMatrix::zeros(rows, 3);

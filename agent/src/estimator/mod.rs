@@ -7,11 +7,14 @@
 
 pub mod camera_window;
 pub mod chi2;
+pub mod covariance;
 pub mod feature_classes;
 pub mod feature_db;
 pub mod feature_system;
+pub mod filter;
 pub mod linalg;
 pub mod options;
+pub mod peer_window;
 pub mod projection;
 pub mod propagator;
 pub mod slam_feature;
@@ -19,6 +22,8 @@ pub mod state;
 pub mod static_init;
 pub mod triangulation;
 pub mod updater_ci;
+pub mod updater_common;
+pub mod updater_common_slam;
 pub mod updater_msckf;
 pub mod updater_slam;
 pub mod updater_zupt;
@@ -26,3 +31,6 @@ pub mod vio;
 
 pub use options::EstimatorOptions;
 pub use vio::{Estimator, FrameError, FrameOutput, InitialState, InputError};
+
+#[cfg(test)]
+pub(crate) mod test_scene;

@@ -9,8 +9,9 @@
 //! Segments are chained (`Φ_sum = Φ Φ_sum`, `Q_sum = Φ Q_sum Φᵀ + Q_d`) and applied to
 //! the covariance once.
 
+use super::filter::Filter;
 use super::options::ImuNoise;
-use super::state::{ImuFej, State, Var};
+use super::state::{ImuFej, Means};
 use common::measurement::ImuSample;
 use common::so3::{exp_so3, jr_so3, skew};
 use nalgebra::{Matrix3, SMatrix, Vector3};
@@ -95,16 +96,32 @@ fn segments(buf: &[ImuSample], t0: f64, t1: f64) -> Result<Vec<Segment>, Propaga
         .collect())
 }
 
-/// Propagates `state` to IMU time `t1` with the readings in `buf` (time ordered).
-/// Returns the bias-corrected angular velocity at `t1` (for the clone's time-offset
-/// Jacobian).
-pub fn propagate(
-    state: &mut State,
+/// Propagates the filter's robot to IMU time `t1` with the readings in `buf`
+/// (time ordered): the mean, then the covariance once with the interval's `Φ`
+/// and `Q`. Returns the bias-corrected angular velocity at `t1` (for the clone's
+/// time-offset Jacobian).
+pub fn propagate<F: Filter + ?Sized>(
+    f: &mut F,
     buf: &[ImuSample],
     t1: f64,
     noise: &ImuNoise,
     use_fej: bool,
 ) -> Result<Vector3<f64>, PropagateError> {
+    let (phi, q, omega) = propagate_mean(f.means_mut(), buf, t1, noise, use_fej)?;
+    f.propagate_covariance(&phi, &q);
+    Ok(omega)
+}
+
+/// The mean part of [`propagate`]: moves `state` to `t1` and returns the
+/// interval's `Φ` (at first estimates when `use_fej`), `Q` and the last angular
+/// velocity.
+fn propagate_mean(
+    state: &mut Means,
+    buf: &[ImuSample],
+    t1: f64,
+    noise: &ImuNoise,
+    use_fej: bool,
+) -> Result<(Mat15, Mat15, Vector3<f64>), PropagateError> {
     let t0 = state.t;
     if t1 < t0 {
         return Err(PropagateError::Backwards { from: t0, to: t1 });
@@ -188,8 +205,7 @@ pub fn propagate(
         vel: state.imu.vel,
     };
     state.t = t1;
-    apply_transition(state, &phi_sum, &q_sum);
-    Ok(omega)
+    Ok((phi_sum, q_sum, omega))
 }
 
 /// Re-evaluates the interval's `Φ` at the first estimates of the start state
@@ -201,7 +217,7 @@ pub fn propagate(
 /// position and yaw) stay unobservable across updates (FEJ, thesis Section 2.2.2).
 fn fej_transition(
     phi: &mut Mat15,
-    state: &State,
+    state: &Means,
     start: (Matrix3<f64>, Vector3<f64>, Vector3<f64>),
     dt: f64,
     g: &Vector3<f64>,
@@ -226,27 +242,10 @@ fn fej_transition(
     }
 }
 
-/// `P_II ← Φ P_II Φᵀ + Q`, `P_Ix ← Φ P_Ix` for every other variable `x`.
-fn apply_transition(state: &mut State, phi: &Mat15, q: &Mat15) {
-    let o = state.offset(Var::Imu).unwrap_or(0);
-    let n = state.dim();
-    let cov = state.cov_mut();
-    let rows = cov.view((o, 0), (15, n)).into_owned();
-    let new_rows = phi * rows;
-    cov.view_mut((o, 0), (15, n)).copy_from(&new_rows);
-    let cols = cov.view((0, o), (n, 15)).into_owned();
-    let new_cols = cols * phi.transpose();
-    cov.view_mut((0, o), (n, 15)).copy_from(&new_cols);
-    let mut p_ii = cov.view((o, o), (15, 15)).into_owned();
-    p_ii += q;
-    let sym = (&p_ii + p_ii.transpose()) * 0.5;
-    cov.view_mut((o, o), (15, 15)).copy_from(&sym);
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::estimator::state::ImuState;
+    use crate::estimator::state::{ImuState, State, Var};
     use common::calibration::CameraCalibration;
     use nalgebra::DMatrix;
 

@@ -3,7 +3,8 @@
 //! `p_FinA` in the camera frame of an anchor clone `A`,
 //! `p_FinG = R_A (R_CtoI p_FinA + p_CinI) + p_A`.
 
-use super::state::{SlamFeature, State, Var};
+use super::filter::Filter;
+use super::state::{Means, SlamFeature, Var};
 pub use common::estimator_options::FeatureRepresentation;
 use common::so3::skew;
 use nalgebra::{DMatrix, Matrix3, Vector3};
@@ -13,8 +14,8 @@ pub type SparseJacobian = Vec<(Var, DMatrix<f64>)>;
 
 /// `p_FinG` of feature `id` and its Jacobians w.r.t. the state variables it
 /// depends on (3 x size each), at the first estimates when `fej`.
-pub fn global_position(
-    state: &State,
+pub fn global_position<F: Filter + ?Sized>(
+    filter: &F,
     id: u64,
     f: &SlamFeature,
     fej: bool,
@@ -23,6 +24,7 @@ pub fn global_position(
     let Some(a) = f.anchor else {
         return Some((p, vec![(Var::Feature(id), DMatrix::identity(3, 3))]));
     };
+    let state = filter.means();
     let clone = state.clones.get(&a)?;
     let (r_a, p_a) = if fej {
         (clone.rot_fej, clone.pos_fej)
@@ -40,7 +42,7 @@ pub fn global_position(
         .copy_from(&(-r_a * skew(&p_in_i)));
     j_clone.view_mut((0, 3), (3, 3)).fill_with_identity();
     jac.push((Var::Clone(a), j_clone));
-    if state.has(Var::Extrinsic) {
+    if filter.has(Var::Extrinsic) {
         let mut j_ext = DMatrix::zeros(3, 6);
         j_ext
             .view_mut((0, 0), (3, 3))
@@ -53,7 +55,7 @@ pub fn global_position(
 
 /// `p_FinA` of a global position in the camera of clone `a` (current values, or
 /// first estimates when `fej`).
-pub fn in_anchor(state: &State, a: u64, p_g: &Vector3<f64>, fej: bool) -> Option<Vector3<f64>> {
+pub fn in_anchor(state: &Means, a: u64, p_g: &Vector3<f64>, fej: bool) -> Option<Vector3<f64>> {
     let clone = state.clones.get(&a)?;
     let (r_a, p_a) = if fej {
         (clone.rot_fej, clone.pos_fej)
@@ -67,23 +69,26 @@ pub fn in_anchor(state: &State, a: u64, p_g: &Vector3<f64>, fej: bool) -> Option
 /// Moves every feature anchored at clone `old` to clone `new` (before `old` is
 /// marginalized): the covariance by a change of variables linearized at the first
 /// estimates, the mean and first estimate re-expressed in the new anchor.
-pub fn reanchor(state: &mut State, old: u64, new: u64) {
-    let ids: Vec<u64> = state
+pub fn reanchor<F: Filter + ?Sized>(filter: &mut F, old: u64, new: u64) {
+    let ids: Vec<u64> = filter
+        .means()
         .features
         .iter()
         .filter(|(_, f)| f.anchor == Some(old))
         .map(|(id, _)| *id)
         .collect();
     for id in ids {
-        let Some(f) = state.features.get(&id).cloned() else {
+        let Some(f) = filter.means().features.get(&id).cloned() else {
             continue;
         };
         let (Some((pg, _)), Some((pg_fej, jac_old))) = (
-            global_position(state, id, &f, false),
-            global_position(state, id, &f, true),
+            global_position(filter, id, &f, false),
+            global_position(filter, id, &f, true),
         ) else {
             continue;
         };
+        let has_extrinsic = filter.has(Var::Extrinsic);
+        let state = filter.means();
         let (Some(p_new), Some(p_new_fej), Some(clone_b)) = (
             in_anchor(state, new, &pg, false),
             in_anchor(state, new, &pg_fej, true),
@@ -105,7 +110,7 @@ pub fn reanchor(state: &mut State, old: u64, new: u64) {
             .copy_from(&(c.rot_c_to_i.transpose() * skew(&q)));
         j_b.view_mut((0, 3), (3, 3)).copy_from(&(-m));
         jac.push((Var::Clone(new), j_b));
-        if state.has(Var::Extrinsic) {
+        if has_extrinsic {
             let mut j_e = DMatrix::zeros(3, 6);
             j_e.view_mut((0, 0), (3, 3)).copy_from(&skew(&p_new_fej));
             j_e.view_mut((0, 3), (3, 3))
@@ -120,8 +125,8 @@ pub fn reanchor(state: &mut State, old: u64, new: u64) {
                 None => merged.push((v, j)),
             }
         }
-        if state.transform(Var::Feature(id), &merged).is_ok() {
-            if let Some(f) = state.features.get_mut(&id) {
+        if filter.transform(Var::Feature(id), &merged).is_ok() {
+            if let Some(f) = filter.means_mut().features.get_mut(&id) {
                 f.pos = p_new;
                 f.pos_fej = p_new_fej;
                 f.anchor = Some(new);
@@ -133,7 +138,7 @@ pub fn reanchor(state: &mut State, old: u64, new: u64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::estimator::state::{ClonePose, ImuState};
+    use crate::estimator::state::{ClonePose, ImuState, State};
     use common::calibration::CameraCalibration;
     use common::so3::exp_so3;
 

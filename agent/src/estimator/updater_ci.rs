@@ -27,9 +27,12 @@ pub struct PeerTerm {
 /// How the CI weights are chosen.
 #[derive(Clone, Debug, PartialEq)]
 pub enum CiWeights {
-    /// This robot's weight `ω_i`; the peers share `1 - ω_i` evenly (thesis
-    /// simulation: each peer 0.001, so `ω_i = 1 - 0.001 L`).
-    Fixed(f64),
+    /// Each participant's weight `ω_o` (thesis simulation: 0.001); this robot's
+    /// is `ω_i = 1 − L ω_o`.
+    FixedPeer(f64),
+    /// This robot's weight `ω_i` (thesis real data: 0.99); the participants
+    /// share `1 − ω_i` evenly.
+    FixedOwn(f64),
     /// Minimize the trace of the updated covariance.
     MinTrace,
     /// Minimize the determinant of the updated covariance.
@@ -51,8 +54,8 @@ pub struct CiOutcome {
 struct Pieces {
     /// `H P Hᵀ` of this robot.
     hph: DMatrix<f64>,
-    /// `(P Hᵀ)ᵀ (P Hᵀ)`.
-    gram: DMatrix<f64>,
+    /// `(P Hᵀ)ᵀ (P Hᵀ)`, for the trace objective only.
+    gram: Option<DMatrix<f64>>,
     /// `H_o P_o H_oᵀ` per peer.
     peers: Vec<DMatrix<f64>>,
     /// Measurement noise.
@@ -85,7 +88,7 @@ impl Pieces {
             CiWeights::MinTrace => {
                 // tr(P⁺) = tr(P)/ω − tr(S⁻¹ G)/ω², and tr(P) is a constant
                 // factor of 1/ω: keep it through the caller's tr(P).
-                let sg = chol.solve(&self.gram);
+                let sg = chol.solve(self.gram.as_ref()?);
                 Some(-sg.trace() / (omega * omega))
             }
             CiWeights::MinDeterminant => {
@@ -95,7 +98,7 @@ impl Pieces {
                 };
                 Some(-(self.n as f64) * omega.ln() + ln_det(r_o)? - ln_det(s)?)
             }
-            CiWeights::Fixed(_) => Some(0.0),
+            CiWeights::FixedPeer(_) | CiWeights::FixedOwn(_) => Some(0.0),
         }
     }
 }
@@ -146,7 +149,7 @@ pub fn update(
     let zero = DMatrix::zeros(m, m);
     let (hph, pht) = state.innovation(vars, h, &zero)?;
     let pieces = Pieces {
-        gram: pht.tr_mul(&pht),
+        gram: (*weights == CiWeights::MinTrace && !peers.is_empty()).then(|| pht.tr_mul(&pht)),
         hph,
         peers: peers
             .iter()
@@ -160,7 +163,8 @@ pub fn update(
         1.0
     } else {
         match weights {
-            CiWeights::Fixed(w) => w.clamp(1e-6, 1.0 - 1e-6),
+            CiWeights::FixedOwn(w) => w.clamp(1e-6, 1.0 - 1e-6),
+            CiWeights::FixedPeer(w) => (1.0 - peers.len() as f64 * w).clamp(1e-3, 1.0 - 1e-6),
             CiWeights::MinTrace => golden_min(1e-4, 1.0 - 1e-4, |w| {
                 pieces
                     .objective(w, weights)
@@ -173,9 +177,12 @@ pub fn update(
     };
     let r_others = pieces.r_others(omega);
     let s = &pieces.hph / omega + &r_others;
-    let chol = s.cholesky().ok_or(StateError::NotPositiveDefinite)?;
+    let chol = s
+        .clone()
+        .cholesky()
+        .ok_or(StateError::NotPositiveDefinite)?;
     let mahalanobis = res.dot(&chol.solve(res));
-    state.ci_update(vars, h, res, &r_others, omega)?;
+    state.ci_apply(s, &(pht / omega), res, omega)?;
     Ok(CiOutcome {
         omega_own: omega,
         omega_peers: pieces.peer_weights(omega),
@@ -263,7 +270,7 @@ mod tests {
             let h_o = DMatrix::from_fn(m, no, |_, _| rng.random_range(-1.0..1.0));
             let r = DMatrix::identity(m, m) * 0.2;
             let weights = match trial % 3 {
-                0 => CiWeights::Fixed(rng.random_range(0.05..0.95)),
+                0 => CiWeights::FixedOwn(rng.random_range(0.05..0.95)),
                 1 => CiWeights::MinTrace,
                 _ => CiWeights::MinDeterminant,
             };
@@ -331,7 +338,7 @@ mod tests {
         let (best_trace, _) = run(&CiWeights::MinTrace);
         let (_, best_det) = run(&CiWeights::MinDeterminant);
         for w in [0.1, 0.3, 0.5, 0.7, 0.9, 0.99] {
-            let (t, d) = run(&CiWeights::Fixed(w));
+            let (t, d) = run(&CiWeights::FixedOwn(w));
             assert!(best_trace <= t * (1.0 + 1e-9), "ω {w}: {best_trace} > {t}");
             assert!(best_det <= d * (1.0 + 1e-6), "ω {w}: {best_det} > {d}");
         }

@@ -6,9 +6,10 @@
 use super::chi2::Chi2Table;
 use super::feature_db::FeatureDb;
 use super::feature_system::{build, Columns};
+use super::filter::Filter;
 use super::linalg::{compress_in_place, nullspace_project_in_place};
 use super::options::EstimatorOptions;
-use super::state::{State, Var};
+use super::state::Var;
 use super::triangulation::TriangulationOptions;
 use nalgebra::{DMatrix, DVector};
 
@@ -24,8 +25,8 @@ pub struct MsckfStats {
 }
 
 /// Updates `state` with the features `ids` of `db`.
-pub fn update(
-    state: &mut State,
+pub fn update<F: Filter + ?Sized>(
+    state: &mut F,
     db: &FeatureDb,
     ids: &[u64],
     opts: &EstimatorOptions,
@@ -52,11 +53,11 @@ pub fn update(
             feature
                 .measurements
                 .iter()
-                .filter(|m| state.clones.contains_key(&m.clone_key))
+                .filter(|m| state.means().clones.contains_key(&m.clone_key))
                 .map(|m| Var::Clone(m.clone_key)),
         );
         let fcols = Columns::of(vars);
-        let Some(mut sys) = build(state, feature, &fcols, opts.use_fej, tri) else {
+        let Some(mut sys) = build(state.means(), feature, &fcols, opts.use_fej, tri) else {
             stats.failed += 1;
             continue;
         };

@@ -5,11 +5,12 @@
 use super::chi2::Chi2Table;
 use super::feature_db::FeatureDb;
 use super::feature_system::{build, Columns};
+use super::filter::Filter;
 use super::linalg::givens_qr_split;
 use super::options::EstimatorOptions;
 use super::projection::{predict, project, Projection};
 use super::slam_feature::{global_position, in_anchor, FeatureRepresentation};
-use super::state::{SlamFeature, State, Var};
+use super::state::{SlamFeature, Var};
 use super::triangulation::TriangulationOptions;
 use nalgebra::{DMatrix, DVector, Vector3};
 
@@ -59,13 +60,14 @@ fn dyn_block<const C: usize>(m: &nalgebra::SMatrix<f64, 2, C>) -> DMatrix<f64> {
 /// The measurement row of SLAM feature `id` seen from clone `clone_key`: the
 /// Jacobians at the first estimates (FEJ) of the clone and of the feature (and of
 /// its anchor), the residual at the current estimates.
-fn measurement_row(
-    state: &State,
+fn measurement_row<F: Filter + ?Sized>(
+    filter: &F,
     db: &FeatureDb,
     id: u64,
     clone_key: u64,
     use_fej: bool,
 ) -> Option<Row> {
+    let state = filter.means();
     let clone = state.clones.get(&clone_key)?;
     let f = state.features.get(&id)?;
     let m = db
@@ -73,8 +75,8 @@ fn measurement_row(
         .measurements
         .iter()
         .find(|m| m.clone_key == clone_key)?;
-    let (p_lin, jac) = global_position(state, id, f, use_fej)?;
-    let (p_cur, _) = global_position(state, id, f, false)?;
+    let (p_lin, jac) = global_position(filter, id, f, use_fej)?;
+    let (p_cur, _) = global_position(filter, id, f, false)?;
     let (lr, lp) = if use_fej {
         (&clone.rot_fej, &clone.pos_fej)
     } else {
@@ -86,10 +88,10 @@ fn measurement_row(
         res: [e.x, e.y],
         blocks: vec![(Var::Clone(clone_key), dyn_block(&proj.h_clone))],
     };
-    if state.has(Var::Extrinsic) {
+    if filter.has(Var::Extrinsic) {
         row.add(Var::Extrinsic, dyn_block(&proj.h_extrinsic));
     }
-    if state.has(Var::Intrinsics) {
+    if filter.has(Var::Intrinsics) {
         row.add(Var::Intrinsics, dyn_block(&proj.h_intrinsics));
     }
     let h_f = dyn_block(&proj.h_feature);
@@ -101,8 +103,8 @@ fn measurement_row(
 
 /// Updates the SLAM features `ids` with their observation in clone `clone_key`,
 /// each gated alone, all in one EKF update.
-pub fn update(
-    state: &mut State,
+pub fn update<F: Filter + ?Sized>(
+    state: &mut F,
     db: &FeatureDb,
     ids: &[u64],
     clone_key: u64,
@@ -152,8 +154,8 @@ pub fn update(
 
 /// Delayed initialization of feature `id` into the state from its whole track.
 /// Returns whether it entered the state.
-pub fn initialize(
-    state: &mut State,
+pub fn initialize<F: Filter + ?Sized>(
+    state: &mut F,
     db: &FeatureDb,
     id: u64,
     opts: &EstimatorOptions,
@@ -164,20 +166,20 @@ pub fn initialize(
         return false;
     };
     let cols = Columns::window(state);
-    let Some(mut sys) = build(state, feature, &cols, opts.use_fej, tri) else {
+    let Some(mut sys) = build(state.means(), feature, &cols, opts.use_fej, tri) else {
         return false;
     };
     // Anchored: the new variable is p_FinA in the newest clone's camera; H_f and
     // H_x follow p_FinG = R_A (R_CtoI p_FinA + p_CinI) + p_A (at first estimates).
     let anchor = match opts.feature_representation {
         FeatureRepresentation::Global => None,
-        FeatureRepresentation::Anchored => state.clones.keys().next_back().copied(),
+        FeatureRepresentation::Anchored => state.means().clones.keys().next_back().copied(),
     };
     let (mut p_init, mut p_init_fej) = (sys.p_f, sys.p_f);
     if let Some(a) = anchor {
         let (Some(p_a), Some(p_a_fej)) = (
-            in_anchor(state, a, &sys.p_f, false),
-            in_anchor(state, a, &sys.p_f, opts.use_fej),
+            in_anchor(state.means(), a, &sys.p_f, false),
+            in_anchor(state.means(), a, &sys.p_f, opts.use_fej),
         ) else {
             return false;
         };
@@ -227,7 +229,7 @@ pub fn initialize(
     let pos = p_init + Vector3::new(dx[0], dx[1], dx[2]);
     // The first estimate is the point the initialization was linearized at, so
     // every later Jacobian shares its unobservable directions (FEJ).
-    state.features.insert(
+    state.means_mut().features.insert(
         id,
         SlamFeature {
             pos,

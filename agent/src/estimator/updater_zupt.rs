@@ -7,8 +7,9 @@
 //! standstill, and the same model, with `v = 0`, is then used as an EKF update.
 
 use super::chi2::Chi2Table;
+use super::filter::Filter;
 use super::options::EstimatorOptions;
-use super::state::{State, Var};
+use super::state::{Means, Var};
 use common::measurement::ImuSample;
 use common::so3::skew;
 use nalgebra::{DMatrix, DVector, Vector3};
@@ -24,7 +25,7 @@ const VELOCITY_SIGMA_MPS: f64 = 0.01;
 /// `d² = r̄ᵀ (H P Hᵀ + R₀/N)⁻¹ r̄ + Σ_k (r_k − r̄)ᵀ R₀⁻¹ (r_k − r̄)`, with `6N` degrees
 /// of freedom. Returns `(H, r̄ with the velocity row, R, scatter)`.
 fn build(
-    state: &State,
+    state: &Means,
     readings: &[ImuSample],
     opts: &EstimatorOptions,
 ) -> (DMatrix<f64>, DVector<f64>, DMatrix<f64>, f64) {
@@ -80,16 +81,16 @@ fn build(
 
 /// Tests the standstill hypothesis on `readings` and, when it holds, applies the
 /// zero-velocity update. Returns whether the robot was found standing still.
-pub fn try_update(
-    state: &mut State,
+pub fn try_update<F: Filter + ?Sized>(
+    state: &mut F,
     readings: &[ImuSample],
     opts: &EstimatorOptions,
     chi2: &Chi2Table,
 ) -> bool {
-    if readings.len() < 2 || state.imu.vel.norm() > MAX_SPEED_MPS {
+    if readings.len() < 2 || state.means().imu.vel.norm() > MAX_SPEED_MPS {
         return false;
     }
-    let (h, res, r, scatter) = build(state, readings, opts);
+    let (h, res, r, scatter) = build(state.means(), readings, opts);
     // Gate on the IMU rows only: the velocity row is what we want to impose.
     let h_imu = h.rows(0, 6).into_owned();
     let res_imu = res.rows(0, 6).into_owned();
@@ -106,7 +107,7 @@ pub fn try_update(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::estimator::state::ImuState;
+    use crate::estimator::state::{ImuState, State};
     use common::calibration::CameraCalibration;
 
     fn still_state(vel: Vector3<f64>) -> State {

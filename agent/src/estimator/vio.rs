@@ -6,6 +6,7 @@ use super::camera_window::{camera_window, CameraWindow};
 use super::chi2::Chi2Table;
 use super::feature_classes::{classify, clean_up, record_measurements, FeatureClasses};
 use super::feature_db::FeatureDb;
+use super::filter::Filter;
 use super::options::EstimatorOptions;
 use super::propagator::{propagate, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
@@ -540,20 +541,27 @@ fn output(
 /// Stochastic cloning of the IMU pose at the image time; with online time-offset
 /// calibration the clone also depends on `t_d` through `[ω; v]` (the pose moves
 /// with the estimated offset).
-fn augment_clone(state: &mut State, key: u64, t_cam: f64, omega: &Vector3<f64>) {
+pub(crate) fn augment_clone<F: Filter + ?Sized>(
+    filter: &mut F,
+    key: u64,
+    t_cam: f64,
+    omega: &Vector3<f64>,
+) {
     let mut j_imu = DMatrix::zeros(6, 15);
     j_imu.view_mut((0, 0), (6, 6)).fill_with_identity();
     let mut jac = vec![(Var::Imu, j_imu)];
-    if state.has(Var::TimeOffset) {
+    if filter.has(Var::TimeOffset) {
         let mut j_td = DMatrix::zeros(6, 1);
         j_td.view_mut((0, 0), (3, 1)).copy_from(omega);
-        j_td.view_mut((3, 0), (3, 1)).copy_from(&state.imu.vel);
+        j_td.view_mut((3, 0), (3, 1))
+            .copy_from(&filter.means().imu.vel);
         jac.push((Var::TimeOffset, j_td));
     }
-    if state
+    if filter
         .augment(Var::Clone(key), &jac, &DMatrix::zeros(6, 6))
         .is_ok()
     {
+        let state = filter.means_mut();
         state.clones.insert(
             key,
             ClonePose {

@@ -1,0 +1,615 @@
+//! Common VIO features (thesis Section 5.3.3): our tracks that peers also
+//! measured, in their current windows or in stored historical windows, fused
+//! with the CI-EKF update so that only our state and covariance change.
+//!
+//! For each feature, our measurements and each participant's (a participant is
+//! one window of one peer) are linearized at the point triangulated from all of
+//! them and whitened (ours are pixels, a peer's normalized coordinates; after
+//! whitening every row has unit noise, so orthogonal projections keep it white).
+//!
+//! * **Two-stage** (Eqs. 5.18-5.19): each block is projected onto the left range
+//!   and nullspace of its own feature Jacobian. A participant's nullspace rows
+//!   involve only that peer and are dropped; our nullspace rows involve only us
+//!   and go through a standard EKF update. The range rows (3 per block) are
+//!   stacked and projected once more onto the nullspace of the stacked feature
+//!   Jacobian: those rows relate our window to the peers' and go to the CI-EKF.
+//! * **Combined**: every row of every block stacked and projected at once, all
+//!   of them in the CI-EKF update (the larger system the thesis compares against).
+
+use super::chi2::Chi2Table;
+use super::feature_db::FeatureDb;
+use super::feature_system::{build_at, camera_observations, Columns};
+use super::linalg::{compress_in_place, givens_qr_split, nullspace_project_in_place};
+use super::options::EstimatorOptions;
+use super::peer_window::{project_normalized, PeerWindow};
+use super::state::{State, Var};
+use super::triangulation::{triangulate, CameraObservation, TriangulationOptions};
+use super::updater_ci::{self, CiWeights, PeerTerm};
+use common::estimator_options::CommonProjection;
+use nalgebra::{DMatrix, DVector, Vector2};
+#[cfg(test)]
+use std::ops::AddAssign;
+
+/// One measurement of a common feature by a peer.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PeerObservation {
+    /// Index of the participant (peer window) in the update's list.
+    pub participant: usize,
+    /// Index of the camera pose in that window.
+    pub pose: usize,
+    /// Undistorted normalized coordinates.
+    pub xy: Vector2<f64>,
+}
+
+/// One of our tracks with the peers' measurements of the same feature.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CommonTrack {
+    /// Our track id.
+    pub id: u64,
+    /// The peers' measurements (none used before).
+    pub peer_obs: Vec<PeerObservation>,
+}
+
+/// What one common-feature update did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CommonStats {
+    /// Features used.
+    pub used: usize,
+    /// Features rejected by the chi-square gate (they fall back to the MSCKF).
+    pub rejected_chi2: usize,
+    /// Features that could not be triangulated or projected (fall back too).
+    pub failed: usize,
+    /// Rows of the CI-EKF update (before compression).
+    pub ci_rows: usize,
+    /// Rows of our own EKF update (two-stage only).
+    pub own_rows: usize,
+    /// Peer measurements used.
+    pub peer_measurements: usize,
+}
+
+/// The outcome: statistics, and which tracks were used (the others should go
+/// to the independent MSCKF update).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CommonOutcome {
+    /// Statistics.
+    pub stats: CommonStats,
+    /// Our tracks whose measurements were used here.
+    pub used: Vec<u64>,
+    /// Our tracks not used (failed or gated out).
+    pub fallback: Vec<u64>,
+}
+
+/// One participant's part of a feature's rows.
+struct PeerPart {
+    participant: usize,
+    poses: Vec<usize>,
+    h: DMatrix<f64>,
+}
+
+/// A feature's projected, whitened rows.
+struct FeatureRows {
+    our_vars: Vec<Var>,
+    h_i: DMatrix<f64>,
+    peers: Vec<PeerPart>,
+    res: DVector<f64>,
+    own: Option<(DMatrix<f64>, DVector<f64>)>,
+    peer_measurements: usize,
+}
+
+/// A block of whitened rows `r = H_x δx + H_f δp_F + n`, `n ~ N(0, I)`.
+struct Block {
+    h_x: DMatrix<f64>,
+    h_f: DMatrix<f64>,
+    res: DVector<f64>,
+}
+
+/// Our block of `feature`, linearized at `p_f`, whitened, over the calibration
+/// and the clones that saw it.
+fn our_block(
+    state: &State,
+    feature: &super::feature_db::Feature,
+    p_f: &nalgebra::Vector3<f64>,
+    opts: &EstimatorOptions,
+) -> Option<(Vec<Var>, Block)> {
+    let mut vars: Vec<Var> = [Var::Extrinsic, Var::Intrinsics]
+        .into_iter()
+        .filter(|v| state.has(*v))
+        .collect();
+    vars.extend(
+        feature
+            .measurements
+            .iter()
+            .filter(|m| state.clones.contains_key(&m.clone_key))
+            .map(|m| Var::Clone(m.clone_key)),
+    );
+    let cols = Columns::of(vars);
+    let sys = build_at(&state.means, feature, &cols, opts.use_fej, p_f)?;
+    let w = 1.0 / opts.pixel_sigma_px;
+    Some((
+        cols.vars,
+        Block {
+            h_x: sys.h_x * w,
+            h_f: sys.h_f * w,
+            res: sys.res * w,
+        },
+    ))
+}
+
+/// Participant `j`'s block: its measurements of the feature at `p_f`, whitened,
+/// over the poses that saw it (sorted).
+fn peer_block(
+    w: &PeerWindow,
+    obs: &[&PeerObservation],
+    p_f: &nalgebra::Vector3<f64>,
+    pixel_sigma: f64,
+) -> Option<(Vec<usize>, Block)> {
+    let mut poses: Vec<usize> = obs.iter().map(|o| o.pose).collect();
+    poses.sort_unstable();
+    poses.dedup();
+    let rows = 2 * obs.len();
+    let scale = w.focal_px / pixel_sigma;
+    let mut b = Block {
+        h_x: DMatrix::zeros(rows, 6 * poses.len()),
+        h_f: DMatrix::zeros(rows, 3),
+        res: DVector::zeros(rows),
+    };
+    for (i, o) in obs.iter().enumerate() {
+        let pose = w.poses.get(o.pose)?;
+        let proj = project_normalized(pose, p_f)?;
+        let col = 6 * poses.binary_search(&o.pose).ok()?;
+        let r = 2 * i;
+        b.h_x
+            .fixed_view_mut::<2, 6>(r, col)
+            .copy_from(&(proj.h_pose * scale));
+        b.h_f
+            .fixed_view_mut::<2, 3>(r, 0)
+            .copy_from(&(proj.h_feature * scale));
+        let e = (o.xy - proj.xy) * scale;
+        b.res[r] = e.x;
+        b.res[r + 1] = e.y;
+    }
+    Some((poses, b))
+}
+
+/// Keeps the first `top` rows of a block (after [`givens_qr_split`]); returns the
+/// rest as `(H_x, r)`.
+fn split_rows(b: Block, top: usize) -> (Block, DMatrix<f64>, DVector<f64>) {
+    let m = b.res.len();
+    let rest_h = b.h_x.rows(top, m - top).into_owned();
+    let rest_r = b.res.rows(top, m - top).into_owned();
+    (
+        Block {
+            h_x: b.h_x.rows(0, top).into_owned(),
+            h_f: b.h_f.rows(0, top).into_owned(),
+            res: b.res.rows(0, top).into_owned(),
+        },
+        rest_h,
+        rest_r,
+    )
+}
+
+/// Stacks blocks with block-diagonal `H_x` columns (in the blocks' order) and
+/// projects onto the left nullspace of the stacked `H_f`.
+fn stack_and_project(blocks: &[Block]) -> Option<(DMatrix<f64>, DVector<f64>)> {
+    let rows: usize = blocks.iter().map(|b| b.res.len()).sum();
+    let cols: usize = blocks.iter().map(|b| b.h_x.ncols()).sum();
+    if rows <= 3 {
+        return None;
+    }
+    let mut h_x = DMatrix::zeros(rows, cols);
+    let mut h_f = DMatrix::zeros(rows, 3);
+    let mut res = DVector::zeros(rows);
+    let (mut r0, mut c0) = (0, 0);
+    for b in blocks {
+        let (m, c) = b.h_x.shape();
+        h_x.view_mut((r0, c0), (m, c)).copy_from(&b.h_x);
+        h_f.view_mut((r0, 0), (m, 3)).copy_from(&b.h_f);
+        res.rows_mut(r0, m).copy_from(&b.res);
+        r0 += m;
+        c0 += c;
+    }
+    nullspace_project_in_place(&mut h_f, &mut h_x, &mut res);
+    (!res.is_empty()).then_some((h_x, res))
+}
+
+/// Linearizes, projects and gates one common feature.
+#[allow(clippy::too_many_arguments)]
+fn feature_rows(
+    state: &State,
+    db: &FeatureDb,
+    track: &CommonTrack,
+    participants: &[PeerWindow],
+    opts: &EstimatorOptions,
+    projection: CommonProjection,
+    chi2: &Chi2Table,
+    tri: &TriangulationOptions,
+) -> Result<FeatureRows, bool> {
+    // Err(true): gated out; Err(false): failed.
+    let feature = db.get(track.id).ok_or(false)?;
+    let mut obs: Vec<CameraObservation> = camera_observations(&state.means, feature);
+    if obs.is_empty() {
+        return Err(false);
+    }
+    let mut by_participant: Vec<(usize, Vec<&PeerObservation>)> = Vec::new();
+    for o in &track.peer_obs {
+        let w = participants.get(o.participant).ok_or(false)?;
+        let pose = w.poses.get(o.pose).ok_or(false)?;
+        obs.push(CameraObservation {
+            r_c_to_g: pose.rot,
+            p_c_in_g: pose.pos,
+            uvn: o.xy,
+        });
+        match by_participant.iter_mut().find(|(p, _)| *p == o.participant) {
+            Some((_, list)) => list.push(o),
+            None => by_participant.push((o.participant, vec![o])),
+        }
+    }
+    by_participant.sort_by_key(|(p, _)| *p);
+    if by_participant.is_empty() {
+        return Err(false);
+    }
+    let p_f = triangulate(&obs, tri).map_err(|_| false)?;
+    let (our_vars, ours) = our_block(state, feature, &p_f, opts).ok_or(false)?;
+    let our_cols = ours.h_x.ncols();
+    let mut metas = Vec::with_capacity(by_participant.len());
+    let mut peer_blocks = Vec::with_capacity(by_participant.len());
+    for (p, list) in &by_participant {
+        let (poses, b) =
+            peer_block(&participants[*p], list, &p_f, opts.pixel_sigma_px).ok_or(false)?;
+        metas.push((*p, poses));
+        peer_blocks.push(b);
+    }
+    let (mut own, stacked) = match projection {
+        CommonProjection::TwoStage => {
+            let mut ours = ours;
+            let top = givens_qr_split(&mut ours.h_f, &mut ours.h_x, &mut ours.res);
+            let (ours_top, own_h, own_r) = split_rows(ours, top);
+            let mut blocks = vec![ours_top];
+            for mut b in peer_blocks {
+                let top = givens_qr_split(&mut b.h_f, &mut b.h_x, &mut b.res);
+                // The peer's nullspace rows do not involve us: dropped.
+                blocks.push(split_rows(b, top).0);
+            }
+            let own = (!own_r.is_empty()).then_some((own_h, own_r));
+            (own, stack_and_project(&blocks))
+        }
+        CommonProjection::Combined => {
+            let mut blocks = vec![ours];
+            blocks.extend(peer_blocks);
+            (None, stack_and_project(&blocks))
+        }
+    };
+    let (h_all, res) = stacked.ok_or(false)?;
+    let m = res.len();
+    let h_i = h_all.columns(0, our_cols).into_owned();
+    let mut peers = Vec::with_capacity(metas.len());
+    let mut c0 = our_cols;
+    for (p, poses) in metas {
+        let c = 6 * poses.len();
+        peers.push(PeerPart {
+            participant: p,
+            h: h_all.columns(c0, c).into_owned(),
+            poses,
+        });
+        c0 += c;
+    }
+    // Gate with the innovation covariance the correlations would give if they
+    // were zero (the CI one, inflated by 1/ω, would let wrong matches through).
+    let mut s = state
+        .covariance()
+        .projected(&our_vars, &h_i)
+        .map_err(|_| false)?
+        + DMatrix::identity(m, m);
+    for part in &peers {
+        let cov = participants[part.participant].sub_covariance(&part.poses);
+        s += &part.h * cov * part.h.transpose();
+    }
+    let chol = s.cholesky().ok_or(false)?;
+    let limit = |dof: usize| opts.chi2_multiplier * chi2.get(dof);
+    if res.dot(&chol.solve(&res)) > limit(m) {
+        return Err(true);
+    }
+    if let Some((h, r)) = &own {
+        let eye = DMatrix::identity(r.len(), r.len());
+        match state.mahalanobis(&our_vars, h, r, &eye) {
+            Ok(d2) if d2 <= limit(r.len()) => {}
+            Ok(_) => own = None,
+            Err(_) => return Err(false),
+        }
+    }
+    Ok(FeatureRows {
+        our_vars,
+        h_i,
+        peers,
+        res,
+        own,
+        peer_measurements: track.peer_obs.len(),
+    })
+}
+
+/// Copies a feature's rows over its own variables into the window layout.
+fn place(dst: &mut DMatrix<f64>, r0: usize, src: &DMatrix<f64>, vars: &[Var], cols: &Columns) {
+    let local = Columns::of(vars.to_vec());
+    for v in vars {
+        if let (Some(s), Some(d)) = (local.col(*v), cols.col(*v)) {
+            dst.view_mut((r0, d), (src.nrows(), v.size()))
+                .copy_from(&src.view((0, s), (src.nrows(), v.size())));
+        }
+    }
+}
+
+/// Updates `state` with the common tracks: our own rows by the EKF, the rows
+/// relating us to peers by the CI-EKF (Eqs. 5.15-5.17).
+#[allow(clippy::too_many_arguments)]
+pub fn update(
+    state: &mut State,
+    db: &FeatureDb,
+    tracks: &[CommonTrack],
+    participants: &[PeerWindow],
+    opts: &EstimatorOptions,
+    weights: &CiWeights,
+    chi2: &Chi2Table,
+    tri: &TriangulationOptions,
+) -> CommonOutcome {
+    let projection = opts.cooperation.projection;
+    let mut out = CommonOutcome::default();
+    let mut rows = Vec::with_capacity(tracks.len());
+    for t in tracks {
+        match feature_rows(state, db, t, participants, opts, projection, chi2, tri) {
+            Ok(r) => {
+                out.used.push(t.id);
+                rows.push(r);
+            }
+            Err(gated) => {
+                if gated {
+                    out.stats.rejected_chi2 += 1;
+                } else {
+                    out.stats.failed += 1;
+                }
+                out.fallback.push(t.id);
+            }
+        }
+    }
+    if rows.is_empty() {
+        return out;
+    }
+    let cols = Columns::window(state);
+    // Each participant's poses over all features, sorted: its columns.
+    let mut poses_of: Vec<(usize, Vec<usize>)> = Vec::new();
+    for r in &rows {
+        for part in &r.peers {
+            match poses_of.iter_mut().find(|(p, _)| *p == part.participant) {
+                Some((_, list)) => list.extend(&part.poses),
+                None => poses_of.push((part.participant, part.poses.clone())),
+            }
+        }
+    }
+    poses_of.sort_by_key(|(p, _)| *p);
+    for (_, list) in poses_of.iter_mut() {
+        list.sort_unstable();
+        list.dedup();
+    }
+    let m_ci: usize = rows.iter().map(|r| r.res.len()).sum();
+    let m_own: usize = rows
+        .iter()
+        .filter_map(|r| r.own.as_ref().map(|(_, v)| v.len()))
+        .sum();
+    let mut h_ci = DMatrix::zeros(m_ci, cols.dim);
+    let mut h_peers: Vec<DMatrix<f64>> = poses_of
+        .iter()
+        .map(|(_, p)| DMatrix::zeros(m_ci, 6 * p.len()))
+        .collect();
+    let mut res_ci = DVector::zeros(m_ci);
+    let mut h_own = DMatrix::zeros(m_own, cols.dim);
+    let mut res_own = DVector::zeros(m_own);
+    let (mut r_ci, mut r_own) = (0, 0);
+    for r in &rows {
+        let m = r.res.len();
+        place(&mut h_ci, r_ci, &r.h_i, &r.our_vars, &cols);
+        res_ci.rows_mut(r_ci, m).copy_from(&r.res);
+        for part in &r.peers {
+            let Some(j) = poses_of.iter().position(|(p, _)| *p == part.participant) else {
+                continue;
+            };
+            for (k, pose) in part.poses.iter().enumerate() {
+                let Ok(g) = poses_of[j].1.binary_search(pose) else {
+                    continue;
+                };
+                h_peers[j]
+                    .view_mut((r_ci, 6 * g), (m, 6))
+                    .copy_from(&part.h.view((0, 6 * k), (m, 6)));
+            }
+        }
+        r_ci += m;
+        if let Some((h, v)) = &r.own {
+            place(&mut h_own, r_own, h, &r.our_vars, &cols);
+            res_own.rows_mut(r_own, v.len()).copy_from(v);
+            r_own += v.len();
+        }
+        out.stats.peer_measurements += r.peer_measurements;
+    }
+    out.stats.used = rows.len();
+    out.stats.ci_rows = m_ci;
+    out.stats.own_rows = m_own;
+    // 1. Our own rows: a standard EKF update; the CI rows' residuals follow its
+    //    correction to first order (they were linearized before it).
+    if m_own > 0 {
+        compress_in_place(&mut h_own, &mut res_own);
+        let eye = DMatrix::identity(res_own.len(), res_own.len());
+        if let Ok(dx) = state.ekf_update_dx(&cols.vars, &h_own, &res_own, &eye) {
+            let mut dx_w = DVector::zeros(cols.dim);
+            for v in &cols.vars {
+                if let (Some(c), Some(o)) = (cols.col(*v), state.offset(*v)) {
+                    dx_w.rows_mut(c, v.size()).copy_from(&dx.rows(o, v.size()));
+                }
+            }
+            res_ci -= &h_ci * dx_w;
+        }
+    }
+    // 2. The rows relating us to peers: CI-EKF.
+    let (h_ci, h_peers, res_ci) = compress_joint(h_ci, h_peers, res_ci);
+    let terms: Vec<PeerTerm> = poses_of
+        .iter()
+        .zip(h_peers)
+        .map(|((p, poses), h)| PeerTerm {
+            h,
+            cov: participants[*p].sub_covariance(poses),
+        })
+        .collect();
+    let eye = DMatrix::identity(res_ci.len(), res_ci.len());
+    if updater_ci::update(state, &cols.vars, &h_ci, &res_ci, &eye, &terms, weights).is_err() {
+        out.stats.used = 0;
+        out.fallback.append(&mut out.used);
+    }
+    out
+}
+
+/// Compresses `[H_i | H_1 | ... | H_L] , r` when it has more rows than columns
+/// (white noise stays white under the orthogonal transform).
+fn compress_joint(
+    h_i: DMatrix<f64>,
+    h_peers: Vec<DMatrix<f64>>,
+    res: DVector<f64>,
+) -> (DMatrix<f64>, Vec<DMatrix<f64>>, DVector<f64>) {
+    let m = res.len();
+    let widths: Vec<usize> = std::iter::once(h_i.ncols())
+        .chain(h_peers.iter().map(|h| h.ncols()))
+        .collect();
+    let total: usize = widths.iter().sum();
+    if m <= total {
+        return (h_i, h_peers, res);
+    }
+    let mut all = DMatrix::zeros(m, total);
+    let mut c0 = 0;
+    for h in std::iter::once(&h_i).chain(h_peers.iter()) {
+        all.view_mut((0, c0), (m, h.ncols())).copy_from(h);
+        c0 += h.ncols();
+    }
+    let mut res = res;
+    compress_in_place(&mut all, &mut res);
+    let mut parts = Vec::with_capacity(widths.len());
+    let mut c0 = 0;
+    for w in widths {
+        parts.push(all.columns(c0, w).into_owned());
+        c0 += w;
+    }
+    let mut it = parts.into_iter();
+    let h_i = it.next().unwrap_or_else(|| DMatrix::zeros(res.len(), 0));
+    (h_i, it.collect(), res)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimator::chi2::Chi2Table;
+    use crate::estimator::test_scene::scene;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn random_block(rows: usize, cols: usize, rng: &mut ChaCha8Rng) -> Block {
+        let mut r = || rng.random_range(-1.0..1.0);
+        Block {
+            h_x: DMatrix::from_fn(rows, cols, |_, _| r()),
+            h_f: DMatrix::from_fn(rows, 3, |_, _| r()),
+            res: DVector::from_fn(rows, |_, _| r()),
+        }
+    }
+
+    /// Eq. 5.19's claim: our nullspace rows, the second-stage rows and the
+    /// peer's (dropped) nullspace rows carry exactly the information of one
+    /// projection of the whole stack.
+    #[test]
+    fn two_stage_rows_carry_the_combined_information() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (ci, cp) = (8, 12);
+        let ours = random_block(10, ci, &mut rng);
+        let peer = random_block(14, cp, &mut rng);
+        let copy = |b: &Block| Block {
+            h_x: b.h_x.clone(),
+            h_f: b.h_f.clone(),
+            res: b.res.clone(),
+        };
+        let (hc, rc) = stack_and_project(&[copy(&ours), copy(&peer)]).unwrap();
+        let info_c = hc.transpose() * &hc;
+        let vec_c = hc.transpose() * &rc;
+
+        let mut o = copy(&ours);
+        let top = givens_qr_split(&mut o.h_f, &mut o.h_x, &mut o.res);
+        let (o_top, o_h, o_r) = split_rows(o, top);
+        let mut p = copy(&peer);
+        let top = givens_qr_split(&mut p.h_f, &mut p.h_x, &mut p.res);
+        let (p_top, p_h, p_r) = split_rows(p, top);
+        let (h2, r2) = stack_and_project(&[o_top, p_top]).unwrap();
+        let mut info = h2.transpose() * &h2;
+        let mut vec = h2.transpose() * &r2;
+        info.view_mut((0, 0), (ci, ci))
+            .add_assign(&(o_h.transpose() * &o_h));
+        vec.rows_mut(0, ci).add_assign(&(o_h.transpose() * &o_r));
+        info.view_mut((ci, ci), (cp, cp))
+            .add_assign(&(p_h.transpose() * &p_h));
+        vec.rows_mut(ci, cp).add_assign(&(p_h.transpose() * &p_r));
+        assert!((info - info_c).abs().max() < 1e-10);
+        assert!((vec - vec_c).abs().max() < 1e-10);
+        // And the CI system is smaller: 3 + 3 - 3 rows instead of 10 + 14 - 3.
+        assert_eq!(h2.nrows(), 3);
+        assert_eq!(hc.nrows(), 21);
+    }
+
+    fn run(
+        projection: CommonProjection,
+        wrong: bool,
+    ) -> (CommonOutcome, crate::estimator::test_scene::Scene, f64) {
+        let mut sc = scene(6, 12, 1e-4, 1e-5);
+        let tracks: Vec<CommonTrack> = (0..12)
+            .map(|l| CommonTrack {
+                id: l as u64,
+                // With `wrong`, track 3 gets the peer's view of landmark 9.
+                peer_obs: sc.peer_obs(if wrong && l == 3 { 9 } else { l }),
+            })
+            .collect();
+        let mut opts = EstimatorOptions::default();
+        opts.cooperation.projection = projection;
+        let trace_before = sc.state.cov().trace();
+        let out = update(
+            &mut sc.state,
+            &sc.db,
+            &tracks,
+            std::slice::from_ref(&sc.peer),
+            &opts,
+            &CiWeights::FixedPeer(0.001),
+            &Chi2Table::new(0.95, 500),
+            &TriangulationOptions::default(),
+        );
+        (out, sc, trace_before)
+    }
+
+    #[test]
+    fn exact_common_measurements_keep_the_truth_and_shrink_the_covariance() {
+        for projection in [CommonProjection::TwoStage, CommonProjection::Combined] {
+            let truth = scene(6, 12, 1e-4, 1e-5);
+            let (out, sc, trace_before) = run(projection, false);
+            assert_eq!(out.stats.used, 12, "{projection:?}: {:?}", out.stats);
+            assert!(out.fallback.is_empty());
+            for (k, c) in &sc.state.clones {
+                let t = &truth.state.clones[k];
+                assert!((c.pos - t.pos).norm() < 1e-6, "{projection:?} clone {k}");
+            }
+            assert!(sc.state.cov().trace() < trace_before);
+            if projection == CommonProjection::TwoStage {
+                assert_eq!(out.stats.ci_rows, 12 * 3);
+                assert!(out.stats.own_rows > 0);
+            } else {
+                assert_eq!(out.stats.own_rows, 0);
+                assert!(out.stats.ci_rows > 12 * 3);
+            }
+        }
+    }
+
+    #[test]
+    fn a_wrong_association_is_gated_out_and_falls_back() {
+        let (out, _, _) = run(CommonProjection::TwoStage, true);
+        assert_eq!(out.fallback, vec![3]);
+        assert_eq!(out.stats.rejected_chi2 + out.stats.failed, 1);
+        assert_eq!(out.stats.used, 11);
+    }
+}
