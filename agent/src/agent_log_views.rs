@@ -10,7 +10,7 @@ use crate::agent_log::{stamp, AgentLog, LogError};
 use common::image::GrayImage;
 use common::measurement::FeatureFrame;
 use common::so3::xyzw_from_rot;
-use common::trajectory::StampedPose;
+use common::trajectory::{StampedCovariance, StampedPose};
 use nalgebra::{Matrix3, Vector3};
 use serde_json::{json, Value};
 use simulator::mcap_io::COMPRESSED_IMAGE_SCHEMA;
@@ -106,6 +106,33 @@ impl AgentLog {
         }
         let v = json!({"timestamp": stamp(t), "frame_id": "world", "poses": picked});
         self.put(ch, t, &v)
+    }
+
+    /// A finished run at once (for the standalone commands): the estimate and
+    /// truth (`/estimate`, `/groundtruth`), the covariance, and both paths at
+    /// the last pose's time. `truth` may be empty.
+    pub fn run_poses(
+        &mut self,
+        estimate: &[StampedPose],
+        covariance: &[StampedCovariance],
+        truth: &[StampedPose],
+    ) -> Result<(), LogError> {
+        for p in estimate {
+            self.pose("/estimate", "world", p.t, &p.rot, &p.pos)?;
+        }
+        for c in covariance {
+            self.covariance(c.t, &c.ori, &c.pos)?;
+        }
+        for p in truth {
+            self.pose("/groundtruth", "world", p.t, &p.rot, &p.pos)?;
+        }
+        if let Some(last) = estimate.last() {
+            self.path("/estimate/path", last.t, estimate, usize::MAX)?;
+            if !truth.is_empty() {
+                self.path("/groundtruth/path", last.t, truth, usize::MAX)?;
+            }
+        }
+        Ok(())
     }
 
     /// The 3-D scene on `/scene`: SLAM landmarks (spheres, world frame) and the

@@ -54,22 +54,21 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
             k += 1;
         },
     )?;
-    for (p, c) in run.estimate.iter().zip(&run.covariance) {
-        log.pose("/estimate", "world", p.t, &p.rot, &p.pos)?;
-        log.covariance(c.t, &c.ori, &c.pos)?;
-    }
-    if let Some(last) = run.estimate.last() {
-        log.path("/estimate/path", last.t, &run.estimate, 5000)?;
-    }
-    log.finish()?;
-    write_tum(args.out.join("estimate.txt"), &run.estimate)?;
-    write_covariances(args.out.join("covariance.txt"), &run.covariance)?;
-    if let Some(gt) = &ds.groundtruth {
-        let truth: Vec<StampedPose> = run
+    // The truth at the estimate times, in the ground truth's own frame (the
+    // estimate is in the static start's frame: align before comparing).
+    let truth: Vec<StampedPose> = match &ds.groundtruth {
+        Some(gt) => run
             .estimate
             .iter()
             .filter_map(|p| interpolate_pose(gt, p.t))
-            .collect();
+            .collect(),
+        None => Vec::new(),
+    };
+    log.run_poses(&run.estimate, &run.covariance, &[])?;
+    log.finish()?;
+    write_tum(args.out.join("estimate.txt"), &run.estimate)?;
+    write_covariances(args.out.join("covariance.txt"), &run.covariance)?;
+    if !truth.is_empty() {
         write_tum(args.out.join("groundtruth.txt"), &truth)?;
     }
     let s = score(&run, &ds);

@@ -10,9 +10,10 @@
 //! own position is exact by construction).
 
 use crate::estimator::EstimatorOptions;
-use crate::frontend::{Frontend, FrontendOptions};
+use crate::frontend::{Frontend, FrontendOptions, FrontendOutput};
 use crate::runner::{run_robot_with, RobotRun, RunError};
 use nalgebra::Vector3;
+use simulator::camera_sim::CameraEvent;
 use simulator::world::camera_pose;
 use simulator::Fleet;
 use std::collections::HashMap;
@@ -47,12 +48,14 @@ pub struct ImageRun {
     pub tracks: TrackQuality,
 }
 
-/// Runs robot `robot` of a fleet that renders images (`render.enabled`).
+/// Runs robot `robot` of a fleet that renders images (`render.enabled`);
+/// `on_image` sees every image with the frontend's output (e.g. to log it).
 pub fn run_robot_rendered(
     fleet: &Fleet,
     robot: usize,
     opts: EstimatorOptions,
     frontend: FrontendOptions,
+    mut on_image: impl FnMut(&CameraEvent, &FrontendOutput),
 ) -> Result<ImageRun, RunError> {
     let renderer = fleet.renderer.clone().ok_or(RunError::Frames {
         t: f64::NAN,
@@ -77,6 +80,7 @@ pub fn run_robot_rendered(
         let fail = |reason: String| RunError::Frames { t, reason };
         let image = c.image.as_ref().ok_or_else(|| fail("no image".into()))?;
         let out = fe.process(t, image).map_err(|e| fail(e.to_string()))?;
+        on_image(&c, &out);
         frames += 1;
         features += out.frame.features.len();
         ms += out.stats.ms;

@@ -1,4 +1,5 @@
 //! `agent`: runs one robot of the fleet.
+use agent::agent_log::AgentLog;
 use agent::agent_output::{metrics_of, write_outputs};
 use agent::config::AgentConfig;
 use agent::node::{run_node, RobotSetup};
@@ -234,14 +235,35 @@ fn probe(args: &ProbeArgs) -> Result<()> {
     Ok(())
 }
 
-/// A rendered run through the image frontend, with the tracks' accuracy printed.
+/// Images (with their tracks) logged by `agent run --render`: one in this many.
+#[cfg(feature = "vision")]
+const LOG_IMAGE_EVERY: usize = 5;
+
+/// A rendered run through the image frontend, with the tracks' accuracy
+/// printed and every 5th image logged.
 #[cfg(feature = "vision")]
 fn rendered(
     fleet: &Fleet,
     robot: usize,
     opts: agent::estimator::EstimatorOptions,
+    log: &mut AgentLog,
 ) -> Result<agent::runner::RobotRun> {
-    let r = agent::image_runner::run_robot_rendered(fleet, robot, opts, Default::default())?;
+    let mut k = 0usize;
+    let r = agent::image_runner::run_robot_rendered(
+        fleet,
+        robot,
+        opts,
+        Default::default(),
+        |c, out| {
+            if k % LOG_IMAGE_EVERY == 0 {
+                if let Some(img) = &c.image {
+                    let _ = log.image(c.frame.t, img);
+                    let _ = log.tracks(&out.frame, &out.new_ids);
+                }
+            }
+            k += 1;
+        },
+    )?;
     let q = &r.tracks;
     println!(
         "frontend: {} images, {:.0} features/image, {:.2} ms/image; KLT reprojection error vs the rendered truth: mean {:.3} px, median {:.3} px, p95 {:.3} px, {:.2}% over 3 px ({} observations)",
@@ -262,6 +284,7 @@ fn rendered(
     _: &Fleet,
     _: usize,
     _: agent::estimator::EstimatorOptions,
+    _: &mut AgentLog,
 ) -> Result<agent::runner::RobotRun> {
     anyhow::bail!("rendered images need the image frontend: build with `--features agent/vision`")
 }
@@ -274,6 +297,9 @@ fn run(args: &RunArgs) -> Result<()> {
     let variant: Variant = args.variant.parse()?;
     let fleet = Fleet::build(&scenario, seed)?;
     let opts = options_for(&scenario.estimator, &fleet, variant);
+    let out = &args.out;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let mut log = AgentLog::create(&out.join("agent.mcap"))?;
     let run = if let Some(imu) = &args.real_imu {
         let default_biases = scenario
             .trajectory_path(args.robot)
@@ -281,14 +307,15 @@ fn run(args: &RunArgs) -> Result<()> {
         let biases = args.real_imu_biases.clone().or(default_biases);
         agent::hybrid::run_robot_hybrid(&fleet, args.robot, opts, imu, biases.as_deref())?
     } else if fleet.renderer.is_some() {
-        rendered(&fleet, args.robot, opts)?
+        rendered(&fleet, args.robot, opts, &mut log)?
     } else {
         run_robot(&fleet, args.robot, opts)?
     };
+    log.run_poses(&run.estimate, &run.covariance, &run.truth)?;
+    log.finish()?;
     for r in run.rejected.iter().take(5) {
         tracing::warn!("rejected: {r}");
     }
-    let out = &args.out;
     write_run_outputs(&run, out).with_context(|| format!("writing {}", out.display()))?;
     let metrics = run.metrics();
     println!(

@@ -313,23 +313,16 @@ impl Node {
                 Body::Descriptors(d) => h.add_descriptors(d),
                 Body::Snapshot(s) => {
                     if let Some(c) = s.clones.last() {
-                        self.peer_poses.insert(
-                            env.robot_id,
-                            PeerPose {
-                                robot: env.robot_id,
-                                rot: c.rot_c_to_g(),
-                                pos: c.p_c_in_g(),
-                            },
-                        );
-                    }
-                    if let (Some(log), Some(c)) = (self.log.as_mut(), s.clones.last()) {
-                        let _ = log.pose(
-                            &format!("/peers/{}/camera", env.robot_id),
-                            "world",
-                            c.t_s,
-                            &c.rot_c_to_g(),
-                            &c.p_c_in_g(),
-                        );
+                        let pose = PeerPose {
+                            robot: env.robot_id,
+                            rot: c.rot_c_to_g(),
+                            pos: c.p_c_in_g(),
+                        };
+                        self.peer_poses.insert(env.robot_id, pose);
+                        if let Some(log) = self.log.as_mut() {
+                            let topic = format!("/peers/{}/camera", env.robot_id);
+                            let _ = log.pose(&topic, "world", c.t_s, &pose.rot, &pose.pos);
+                        }
                     }
                     h.add_snapshot(s, &self.limits);
                 }

@@ -35,14 +35,21 @@ fn write_loop(path: &Path) {
 }
 
 fn config(dir: &Path, robot: u32, peer: u32) -> AgentConfig {
+    let input = format!(
+        "  source: simulator\n  scenario: {}\n",
+        dir.join("two.yaml").display()
+    );
+    config_with(dir, robot, &input, &format!("[{peer}]"))
+}
+
+fn config_with(dir: &Path, robot: u32, input: &str, peers: &str) -> AgentConfig {
     let p = dir.join(format!("robot{robot}.yaml"));
     std::fs::write(
         &p,
         format!(
-            "robot_id: {robot}\nfleet_id: log-{}\noutput_dir: {}\ntransport:\n  kind: inproc\ninput:\n  source: simulator\n  scenario: {}\n  robot_index: {robot}\nclock:\n  mode: lockstep\n  peers: [{peer}]\nimages:\n  mcap_every: 4\n",
+            "robot_id: {robot}\nfleet_id: log-{}\noutput_dir: {}\ntransport:\n  kind: inproc\ninput:\n{input}  robot_index: {robot}\nclock:\n  mode: lockstep\n  peers: {peers}\nimages:\n  mcap_every: 4\n",
             std::process::id(),
             dir.join(format!("robot{robot}")).display(),
-            dir.join("two.yaml").display()
         ),
     )
     .unwrap();
@@ -126,4 +133,38 @@ fn an_agent_on_images_writes_foxglove_schemas_a_reader_counts_back() {
     assert!(by_topic.keys().any(|t| t.starts_with("/peers/1/")));
     assert!(peer_in_scene, "the peer's pose is in the scene");
     assert_eq!(image_size, Some((752, 480)));
+}
+
+#[test]
+fn an_agent_replays_a_rendered_recording_through_its_frontend() {
+    let dir = tempfile::tempdir().unwrap();
+    write_loop(&dir.path().join("loop.txt"));
+    let scenario = dir.path().join("one.yaml");
+    std::fs::write(
+        &scenario,
+        "name: one\nrobots:\n  - trajectory: loop.txt\nrender:\n  enabled: true\nestimator:\n  start_after_motion_m: 0.5\n",
+    )
+    .unwrap();
+    let sc = simulator::Scenario::load(&scenario).unwrap();
+    let fleet = simulator::Fleet::build(&sc, 3).unwrap();
+    let recording = dir.path().join("rec.mcap");
+    simulator::mcap_io::write_stream(&recording, fleet.stream(0).unwrap()).unwrap();
+    let input = format!(
+        "  source: mcap\n  scenario: {}\n  seed: 3\n  mcap: {}\n",
+        scenario.display(),
+        recording.display()
+    );
+    let cfg = config_with(dir.path(), 0, &input, "[]");
+    let hub = InprocHub::new();
+    let transport = agent::transport::open(&cfg.transport_settings(), Some(&hub)).unwrap();
+    let setup = RobotSetup::load(&cfg).unwrap();
+    let report = run_node(&cfg, &setup, transport, &AtomicBool::new(false), |_| {}).unwrap();
+    let m = agent::agent_output::metrics_of(&report);
+    println!(
+        "replayed rendered recording: {} frames, ATE {:?} m",
+        report.run.frames.len(),
+        m.ate_pos_m
+    );
+    assert!(report.run.frames.len() > 80);
+    assert!(m.ate_pos_m.unwrap() < 0.3, "{m:?}");
 }

@@ -22,8 +22,14 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
         .metrics();
     sc.render.enabled = true;
     let rendered_fleet = Fleet::build(&sc, seed).expect("rendered fleet");
-    let r = run_robot_rendered(&rendered_fleet, 0, opts, FrontendOptions::default())
-        .expect("rendered run");
+    let r = run_robot_rendered(
+        &rendered_fleet,
+        0,
+        opts,
+        FrontendOptions::default(),
+        |_, _| {},
+    )
+    .expect("rendered run");
     let rendered = r.run.metrics();
     let q = &r.tracks;
     println!(

@@ -295,7 +295,11 @@ mod tests {
     fn opens_the_micro_sequence_with_its_calibration_and_interleaves_events() {
         let ds = EurocDataset::open(&micro(), None).expect("dataset");
         assert_eq!(ds.images.len(), 95);
-        assert_eq!(ds.calibration, CameraCalibration::euroc_cam0());
+        let cam0 = CameraCalibration::euroc_cam0();
+        assert_eq!(ds.calibration.camera, cam0.camera);
+        assert_eq!(ds.calibration.p_c_in_i, cam0.p_c_in_i);
+        // Re-orthonormalized: equal to the file's digits.
+        assert!((ds.calibration.rot_c_to_i - cam0.rot_c_to_i).norm() < 1e-9);
         assert!((ds.rate_hz - 20.0).abs() < 1e-9);
         let img = ds.image(0).expect("png");
         assert_eq!((img.width(), img.height()), (752, 480));

@@ -157,16 +157,6 @@ impl Frontend {
         })
     }
 
-    /// Uses a refined calibration (e.g. the estimator's) for undistortion.
-    pub fn set_camera(&mut self, camera: CameraModel) {
-        if camera.validate().is_ok()
-            && camera.width == self.camera.width
-            && camera.height == self.camera.height
-        {
-            self.camera = camera;
-        }
-    }
-
     /// The options.
     pub fn options(&self) -> &FrontendOptions {
         &self.opts
