@@ -1,8 +1,9 @@
-//! The image frontend: camera images in, [`FeatureFrame`]s out, the same type
+//! The image frontend: camera images in,
+//! [`FeatureFrame`](common::measurement::FeatureFrame)s out, the same type
 //! the simulator produces, so the estimator and the peers cannot tell the
 //! difference.
 //!
-//! One frame ([`Frontend::process`], built with the cargo feature `vision`, on
+//! One frame (`Frontend::process`, built with the cargo feature `vision`, on
 //! OpenCV):
 //! 1. optional histogram equalization or CLAHE;
 //! 2. pyramidal KLT from the previous image, kept only when tracking back
@@ -33,8 +34,6 @@ mod tracker;
 #[cfg(feature = "vision")]
 pub use tracker::{Frontend, FrontendError, FrontendOutput, FrontendStats};
 
-#[allow(unused_imports)]
-use common::measurement::FeatureFrame;
 use serde::{Deserialize, Serialize};
 
 /// Which corner detector makes new features.
