@@ -13,6 +13,7 @@ pub mod agent_log;
 pub mod agent_log_views;
 pub mod agent_output;
 pub mod config;
+pub mod cooperation;
 pub mod dataset;
 #[cfg(feature = "vision")]
 pub mod dataset_cli;

@@ -18,6 +18,7 @@ pub mod database;
 pub mod io;
 pub mod matching;
 pub mod simdata;
+pub mod synthetic;
 pub mod text;
 pub mod tree;
 pub mod vocabulary;

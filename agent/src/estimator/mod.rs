@@ -7,6 +7,7 @@
 
 pub mod camera_window;
 pub mod chi2;
+pub mod cooperative;
 pub mod covariance;
 pub mod feature_classes;
 pub mod feature_db;

@@ -4,6 +4,7 @@
 
 use super::camera_window::{camera_window, CameraWindow};
 use super::chi2::Chi2Table;
+use super::cooperative::{self, frame_features, CoopFrameStats};
 use super::feature_classes::{classify, clean_up, record_measurements, FeatureClasses};
 use super::feature_db::FeatureDb;
 use super::filter::Filter;
@@ -13,12 +14,15 @@ use super::state::{ClonePose, ImuState, State, Var};
 use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
 use super::triangulation::TriangulationOptions;
 use super::{updater_msckf, updater_slam, updater_zupt};
+use crate::cooperation::{Cooperation, Peers};
 use common::calibration::CameraCalibration;
 use common::measurement::{FeatureFrame, ImuSample};
 use nalgebra::{DMatrix, Matrix3, Vector3};
 use std::collections::VecDeque;
+use std::sync::Arc;
 use std::time::Instant;
 use thiserror::Error;
+use vocabulary::Vocabulary;
 
 /// Why an input was rejected. The estimator's state is unchanged.
 #[derive(Debug, Error, PartialEq)]
@@ -116,6 +120,8 @@ pub struct FrameTiming {
     pub slam_init_ms: f64,
     /// Marginalization and clean-up.
     pub marginalize_ms: f64,
+    /// Cooperative matching and updates (also in [`FrameOutput::coop`]).
+    pub cooperation_ms: f64,
     /// Everything.
     pub total_ms: f64,
 }
@@ -145,6 +151,8 @@ pub struct FrameOutput {
     pub slam: updater_slam::SlamStats,
     /// The frame was a standstill handled by a zero-velocity update.
     pub zero_velocity: bool,
+    /// What the cooperative updates did.
+    pub coop: CoopFrameStats,
     /// Cost of the frame.
     pub timing: FrameTiming,
 }
@@ -164,6 +172,9 @@ pub struct Estimator {
     start_t: f64,
     chi2: Chi2Table,
     tri: TriangulationOptions,
+    /// What is taken from peers (when the options ask for anything).
+    coop: Option<Cooperation>,
+    vocabulary: Option<Arc<Vocabulary>>,
 }
 
 fn ms(since: Instant) -> f64 {
@@ -185,7 +196,19 @@ impl Estimator {
             start_t: 0.0,
             chi2: Chi2Table::new(0.95, 1000),
             tri: TriangulationOptions::default(),
+            coop: None,
+            vocabulary: None,
         }
+    }
+
+    /// The vocabulary for historical loop closures (set before initializing).
+    pub fn set_vocabulary(&mut self, vocabulary: Option<Arc<Vocabulary>>) {
+        self.vocabulary = vocabulary;
+    }
+
+    /// The cooperation state, when the options take anything from peers.
+    pub fn cooperation(&self) -> Option<&Cooperation> {
+        self.coop.as_ref()
     }
 
     /// The options.
@@ -260,6 +283,14 @@ impl Estimator {
             bias_accel: init.bias_accel,
         };
         self.start_t = init.t;
+        self.coop = self.opts.cooperation.any().then(|| {
+            let k = &self.calib.camera.intrinsics;
+            Cooperation::new(
+                self.opts.cooperation.clone(),
+                self.vocabulary.clone(),
+                (k[0] * k[1]).abs().sqrt(),
+            )
+        });
         self.state = Some(State::new(
             init.t,
             imu,
@@ -366,8 +397,14 @@ impl Estimator {
         Ok(())
     }
 
-    /// Processes every queued frame whose IMU time the IMU buffer covers.
+    /// Processes every queued frame whose IMU time the IMU buffer covers, alone.
     pub fn poll(&mut self) -> Vec<Result<FrameOutput, FrameError>> {
+        self.poll_with(&Peers::new())
+    }
+
+    /// Processes every queued frame whose IMU time the IMU buffer covers, with
+    /// what the peers have sent so far.
+    pub fn poll_with(&mut self, peers: &Peers) -> Vec<Result<FrameOutput, FrameError>> {
         let mut out = Vec::new();
         while let Some(front) = self.frames.front() {
             let td = self
@@ -388,14 +425,18 @@ impl Estimator {
                 out.push(Err(FrameError::NotInitialized(frame.t)));
                 continue;
             }
-            out.push(self.process_frame(&frame));
+            out.push(self.process_frame(&frame, peers));
         }
         out
     }
 
-    /// The flow of one camera frame: propagate and clone, sort the features into
-    /// classes, update each class, marginalize.
-    fn process_frame(&mut self, frame: &FeatureFrame) -> Result<FrameOutput, FrameError> {
+    /// The flow of one camera frame: propagate and clone, match with the peers,
+    /// sort the features into classes, update each class, marginalize.
+    fn process_frame(
+        &mut self,
+        frame: &FeatureFrame,
+        peers: &Peers,
+    ) -> Result<FrameOutput, FrameError> {
         let t_start = Instant::now();
         let mut timing = FrameTiming::default();
         let opts = self.opts.clone();
@@ -430,6 +471,7 @@ impl Estimator {
                     timing,
                     Default::default(),
                     Default::default(),
+                    Default::default(),
                     true,
                 ));
             }
@@ -439,30 +481,64 @@ impl Estimator {
         augment_clone(state, key, frame.t, &omega);
         timing.propagate_ms = ms(t_start);
 
-        // 2. Record the measurements; 3. sort the features into classes.
+        // 2. Record the measurements; 3. link them to the peers' tracks.
         record_measurements(&mut self.features, state, frame, key);
+        let mut coop = CoopFrameStats::default();
+        let t = Instant::now();
+        if let Some(c) = self.coop.as_mut() {
+            c.match_frame(&frame_features(frame, &self.features, key), peers, key);
+        }
+        coop.matching_ms = ms(t);
+
+        // 4. Sort the features into classes, with the peers' evidence for ours.
         let slam_allowed = state.t - self.start_t >= opts.slam_delay_s;
         let classes = classify(&self.features, state, key, &opts, slam_allowed);
         let FeatureClasses {
             slam_seen,
             slam_candidates,
+            msckf_ids,
             msckf_used,
-            ..
         } = &classes;
+        let slam_ids: Vec<u64> = state.features.keys().copied().collect();
+        let ev = self
+            .coop
+            .as_ref()
+            .map(|c| c.evidence(msckf_ids, &slam_ids, peers))
+            .unwrap_or_default();
 
-        // 4. MSCKF update.
+        // 5. Common VIO features (CI-EKF), then the independent ones (MSCKF).
+        let common_vio = cooperative::common_vio(
+            state,
+            &self.features,
+            &ev,
+            &opts,
+            &self.chi2,
+            &self.tri,
+            &mut coop,
+        );
         let t = Instant::now();
+        let independent: Vec<u64> = msckf_used
+            .iter()
+            .chain(ev.vio.iter().map(|c| &c.id))
+            .copied()
+            .filter(|id| !common_vio.contains(id))
+            .fold(Vec::new(), |mut v, id| {
+                if !v.contains(&id) {
+                    v.push(id);
+                }
+                v
+            });
         let msckf = updater_msckf::update(
             state,
             &self.features,
-            msckf_used,
+            &independent,
             &opts,
             &self.chi2,
             &self.tri,
         );
         timing.msckf_ms = ms(t);
 
-        // 5. SLAM update with the features seen now.
+        // 6. SLAM update with the features seen now.
         let t = Instant::now();
         let mut slam = updater_slam::SlamStats::default();
         updater_slam::update(
@@ -476,14 +552,18 @@ impl Estimator {
         );
         timing.slam_update_ms = ms(t);
 
-        // 6. Delayed initialization of new SLAM features.
+        // 7. Common SLAM features: constraints and the peers' measurements.
+        let (common_slam, constraints) =
+            cooperative::common_slam(state, &ev, &opts, &self.chi2, &mut coop);
+
+        // 8. Delayed initialization of new SLAM features.
         let t = Instant::now();
         for id in slam_candidates {
             if updater_slam::initialize(state, &self.features, *id, &opts, &self.chi2, &self.tri) {
                 slam.initialized += 1;
             } else {
                 slam.init_failed += 1;
-                if !msckf_used.contains(id) {
+                if !independent.contains(id) {
                     // Not initialized: its measurements are still useful, once.
                     let _ = updater_msckf::update(
                         state,
@@ -498,9 +578,15 @@ impl Estimator {
         }
         timing.slam_init_ms = ms(t);
 
-        // 7. Clean up: used and lost features, lost SLAM features, oldest clone.
+        // 9. Clean up: used and lost features, lost SLAM features, oldest clone,
+        //    the links of ended tracks; the peers' measurements used are marked.
         let t = Instant::now();
         clean_up(&mut self.features, state, &classes, opts.max_clones);
+        if let Some(c) = self.coop.as_mut() {
+            cooperative::finish(c, &ev, (&common_vio, &common_slam, &constraints), &mut coop);
+            let (db, st) = (&self.features, &*state);
+            c.retain_tracks(|id| db.contains(id) || st.features.contains_key(&id), peers);
+        }
         // IMU readings older than the state are no longer needed.
         while self.imu.len() > 2 && self.imu[1].t < state.t {
             self.imu.pop_front();
@@ -508,7 +594,9 @@ impl Estimator {
         timing.marginalize_ms = ms(t);
         timing.total_ms = ms(t_start);
 
-        Ok(output(state, timing, msckf, slam, false))
+        timing.cooperation_ms =
+            coop.matching_ms + coop.common_vio_ms + coop.common_slam_ms + coop.constraint_ms;
+        Ok(output(state, timing, msckf, slam, coop, false))
     }
 }
 
@@ -518,6 +606,7 @@ fn output(
     timing: FrameTiming,
     msckf: updater_msckf::MsckfStats,
     slam: updater_slam::SlamStats,
+    coop: CoopFrameStats,
     zero_velocity: bool,
 ) -> FrameOutput {
     let p = state.cov();
@@ -534,6 +623,7 @@ fn output(
         slam_features: state.features.len(),
         slam,
         zero_velocity,
+        coop,
         timing,
     }
 }

@@ -1,0 +1,213 @@
+//! Historical loop closures to peers (thesis Section 5.3.5): one bag-of-words
+//! database per peer, fed with that peer's keyframe descriptors as its keyframe
+//! windows arrive; the current frame queries every peer's database, and each
+//! candidate above the score threshold is matched by descriptor (through the
+//! direct index) and verified with the fundamental-matrix RANSAC.
+
+use super::matcher::epipolar_inliers;
+use crate::peer_history::{KeyframeWindow, PeerHistory};
+use common::descriptor::Descriptor;
+use nalgebra::Vector2;
+use std::collections::{BTreeSet, HashMap};
+use std::sync::Arc;
+use vocabulary::{match_features, BowVector, Database, FeatureVector, MatchParams, Vocabulary};
+
+/// How many of a peer's newest keyframe windows are checked for indexing each
+/// frame (keyframes arrive about once per second; their descriptors may come a
+/// tick after the window).
+const INDEX_LOOKBACK: usize = 4;
+
+/// The keyframe database of one peer.
+#[derive(Debug)]
+pub struct KeyframeDb {
+    db: Database,
+    /// Keyframe key (see `PeerHistory::keyframes`) of each database entry.
+    keys: Vec<u64>,
+    /// Descriptors of each entry, in the order the direct index refers to.
+    descriptors: Vec<Vec<(u64, Descriptor)>>,
+    indexed: BTreeSet<u64>,
+}
+
+/// Our current frame as the matcher sees it.
+#[derive(Clone, Debug, Default)]
+pub struct FrameFeatures {
+    /// Our track ids.
+    pub ids: Vec<u64>,
+    /// Their descriptors.
+    pub descriptors: Vec<Descriptor>,
+    /// Their undistorted normalized coordinates.
+    pub xy: Vec<Vector2<f64>>,
+}
+
+/// A verified loop closure: our tracks matched to the peer's tracks of one
+/// keyframe window.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LoopClosure {
+    /// The keyframe window's key.
+    pub keyframe: u64,
+    /// `(our track, peer track)` pairs that passed the epipolar check.
+    pub pairs: Vec<(u64, u64)>,
+    /// Bag-of-words score of the candidate.
+    pub score: f64,
+}
+
+impl KeyframeDb {
+    /// An empty database; the direct index groups features one level below the
+    /// root (coarse groups: few true matches are missed).
+    pub fn new(vocabulary: Arc<Vocabulary>) -> Self {
+        let levels_up = vocabulary.levels().saturating_sub(1);
+        Self {
+            db: Database::new(vocabulary, levels_up),
+            keys: Vec::new(),
+            descriptors: Vec::new(),
+            indexed: BTreeSet::new(),
+        }
+    }
+
+    /// Keyframe windows in the database.
+    pub fn len(&self) -> usize {
+        self.keys.len()
+    }
+
+    /// Whether the database is empty.
+    pub fn is_empty(&self) -> bool {
+        self.keys.is_empty()
+    }
+
+    /// Adds the peer's newest keyframe windows that have descriptors and are not
+    /// indexed yet.
+    pub fn index_new(&mut self, history: &PeerHistory) {
+        for (key, kf) in history.keyframes.iter().rev().take(INDEX_LOOKBACK) {
+            if kf.descriptors.is_empty() || self.indexed.contains(key) {
+                continue;
+            }
+            let list: Vec<(u64, Descriptor)> = kf
+                .descriptors
+                .iter()
+                .map(|e| (e.id, e.descriptor()))
+                .collect();
+            let desc: Vec<Descriptor> = list.iter().map(|(_, d)| *d).collect();
+            self.db.add(&desc);
+            self.keys.push(*key);
+            self.descriptors.push(list);
+            self.indexed.insert(*key);
+        }
+    }
+
+    /// The best `n` keyframes for `bow` scoring at least `min_score`:
+    /// `(database entry, keyframe key, score)`.
+    fn candidates(&self, bow: &BowVector, n: usize, min_score: f64) -> Vec<(usize, u64, f64)> {
+        self.db
+            .query_bow(bow, n)
+            .into_iter()
+            .filter(|(_, s)| *s >= min_score)
+            .filter_map(|(e, s)| Some((e.0 as usize, *self.keys.get(e.0 as usize)?, s)))
+            .collect()
+    }
+}
+
+/// The BoW vector and direct index of our frame, for [`detect`].
+pub fn describe(vocabulary: &Vocabulary, frame: &FrameFeatures) -> (BowVector, FeatureVector) {
+    let levels_up = vocabulary.levels().saturating_sub(1);
+    vocabulary.transform_with_features(&frame.descriptors, levels_up)
+}
+
+/// Settings of loop-closure detection.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LoopParams {
+    /// Candidates checked.
+    pub candidates: usize,
+    /// Smallest BoW score.
+    pub min_score: f64,
+    /// Descriptor match rules.
+    pub matching: MatchParams,
+    /// Epipolar threshold, normalized units.
+    pub threshold: f64,
+    /// Fewest inliers.
+    pub min_inliers: usize,
+    /// RANSAC seed.
+    pub seed: u64,
+}
+
+/// The keyframe frame's normalized coordinates by the peer's track id.
+fn keyframe_points(kf: &KeyframeWindow) -> HashMap<u64, Vector2<f64>> {
+    let t = kf.snapshot.t_s;
+    kf.frames
+        .iter()
+        .find(|f| (f.t_s - t).abs() < 1e-6)
+        .map(|f| {
+            f.observations
+                .iter()
+                .map(|o| {
+                    (
+                        o.id,
+                        Vector2::new(f64::from(o.xy_norm[0]), f64::from(o.xy_norm[1])),
+                    )
+                })
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+/// Queries `db` with our frame and verifies the candidates against `history`:
+/// every loop closure that passes.
+pub fn detect(
+    db: &KeyframeDb,
+    history: &PeerHistory,
+    frame: &FrameFeatures,
+    bow: &BowVector,
+    index: &FeatureVector,
+    params: &LoopParams,
+) -> Vec<LoopClosure> {
+    let mut out = Vec::new();
+    for (entry, key, score) in db.candidates(bow, params.candidates, params.min_score) {
+        let (Some(kf), Some(kf_index), Some(list)) = (
+            history.keyframes.get(&key),
+            db.db.features(vocabulary::EntryId(entry as u32)),
+            db.descriptors.get(entry),
+        ) else {
+            continue;
+        };
+        let kf_desc: Vec<Descriptor> = list.iter().map(|(_, d)| *d).collect();
+        let pairs = match_features(
+            &frame.descriptors,
+            index,
+            &kf_desc,
+            kf_index,
+            &params.matching,
+        );
+        let points = keyframe_points(kf);
+        let (mut ours, mut theirs, mut x1, mut x2) = (vec![], vec![], vec![], vec![]);
+        for (a, b) in pairs {
+            let (id_b, _) = list[b];
+            if let Some(p) = points.get(&id_b) {
+                ours.push(frame.ids[a]);
+                theirs.push(id_b);
+                x1.push(frame.xy[a]);
+                x2.push(*p);
+            }
+        }
+        let Some(inl) = epipolar_inliers(
+            &x1,
+            &x2,
+            params.threshold,
+            params.min_inliers,
+            params.seed ^ key,
+        ) else {
+            continue;
+        };
+        let pairs: Vec<(u64, u64)> = ours
+            .into_iter()
+            .zip(theirs)
+            .zip(inl)
+            .filter(|(_, keep)| *keep)
+            .map(|(p, _)| p)
+            .collect();
+        out.push(LoopClosure {
+            keyframe: key,
+            pairs,
+            score,
+        });
+    }
+    out
+}
