@@ -5,7 +5,7 @@
 
 use crate::estimator::static_init::{read_euroc_imu_csv, ImuCsvError};
 use crate::estimator::EstimatorOptions;
-use crate::runner::{run_stream, RobotRun, RunError};
+use crate::runner::{require_features, run_stream, RobotRun, RunError};
 use common::measurement::ImuSample;
 use nalgebra::Vector3;
 use simulator::imu::Biases;
@@ -95,6 +95,7 @@ pub fn run_robot_hybrid(
         .truths
         .get(robot)
         .ok_or(RunError::Sim(simulator::SimError::NoSuchRobot(robot)))?;
+    require_features(fleet)?;
     let shift = truth.time_shift_s;
     let samples: Vec<ImuSample> = read_euroc_imu_csv(imu_csv)?
         .into_iter()

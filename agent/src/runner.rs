@@ -117,7 +117,23 @@ pub fn run_robot(
     robot: usize,
     opts: EstimatorOptions,
 ) -> Result<RobotRun, RunError> {
+    require_features(fleet)?;
     run_robot_with(fleet, robot, opts, |c| Ok(Some(c.frame)))
+}
+
+/// Refuses a fleet that renders images where simulated features are expected:
+/// rendered frames carry images, and without the image frontend every frame
+/// would be empty.
+pub fn require_features(fleet: &Fleet) -> Result<(), RunError> {
+    if fleet.renderer.is_some() {
+        return Err(RunError::Frames {
+            t: f64::NAN,
+            reason: "the scenario renders images: run it through the image frontend \
+                     (`agent run --render`, cargo feature `vision`)"
+                .into(),
+        });
+    }
+    Ok(())
 }
 
 /// [`run_robot`] with the feature frames made by `frames` from each camera

@@ -51,3 +51,16 @@ fn bias_columns_of_the_euroc_ground_truth_are_read() {
             .is_empty()
     );
 }
+
+#[test]
+fn feature_level_runs_refuse_a_scenario_that_renders_images() {
+    let mut sc =
+        Scenario::load(&root().join("sim-fleet/scenarios/v1_01_easy.yaml")).expect("scenario");
+    sc.render.enabled = true;
+    let fleet = Fleet::build(&sc, 1).expect("fleet");
+    let opts = options_for(&sc.estimator, &fleet, Variant::Indp);
+    let err = agent::runner::run_robot(&fleet, 0, opts)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("image frontend"), "{err}");
+}
