@@ -5,7 +5,7 @@
 use crate::frontend::FrontendOptions;
 use crate::runner::Variant;
 use crate::transport::{Iceoryx2Settings, TransportKind, TransportSettings, ZenohSettings};
-use common::estimator_options::FeatureRepresentation;
+use common::estimator_options::{EstimatorOptions, FeatureRepresentation};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -187,6 +187,47 @@ pub struct EstimatorSection {
     /// SLAM feature representation: `global` or `anchored`.
     #[serde(default)]
     pub feat_rep_slam: Option<FeatureRepresentation>,
+    /// Vocabulary file for historical loop closures (`vocab train` output);
+    /// without it, a vocabulary for random binary descriptors (the simulator's)
+    /// is built in memory.
+    #[serde(default)]
+    pub vocabulary: Option<PathBuf>,
+}
+
+impl EstimatorSection {
+    /// Applies the overrides that are set to `o`.
+    pub fn apply(&self, o: &mut EstimatorOptions) {
+        if let Some(v) = self.max_clones {
+            o.max_clones = v;
+        }
+        if let Some(v) = self.max_slam {
+            o.max_slam_features = v;
+        }
+        if let Some(v) = self.max_slam_in_update {
+            o.max_slam_in_update = v;
+        }
+        if let Some(v) = self.max_msckf_in_update {
+            o.max_msckf_in_update = v;
+        }
+        if let Some(v) = self.use_fej {
+            o.use_fej = v;
+        }
+        if let Some(v) = self.calib_cam_extrinsics {
+            o.calib_extrinsics = v;
+        }
+        if let Some(v) = self.calib_cam_intrinsics {
+            o.calib_intrinsics = v;
+        }
+        if let Some(v) = self.calib_cam_timeoffset {
+            o.calib_time_offset = v;
+        }
+        if let Some(v) = self.try_zupt {
+            o.zero_velocity_update = v;
+        }
+        if let Some(v) = self.feat_rep_slam {
+            o.feature_representation = v;
+        }
+    }
 }
 
 fn default_variant() -> String {
@@ -207,6 +248,7 @@ impl Default for EstimatorSection {
             calib_cam_timeoffset: None,
             try_zupt: None,
             feat_rep_slam: None,
+            vocabulary: None,
         }
     }
 }
@@ -300,7 +342,10 @@ pub struct PublishConfig {
 }
 
 fn default_snapshot_every() -> u32 {
-    6
+    std::env::var("FVIO_SNAP")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(6)
 }
 
 impl Default for PublishConfig {

@@ -12,6 +12,7 @@
 pub mod agent_log;
 pub mod agent_log_views;
 pub mod agent_output;
+pub mod central;
 pub mod config;
 pub mod cooperation;
 pub mod dataset;

@@ -45,6 +45,9 @@ pub enum NodeError {
     /// Estimator set-up error.
     #[error(transparent)]
     Run(#[from] RunError),
+    /// The vocabulary file could not be loaded.
+    #[error(transparent)]
+    Vocabulary(#[from] vocabulary::VocabIoError),
     /// The transport failed beyond recovery.
     #[error(transparent)]
     Transport(#[from] TransportError),
@@ -373,10 +376,17 @@ pub fn run_node(
     let start_t = fleet
         .estimator_start_time(robot)
         .ok_or(simulator::SimError::NoSuchRobot(robot))?;
-    let mut est = Estimator::new(
-        options_for(spec, fleet, setup.variant),
-        fleet.initial_calibration(robot),
-    );
+    let mut opts = options_for(spec, fleet, setup.variant);
+    cfg.estimator.apply(&mut opts);
+    let historical = opts.cooperation.historical;
+    let mut est = Estimator::new(opts, fleet.initial_calibration(robot));
+    if historical {
+        let voc = match &cfg.estimator.vocabulary {
+            Some(path) => Some(std::sync::Arc::new(vocabulary::Vocabulary::load(path)?)),
+            None => crate::cooperation::builtin_vocabulary(),
+        };
+        est.set_vocabulary(voc);
+    }
     let log = if cfg.mcap_log {
         std::fs::create_dir_all(&cfg.output_dir).ok();
         match crate::agent_log::AgentLog::create(&cfg.output_dir.join("agent.mcap")) {
@@ -537,7 +547,7 @@ pub fn run_node(
                     }
                 }
             }
-            for out in est.poll() {
+            for out in est.poll_with(&node.report.histories) {
                 let Some((index, frame)) = queued.pop_front() else {
                     break;
                 };
@@ -621,6 +631,7 @@ pub fn run_node(
         node.report.interrupted = node.report.interrupted || tick < setup.ticks_total;
     }
     node.report.fleet_s = t_last - grid.t0_s;
+    node.report.run.cooperation = est.cooperation().map(|c| c.stats);
     node.report.wall_s = node.wall_s();
     if let Some(log) = node.log.take() {
         if let Err(e) = log.finish() {

@@ -13,14 +13,42 @@ use simulator::{Fleet, SimEvent};
 use std::str::FromStr;
 use thiserror::Error;
 
-/// The estimator variants of a standalone robot.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// The estimator variants (thesis Section 5.4). Every variant but `indp` uses
+/// SLAM features; the `dc-*` variants add what peers saw, with CI-EKF updates;
+/// the `ce-*` variants are the centralized estimator (one joint state).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Variant {
-    /// MSCKF only (no SLAM features).
+    /// MSCKF only (no SLAM features, nothing from peers).
     Indp,
-    /// MSCKF with SLAM features.
+    /// MSCKF with SLAM features, nothing from peers.
     IndpSlam,
+    /// Distributed: common VIO features over the window.
+    DcCmsckf,
+    /// Distributed: common VIO and SLAM features over the window, SLAM features
+    /// always by the peers' measurements.
+    DcCmsckfCslam,
+    /// Distributed: as `dc-cmsckf-cslam` with the SLAM-to-SLAM constraint update.
+    DcFullWindow,
+    /// Distributed: as `dc-full-window` plus historical features (loop closures
+    /// to peers' stored keyframe windows).
+    DcFullHistory,
+    /// Centralized: common VIO features over the window.
+    CeCmsckf,
+    /// Centralized: common VIO and SLAM features over the window.
+    CeCmsckfCslam,
 }
+
+/// Every variant, in the thesis' table order.
+pub const ALL_VARIANTS: [Variant; 8] = [
+    Variant::Indp,
+    Variant::IndpSlam,
+    Variant::CeCmsckf,
+    Variant::CeCmsckfCslam,
+    Variant::DcCmsckf,
+    Variant::DcCmsckfCslam,
+    Variant::DcFullWindow,
+    Variant::DcFullHistory,
+];
 
 impl Variant {
     /// The name used on command lines and in summaries.
@@ -28,6 +56,41 @@ impl Variant {
         match self {
             Variant::Indp => "indp",
             Variant::IndpSlam => "indp-slam",
+            Variant::DcCmsckf => "dc-cmsckf",
+            Variant::DcCmsckfCslam => "dc-cmsckf-cslam",
+            Variant::DcFullWindow => "dc-full-window",
+            Variant::DcFullHistory => "dc-full-history",
+            Variant::CeCmsckf => "ce-cmsckf",
+            Variant::CeCmsckfCslam => "ce-cmsckf-cslam",
+        }
+    }
+
+    /// Whether the variant needs its peers (a fleet run).
+    pub fn cooperative(self) -> bool {
+        !matches!(self, Variant::Indp | Variant::IndpSlam)
+    }
+
+    /// Whether the variant is the centralized estimator (one process for all).
+    pub fn centralized(self) -> bool {
+        matches!(self, Variant::CeCmsckf | Variant::CeCmsckfCslam)
+    }
+
+    /// Sets what the variant takes from peers (distributed variants; the
+    /// centralized ones use the same flags for their joint updates).
+    pub fn apply(self, o: &mut EstimatorOptions) {
+        let c = &mut o.cooperation;
+        c.common_vio = self.cooperative();
+        c.common_slam = matches!(
+            self,
+            Variant::DcCmsckfCslam
+                | Variant::DcFullWindow
+                | Variant::DcFullHistory
+                | Variant::CeCmsckfCslam
+        );
+        c.slam_constraint = matches!(self, Variant::DcFullWindow | Variant::DcFullHistory);
+        c.historical = self == Variant::DcFullHistory;
+        if self == Variant::Indp {
+            o.max_slam_features = 0;
         }
     }
 }
@@ -35,11 +98,11 @@ impl Variant {
 impl FromStr for Variant {
     type Err = RunError;
     fn from_str(s: &str) -> Result<Self, RunError> {
-        match s {
-            "indp" => Ok(Variant::Indp),
-            "indp-slam" => Ok(Variant::IndpSlam),
-            other => Err(RunError::UnknownVariant(other.to_string())),
-        }
+        ALL_VARIANTS
+            .iter()
+            .copied()
+            .find(|v| v.name() == s)
+            .ok_or_else(|| RunError::UnknownVariant(s.to_string()))
     }
 }
 
@@ -50,7 +113,7 @@ pub enum RunError {
     #[error(transparent)]
     Sim(#[from] simulator::SimError),
     /// A variant name that does not exist.
-    #[error("unknown variant `{0}` (known: indp, indp-slam)")]
+    #[error("unknown variant `{0}` (known: indp, indp-slam, dc-cmsckf, dc-cmsckf-cslam, dc-full-window, dc-full-history, ce-cmsckf, ce-cmsckf-cslam)")]
     UnknownVariant(String),
     /// The robot never moved enough to start.
     #[error("robot {0} has no camera frame after its start time")]
@@ -89,9 +152,8 @@ pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> Est
     o.imu.accel_noise_density = imu.accel_noise_density;
     o.imu.accel_random_walk = imu.accel_random_walk;
     o.imu.gravity_mps2 = imu.gravity_mps2;
-    if variant == Variant::Indp {
-        o.max_slam_features = 0;
-    }
+    o.cooperation = spec.cooperation.clone();
+    variant.apply(&mut o);
     o
 }
 
@@ -108,6 +170,8 @@ pub struct RobotRun {
     pub frames: Vec<FrameOutput>,
     /// Inputs and frames the estimator rejected, with the reason.
     pub rejected: Vec<String>,
+    /// Cooperation counters at the end (cooperative variants only).
+    pub cooperation: Option<crate::cooperation::CooperationStats>,
 }
 
 /// Runs robot `robot` of `fleet` with `opts`, initialized at the true state once
@@ -270,6 +334,10 @@ impl RobotRun {
             frames: Some(self.frames.len() as u64),
             ms_per_frame_mean: mean,
             ms_per_frame_p95: p95,
+            loop_closures: self.cooperation.map(|c| c.loop_closures),
+            common_feature_updates: self
+                .cooperation
+                .map(|_| self.frames.iter().map(|f| f.coop.updates() as u64).sum()),
             ..MetricSet::default()
         }
     }
@@ -286,12 +354,12 @@ pub fn write_run_outputs(run: &RobotRun, dir: &std::path::Path) -> std::io::Resu
     common::trajectory::write_covariances(dir.join("covariance.txt"), &run.covariance)
         .map_err(to_io)?;
     let mut timing = std::io::BufWriter::new(std::fs::File::create(dir.join("timing.csv"))?);
-    writeln!(timing, "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed")?;
+    writeln!(timing, "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed,matching_ms,common_vio_ms,common_slam_ms,constraint_ms,common_vio_used,common_vio_rejected,common_slam_used,constraints_used,participants,historical_participants,ci_participants,omega_own")?;
     for f in &run.frames {
         let t = &f.timing;
         writeln!(
             timing,
-            "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{}",
+            "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{:.6}",
             f.t,
             t.propagate_ms,
             t.msckf_ms,
@@ -306,7 +374,19 @@ pub fn write_run_outputs(run: &RobotRun, dir: &std::path::Path) -> std::io::Resu
             f.slam.updated,
             f.slam.rejected_chi2,
             f.slam.initialized,
-            f.slam.init_failed
+            f.slam.init_failed,
+            f.coop.matching_ms,
+            f.coop.common_vio_ms,
+            f.coop.common_slam_ms,
+            f.coop.constraint_ms,
+            f.coop.common_vio.used,
+            f.coop.common_vio.rejected_chi2,
+            f.coop.common_slam.used,
+            f.coop.constraints.used,
+            f.coop.participants,
+            f.coop.historical_participants,
+            f.coop.ci_participants,
+            f.coop.omega_own
         )?;
     }
     timing.flush()

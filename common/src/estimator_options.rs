@@ -144,6 +144,9 @@ pub struct CooperationOptions {
     pub loop_min_score: f64,
     /// Loop-closure candidates checked per peer and frame (best scores first).
     pub loop_candidates: usize,
+    /// Historical keyframe windows of one peer a feature takes measurements
+    /// from (the ones with the most; each is one more CI participant).
+    pub max_keyframes_per_track: usize,
 }
 
 impl Default for CooperationOptions {
@@ -167,6 +170,7 @@ impl Default for CooperationOptions {
             epipolar_threshold_px: 2.0,
             loop_min_score: 0.05,
             loop_candidates: 2,
+            max_keyframes_per_track: 1,
         }
     }
 }

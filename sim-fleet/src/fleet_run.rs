@@ -11,7 +11,7 @@ use agent::config::{
     AgentConfig, ClockConfig, ClockMode, EstimatorSection, HistoryConfig, InputConfig, InputSource,
     PublishConfig, TransportSection,
 };
-use agent::node::{run_node, RobotSetup};
+use agent::node::{run_node, NodeReport, RobotSetup};
 use agent::transport::{InprocHub, TransportKind, ZenohSettings};
 use anyhow::{bail, Context, Result};
 use common::summary::{MetricSet, RobotSummary, RunSummary};
@@ -385,6 +385,22 @@ fn run_threads(
     stop: &Arc<AtomicBool>,
     bar: &ProgressBar,
 ) -> Result<Vec<String>> {
+    let results = run_inproc(configs, stop, Some(bar))?;
+    Ok(results
+        .into_iter()
+        .enumerate()
+        .filter_map(|(i, r)| r.err().map(|e| format!("robot {i}: {e}")))
+        .collect())
+}
+
+/// Runs the agents of `configs` as threads of this process over one in-process
+/// hub, writing each agent's outputs; returns each agent's report, or why it
+/// failed. With `bar`, shows their progress.
+pub fn run_inproc(
+    configs: &[AgentConfig],
+    stop: &Arc<AtomicBool>,
+    bar: Option<&ProgressBar>,
+) -> Result<Vec<std::result::Result<NodeReport, String>>> {
     let hub = InprocHub::new();
     let board = Arc::new(Mutex::new(Board::default()));
     let n = configs.len();
@@ -394,7 +410,7 @@ fn run_threads(
         let transport = agent::transport::open(&cfg.transport_settings(), Some(&hub))?;
         let stop = Arc::clone(stop);
         let board = Arc::clone(&board);
-        handles.push(std::thread::spawn(move || -> Result<()> {
+        handles.push(std::thread::spawn(move || -> Result<NodeReport> {
             let setup = RobotSetup::load(&cfg)?;
             let report = run_node(&cfg, &setup, transport, &stop, |p| {
                 if let Ok(mut b) = board.lock() {
@@ -406,24 +422,23 @@ fn run_threads(
             if let Ok(mut b) = board.lock() {
                 b.done += 1;
             }
-            Ok(())
+            Ok(report)
         }));
     }
-    let mut failures = Vec::new();
     while handles.iter().any(|h| !h.is_finished()) {
-        if let Ok(b) = board.lock() {
+        if let (Some(bar), Ok(b)) = (bar, board.lock()) {
             b.show(bar, n);
         }
-        std::thread::sleep(Duration::from_millis(100));
+        std::thread::sleep(Duration::from_millis(20));
     }
-    for (i, h) in handles.into_iter().enumerate() {
-        match h.join() {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => failures.push(format!("robot {i}: {e:#}")),
-            Err(_) => failures.push(format!("robot {i}: panicked")),
-        }
-    }
-    Ok(failures)
+    Ok(handles
+        .into_iter()
+        .map(|h| match h.join() {
+            Ok(Ok(r)) => Ok(r),
+            Ok(Err(e)) => Err(format!("{e:#}")),
+            Err(_) => Err("panicked".to_string()),
+        })
+        .collect())
 }
 
 /// Reads every agent's `summary.json` into the run's summary.

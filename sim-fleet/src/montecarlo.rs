@@ -15,6 +15,7 @@
 //! outputs stop the study.
 
 pub mod aggregate;
+mod fleet_job;
 pub mod table;
 
 use agent::runner::{options_for, run_robot, Variant};
@@ -101,21 +102,24 @@ pub enum MontecarloError {
     },
 }
 
-/// One unit of work: robot `robot` of seed `seeds[seed]` with `variants[variant]`.
+/// One unit of work: seed `seeds[seed]` with `variants[variant]`, for robot
+/// `robot` standalone, or (`None`) the whole fleet at once (cooperative
+/// variants: agents over the in-process transport in lockstep, or the
+/// centralized estimator).
 #[derive(Clone, Copy, Debug)]
 struct Job {
     seed: usize,
     variant: usize,
-    robot: usize,
+    robot: Option<usize>,
 }
 
 /// What a job produced.
 enum JobResult {
-    /// The run finished and its files are written.
+    /// The runs finished and their files are written.
     Done {
-        /// Its metrics.
-        metrics: Box<MetricSet>,
-        /// Simulated seconds of its estimate.
+        /// Each robot's metrics.
+        robots: Vec<(usize, MetricSet)>,
+        /// Simulated seconds of the estimates.
         sim_s: f64,
     },
     /// The estimator (or the fleet of its seed) failed or panicked.
@@ -147,6 +151,7 @@ struct SeedSlot {
 /// Everything the workers share.
 struct Study<'a> {
     scenario: &'a Scenario,
+    scenario_path: &'a Path,
     seeds: &'a [u64],
     variants: &'a [Variant],
     out: &'a Path,
@@ -208,13 +213,16 @@ impl Study<'_> {
     }
 
     fn run_inner(&self, job: Job) -> JobResult {
+        let Some(robot) = job.robot else {
+            return self.run_fleet_job(job);
+        };
         let fleet = match self.fleet(job.seed) {
             Ok(fleet) => fleet,
             Err(e) => return JobResult::Failed(e),
         };
         let variant = self.variants[job.variant];
         let opts = options_for(&fleet.scenario.estimator, &fleet, variant);
-        let run = match run_robot(&fleet, job.robot, opts) {
+        let run = match run_robot(&fleet, robot, opts) {
             Ok(run) => run,
             Err(e) => return JobResult::Failed(e.to_string()),
         };
@@ -223,7 +231,7 @@ impl Study<'_> {
             tracing::debug!(
                 variant = variant.name(),
                 seed = self.seeds[job.seed],
-                robot = job.robot,
+                robot,
                 "{} inputs rejected, the first: {}",
                 run.rejected.len(),
                 run.rejected[0]
@@ -231,7 +239,7 @@ impl Study<'_> {
         }
         let dir = self
             .seed_dir(job.variant, job.seed)
-            .join(format!("robot{}", job.robot));
+            .join(format!("robot{robot}"));
         let written = create_dir(&dir).and_then(|()| {
             write_tum(dir.join("estimate.txt"), &run.estimate)?;
             write_tum(dir.join("groundtruth.txt"), &run.truth)?;
@@ -246,8 +254,22 @@ impl Study<'_> {
             _ => 0.0,
         };
         JobResult::Done {
-            metrics: Box::new(run.metrics()),
+            robots: vec![(robot, run.metrics())],
             sim_s,
+        }
+    }
+
+    /// A cooperative variant: the whole fleet of the seed at once.
+    fn run_fleet_job(&self, job: Job) -> JobResult {
+        let variant = self.variants[job.variant];
+        let seed = self.seeds[job.seed];
+        let dir = self.seed_dir(job.variant, job.seed);
+        if let Err(e) = create_dir(&dir) {
+            return JobResult::Fatal(e);
+        }
+        match fleet_job::run(self.scenario_path, self.scenario, seed, variant, &dir) {
+            Ok((robots, sim_s)) => JobResult::Done { robots, sim_s },
+            Err(e) => JobResult::Failed(e),
         }
     }
 }
@@ -308,7 +330,7 @@ fn run_jobs(
                                 tracing::warn!(
                                     variant = study.variants[job.variant].name(),
                                     seed = study.seeds[job.seed],
-                                    robot = job.robot,
+                                    robot = ?job.robot,
                                     "run failed: {e}"
                                 )
                             }),
@@ -361,8 +383,13 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<StudySummary, MontecarloError
     let robots = scenario.robots.len();
     let jobs: Vec<Job> = (0..seeds.len())
         .flat_map(|seed| {
-            (0..variants.len()).flat_map(move |variant| {
-                (0..robots).map(move |robot| Job {
+            variants.iter().enumerate().flat_map(move |(variant, v)| {
+                let per_robot: Vec<Option<usize>> = if v.cooperative() {
+                    vec![None]
+                } else {
+                    (0..robots).map(Some).collect()
+                };
+                per_robot.into_iter().map(move |robot| Job {
                     seed,
                     variant,
                     robot,
@@ -370,6 +397,7 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<StudySummary, MontecarloError
             })
         })
         .collect();
+    let jobs_per_seed = jobs.len() / seeds.len().max(1);
     let threads = args
         .jobs
         .or_else(|| std::thread::available_parallelism().ok())
@@ -388,6 +416,7 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<StudySummary, MontecarloError
     );
     let study = Study {
         scenario: &scenario,
+        scenario_path: &args.scenario,
         seeds: &seeds,
         variants,
         out: &args.out,
@@ -395,12 +424,13 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<StudySummary, MontecarloError
             .iter()
             .map(|_| SeedSlot {
                 state: Mutex::new(FleetState::Pending),
-                remaining: AtomicUsize::new(variants.len() * robots),
+                remaining: AtomicUsize::new(jobs_per_seed),
             })
             .collect(),
         abort: AtomicBool::new(false),
     };
     let bar = progress_bar(jobs.len());
+    let robot_runs: usize = seeds.len() * variants.len() * robots;
     let outputs = run_jobs(&study, &jobs, threads, &bar);
     bar.finish_and_clear();
     let mut outputs = outputs?;
@@ -438,38 +468,59 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<StudySummary, MontecarloError
             };
             let mut outcomes = Vec::with_capacity(robots);
             for o in of_run {
-                let outcome = match &o.result {
-                    JobResult::Done { metrics, sim_s } => {
+                let produced: Vec<(usize, RobotOutcome)> = match &o.result {
+                    JobResult::Done {
+                        robots: list,
+                        sim_s,
+                    } => {
                         summary.sim_s = Some(summary.sim_s.unwrap_or(0.0).max(*sim_s));
-                        RobotOutcome {
-                            metrics: (**metrics).clone(),
-                            error: None,
-                        }
+                        list.iter()
+                            .map(|(r, m)| {
+                                (
+                                    *r,
+                                    RobotOutcome {
+                                        metrics: m.clone(),
+                                        error: None,
+                                    },
+                                )
+                            })
+                            .collect()
                     }
                     JobResult::Failed(error) => {
-                        failures.push(RunFailure {
-                            variant: variant.name().to_string(),
-                            seed,
-                            robot: o.job.robot as u32,
-                            error: error.clone(),
-                        });
-                        RobotOutcome {
-                            metrics: MetricSet::default(),
-                            error: Some(error.clone()),
-                        }
+                        let failed: Vec<usize> = match o.job.robot {
+                            Some(r) => vec![r],
+                            None => (0..robots).collect(),
+                        };
+                        failed
+                            .into_iter()
+                            .map(|r| {
+                                failures.push(RunFailure {
+                                    variant: variant.name().to_string(),
+                                    seed,
+                                    robot: r as u32,
+                                    error: error.clone(),
+                                });
+                                (
+                                    r,
+                                    RobotOutcome {
+                                        metrics: MetricSet::default(),
+                                        error: Some(error.clone()),
+                                    },
+                                )
+                            })
+                            .collect()
                     }
                     // Returned above; never aggregated.
-                    JobResult::Fatal(e) => RobotOutcome {
-                        metrics: MetricSet::default(),
-                        error: Some(e.to_string()),
-                    },
+                    JobResult::Fatal(_) => Vec::new(),
                 };
-                summary.robots.push(RobotSummary {
-                    id: o.job.robot as u32,
-                    trajectory: scenario.robot_name(o.job.robot),
-                    metrics: outcome.metrics.clone(),
-                });
-                outcomes.push(outcome);
+                for (r, outcome) in produced {
+                    summary.robots.push(RobotSummary {
+                        id: r as u32,
+                        trajectory: scenario.robot_name(r),
+                        metrics: outcome.metrics.clone(),
+                    });
+                    outcomes.push(outcome);
+                }
             }
             let metrics: Vec<MetricSet> =
                 summary.robots.iter().map(|r| r.metrics.clone()).collect();
@@ -484,10 +535,10 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<StudySummary, MontecarloError
             aggregate_variant(&robot_ids, &runs),
         ));
     }
-    if failures.len() == jobs.len() {
+    if failures.len() == robot_runs {
         if let Some(first) = failures.first() {
             return Err(MontecarloError::AllFailed {
-                count: jobs.len(),
+                count: robot_runs,
                 variant: first.variant.clone(),
                 seed: first.seed,
                 robot: first.robot,

@@ -29,6 +29,26 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
 use vocabulary::{MatchParams, Vocabulary};
 
+/// The vocabulary for random binary descriptors (the simulator's landmarks),
+/// trained once per process from a fixed seed: every agent of a simulated fleet
+/// has the same one without a file.
+pub fn builtin_vocabulary() -> Option<Arc<Vocabulary>> {
+    static VOCABULARY: std::sync::OnceLock<Option<Arc<Vocabulary>>> = std::sync::OnceLock::new();
+    VOCABULARY
+        .get_or_init(|| {
+            vocabulary::synthetic::random_descriptor_vocabulary(
+                1,
+                200,
+                100,
+                &vocabulary::TrainParams::default(),
+            )
+            .map(Arc::new)
+            .map_err(|e| tracing::warn!("no built-in vocabulary: {e}"))
+            .ok()
+        })
+        .clone()
+}
+
 /// The peers' data as received: their histories by robot id.
 pub type Peers = BTreeMap<u32, PeerHistory>;
 
@@ -267,10 +287,7 @@ impl Cooperation {
                 let mut obs = Vec::new();
                 let mut consumed = Consumed::default();
                 let mut constraint = None;
-                for link in self.links_of(id) {
-                    if !self.allowed(link, slam) {
-                        continue;
-                    }
+                for link in &self.chosen_links(id, slam, peers) {
                     let Some(h) = peers.get(&link.peer) else {
                         continue;
                     };
@@ -284,10 +301,14 @@ impl Cooperation {
                     let is_used = |k: &(u64, u64)| used.is_some_and(|u| u.contains(k));
                     if slam && self.opts.slam_constraint && constraint.is_none() {
                         let w = &ev.participants[p];
-                        if let Some(lm) = w.landmark(link.peer_track) {
+                        if let Some(j) = w.landmarks.iter().position(|l| l.id == link.peer_track) {
                             let key = (w.key, link.peer_track | CONSTRAINT_FLAG);
                             if !is_used(&key) && taken.insert((link.peer, key.0, key.1)) {
-                                constraint = Some(SlamConstraint { id, landmark: *lm });
+                                constraint = Some(SlamConstraint {
+                                    id,
+                                    participant: p,
+                                    landmark: j,
+                                });
                                 consumed.keys.push((link.peer, key.0, key.1));
                             }
                             continue;
@@ -323,6 +344,47 @@ impl Cooperation {
             }
         }
         ev
+    }
+
+    /// The links of our track `id` whose measurements this class may use: every
+    /// window link, and per peer the `max_keyframes_per_track` keyframe links
+    /// with the most measurements of the peer's track (a landmark the peer kept
+    /// in view spans several of its keyframe windows; each window is one more
+    /// CI participant, which inflates our covariance once more).
+    fn chosen_links(&self, id: u64, slam: bool, peers: &Peers) -> Vec<Link> {
+        let mut out: Vec<Link> = Vec::new();
+        let mut historical: Vec<(u32, usize, Link)> = Vec::new();
+        for link in self.links_of(id) {
+            if !self.allowed(link, slam) {
+                continue;
+            }
+            match link.source {
+                LinkSource::Window => out.push(*link),
+                LinkSource::Keyframe(k) => {
+                    let count = peers
+                        .get(&link.peer)
+                        .and_then(|h| h.keyframes.get(&k))
+                        .map_or(0, |kf| {
+                            kf.frames
+                                .iter()
+                                .filter(|f| f.observations.iter().any(|o| o.id == link.peer_track))
+                                .count()
+                        });
+                    historical.push((link.peer, count, *link));
+                }
+            }
+        }
+        // Most measurements first; ties to the newest keyframe (larger key).
+        historical.sort_by(|a, b| a.0.cmp(&b.0).then(b.1.cmp(&a.1)).then(b.2.cmp(&a.2)));
+        let mut per_peer: BTreeMap<u32, usize> = BTreeMap::new();
+        for (peer, count, link) in historical {
+            let n = per_peer.entry(peer).or_default();
+            if count > 0 && *n < self.opts.max_keyframes_per_track {
+                *n += 1;
+                out.push(link);
+            }
+        }
+        out
     }
 
     /// Whether a link may be used for this class under the options.

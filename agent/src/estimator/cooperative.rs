@@ -3,16 +3,15 @@
 //! common updates, what each did and what it cost.
 
 use super::chi2::Chi2Table;
+use super::ci_system;
 use super::feature_db::FeatureDb;
 use super::options::EstimatorOptions;
 use super::state::State;
 use super::triangulation::TriangulationOptions;
-use super::updater_ci::CiWeights;
 use super::updater_common::{self, CommonStats};
 use super::updater_common_slam;
 use crate::cooperation::loop_closure::FrameFeatures;
 use crate::cooperation::{Cooperation, Evidence};
-use common::estimator_options::{CiWeighting, CooperationOptions};
 use common::measurement::FeatureFrame;
 use std::time::Instant;
 
@@ -29,31 +28,26 @@ pub struct CoopFrameStats {
     pub participants: usize,
     /// Of which historical keyframe windows.
     pub historical_participants: usize,
+    /// Participants of the CI-EKF update (windows' poses and landmark sets).
+    pub ci_participants: usize,
+    /// Our CI weight `ω_i` in that update (1 without one).
+    pub omega_own: f64,
     /// Matching and loop-closure detection, ms.
     pub matching_ms: f64,
-    /// Common VIO update, ms.
+    /// Common VIO rows (triangulation, projection, gating), ms.
     pub common_vio_ms: f64,
-    /// Common SLAM measurement update, ms.
+    /// Common SLAM measurement rows, ms.
     pub common_slam_ms: f64,
-    /// Constraint update, ms.
+    /// Constraint rows, ms.
     pub constraint_ms: f64,
+    /// Our own rows' EKF update and the one CI-EKF update, ms.
+    pub ci_update_ms: f64,
 }
 
 impl CoopFrameStats {
     /// Features whose peer information went into an update this frame.
     pub fn updates(&self) -> usize {
         self.common_vio.used + self.common_slam.used + self.constraints.used
-    }
-}
-
-/// The CI weights of the options; `constraint` picks the constraint update's.
-pub fn weights(opts: &CooperationOptions, constraint: bool) -> CiWeights {
-    match opts.ci_weighting {
-        CiWeighting::FixedPeer if constraint => CiWeights::FixedPeer(opts.constraint_peer_weight),
-        CiWeighting::FixedPeer => CiWeights::FixedPeer(opts.ci_peer_weight),
-        CiWeighting::FixedOwn => CiWeights::FixedOwn(opts.ci_own_weight),
-        CiWeighting::MinTrace => CiWeights::MinTrace,
-        CiWeighting::MinDeterminant => CiWeights::MinDeterminant,
     }
 }
 
@@ -72,10 +66,30 @@ pub fn frame_features(frame: &FeatureFrame, db: &FeatureDb, key: u64) -> FrameFe
     out
 }
 
-/// Common VIO features: returns our tracks whose measurements were used (the
-/// rest of `ev.vio` falls back to the independent MSCKF update).
-#[allow(clippy::too_many_arguments)]
-pub fn common_vio(
+/// Which of our tracks the cooperative update used, and which common VIO
+/// tracks fall back to the independent MSCKF update.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CoopUse {
+    /// Common VIO tracks used.
+    pub vio: Vec<u64>,
+    /// Common VIO tracks not used (gated out or failed).
+    pub vio_fallback: Vec<u64>,
+    /// SLAM features updated with peers' measurements.
+    pub slam: Vec<u64>,
+    /// SLAM features updated with a constraint.
+    pub constraints: Vec<u64>,
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+/// The frame's cooperative update (thesis Section 5.3): the rows of the common
+/// VIO tracks, of the peers' measurements of our SLAM features and of the SLAM
+/// constraints, all at the current estimate; our own rows of the common tracks
+/// by a standard EKF update; everything relating us to peers in one CI-EKF
+/// update.
+pub fn update(
     state: &mut State,
     db: &FeatureDb,
     ev: &Evidence,
@@ -83,63 +97,55 @@ pub fn common_vio(
     chi2: &Chi2Table,
     tri: &TriangulationOptions,
     stats: &mut CoopFrameStats,
-) -> Vec<u64> {
-    if ev.vio.is_empty() {
-        return Vec::new();
+) -> CoopUse {
+    let mut used = CoopUse::default();
+    if ev.vio.is_empty() && ev.slam.is_empty() && ev.constraints.is_empty() {
+        return used;
     }
+    let p = &ev.participants;
     let t = Instant::now();
-    let w = weights(&opts.cooperation, false);
-    let out = updater_common::update(state, db, &ev.vio, &ev.participants, opts, &w, chi2, tri);
-    stats.common_vio = out.stats;
-    stats.common_vio_ms = t.elapsed().as_secs_f64() * 1e3;
-    out.used
-}
-
-/// Common SLAM features: the constraint updates, then the peers' measurements.
-/// Returns the features used by each, for [`Cooperation::mark_used`].
-pub fn common_slam(
-    state: &mut State,
-    ev: &Evidence,
-    opts: &EstimatorOptions,
-    chi2: &Chi2Table,
-    stats: &mut CoopFrameStats,
-) -> (Vec<u64>, Vec<u64>) {
-    let mut used_constraints = Vec::new();
-    if !ev.constraints.is_empty() {
-        let t = Instant::now();
-        let w = weights(&opts.cooperation, true);
-        let out = updater_common_slam::constraint_update(state, &ev.constraints, opts, &w, chi2);
-        stats.constraints = out.stats;
-        stats.constraint_ms = t.elapsed().as_secs_f64() * 1e3;
-        used_constraints = out.used;
+    let mut vio = updater_common::rows(state, db, &ev.vio, p, opts, chi2, tri);
+    stats.common_vio_ms = ms(t);
+    let t = Instant::now();
+    let (mut slam_rows, slam) =
+        updater_common_slam::measurement_blocks(state, &ev.slam, p, opts, chi2);
+    stats.common_slam_ms = ms(t);
+    let t = Instant::now();
+    let (constraint_rows, constraints) =
+        updater_common_slam::constraint_blocks(state, &ev.constraints, p, opts, chi2);
+    stats.constraint_ms = ms(t);
+    let t = Instant::now();
+    slam_rows.extend(constraint_rows);
+    updater_common::apply_own_rows(state, &mut vio, &mut slam_rows);
+    let mut rows = std::mem::take(&mut vio.ci);
+    rows.extend(slam_rows);
+    let result = ci_system::update(state, &rows, p, &opts.cooperation);
+    let ok = result.is_ok();
+    if let Ok(Some(o)) = &result {
+        stats.ci_participants = o.omega_peers.len();
+        stats.omega_own = o.omega_own;
     }
-    let mut used = Vec::new();
-    if !ev.slam.is_empty() {
-        let t = Instant::now();
-        let w = weights(&opts.cooperation, false);
-        let out = updater_common_slam::measurement_update(
-            state,
-            &ev.slam,
-            &ev.participants,
-            opts,
-            &w,
-            chi2,
-        );
-        stats.common_slam = out.stats;
-        stats.common_slam_ms = t.elapsed().as_secs_f64() * 1e3;
-        used = out.used;
+    stats.ci_update_ms = ms(t);
+    stats.common_vio = vio.outcome.stats;
+    stats.common_slam = slam.stats;
+    stats.constraints = constraints.stats;
+    used.vio_fallback = vio.outcome.fallback;
+    if ok {
+        used.vio = vio.outcome.used;
+        used.slam = slam.used;
+        used.constraints = constraints.used;
+    } else {
+        used.vio_fallback.extend(vio.outcome.used);
+        stats.common_vio.used = 0;
+        stats.common_slam.used = 0;
+        stats.constraints.used = 0;
     }
-    (used, used_constraints)
+    used
 }
 
 /// Records which participants were involved, and marks the used measurements.
-pub fn finish(
-    coop: &mut Cooperation,
-    ev: &Evidence,
-    used: (&[u64], &[u64], &[u64]),
-    stats: &mut CoopFrameStats,
-) {
+pub fn finish(coop: &mut Cooperation, ev: &Evidence, used: &CoopUse, stats: &mut CoopFrameStats) {
     stats.participants = ev.participants.len();
     stats.historical_participants = ev.historical.iter().filter(|h| **h).count();
-    coop.mark_used(ev, used.0, used.1, used.2);
+    coop.mark_used(ev, &used.vio, &used.slam, &used.constraints);
 }

@@ -3,7 +3,7 @@
 //! update and the delayed initialization of SLAM features.
 
 use super::feature_db::Feature;
-use super::filter::Filter;
+use super::filter::FilterView;
 use super::projection::{predict, project};
 use super::state::{Means, Var};
 use super::triangulation::{triangulate, CameraObservation, TriangulationOptions};
@@ -22,7 +22,7 @@ pub struct Columns {
 
 impl Columns {
     /// The window layout of `state`.
-    pub fn window<F: Filter + ?Sized>(state: &F) -> Self {
+    pub fn window<F: FilterView + ?Sized>(state: &F) -> Self {
         let mut vars = Vec::with_capacity(2 + state.means().clones.len());
         for v in [Var::Extrinsic, Var::Intrinsics] {
             if state.has(v) {

@@ -14,15 +14,20 @@ use nalgebra::{DMatrix, DVector, SMatrix};
 /// The 15x15 IMU error-state transition and noise of one propagation interval.
 pub type ImuMatrix = SMatrix<f64, 15, 15>;
 
-/// One robot's filter: its means and the covariance operations on its variables.
-/// Updates apply their correction to every mean the covariance couples.
-pub trait Filter {
+/// Read access to one robot in a filter: its means and which of its variables
+/// are estimated.
+pub trait FilterView {
     /// The robot's means.
     fn means(&self) -> &Means;
-    /// The robot's means, for updating in place.
-    fn means_mut(&mut self) -> &mut Means;
     /// Whether the robot's variable `var` is in the state.
     fn has(&self, var: Var) -> bool;
+}
+
+/// One robot's filter: its means and the covariance operations on its variables.
+/// Updates apply their correction to every mean the covariance couples.
+pub trait Filter: FilterView {
+    /// The robot's means, for updating in place.
+    fn means_mut(&mut self) -> &mut Means;
     /// `rᵀ (H P Hᵀ + R)⁻¹ r` over the variables `vars`.
     fn mahalanobis(
         &self,
@@ -82,15 +87,18 @@ pub(crate) fn transition_rows(cov: &mut DMatrix<f64>, o: usize, phi: &ImuMatrix,
     cov.view_mut((o, o), (15, 15)).copy_from(&sym);
 }
 
-impl Filter for State {
+impl FilterView for State {
     fn means(&self) -> &Means {
         &self.means
     }
-    fn means_mut(&mut self) -> &mut Means {
-        &mut self.means
-    }
     fn has(&self, var: Var) -> bool {
         State::has(self, var)
+    }
+}
+
+impl Filter for State {
+    fn means_mut(&mut self) -> &mut Means {
+        &mut self.means
     }
     fn mahalanobis(
         &self,

@@ -7,12 +7,15 @@
 
 pub mod camera_window;
 pub mod chi2;
+pub mod ci_system;
 pub mod cooperative;
 pub mod covariance;
 pub mod feature_classes;
 pub mod feature_db;
 pub mod feature_system;
 pub mod filter;
+pub mod frame_output;
+pub mod inputs;
 pub mod linalg;
 pub mod options;
 pub mod peer_window;

@@ -3,7 +3,7 @@
 //! `p_FinA` in the camera frame of an anchor clone `A`,
 //! `p_FinG = R_A (R_CtoI p_FinA + p_CinI) + p_A`.
 
-use super::filter::Filter;
+use super::filter::{Filter, FilterView};
 use super::state::{Means, SlamFeature, Var};
 pub use common::estimator_options::FeatureRepresentation;
 use common::so3::skew;
@@ -14,7 +14,7 @@ pub type SparseJacobian = Vec<(Var, DMatrix<f64>)>;
 
 /// `p_FinG` of feature `id` and its Jacobians w.r.t. the state variables it
 /// depends on (3 x size each), at the first estimates when `fej`.
-pub fn global_position<F: Filter + ?Sized>(
+pub fn global_position<F: FilterView + ?Sized>(
     filter: &F,
     id: u64,
     f: &SlamFeature,

@@ -22,6 +22,10 @@ pub struct PeerTerm {
     pub h: DMatrix<f64>,
     /// `P_oo`.
     pub cov: DMatrix<f64>,
+    /// Its own fixed weight (with [`CiWeights::FixedPeer`]), or its share of the
+    /// peers' weight (otherwise); `None`: the default (the `FixedPeer` value, an
+    /// equal share).
+    pub weight: Option<f64>,
 }
 
 /// How the CI weights are chosen.
@@ -58,6 +62,9 @@ struct Pieces {
     gram: Option<DMatrix<f64>>,
     /// `H_o P_o H_oᵀ` per peer.
     peers: Vec<DMatrix<f64>>,
+    /// Each peer's nominal weight: its weight with `FixedPeer`, its relative
+    /// share of `1 − ω_i` otherwise.
+    nominal: Vec<f64>,
     /// Measurement noise.
     r: DMatrix<f64>,
     /// State dimension.
@@ -65,9 +72,13 @@ struct Pieces {
 }
 
 impl Pieces {
+    /// The peers share `1 − ω_i` in proportion to their nominal weights.
     fn peer_weights(&self, omega: f64) -> Vec<f64> {
-        let l = self.peers.len();
-        vec![(1.0 - omega) / l.max(1) as f64; l]
+        let total: f64 = self.nominal.iter().sum();
+        self.nominal
+            .iter()
+            .map(|w| (1.0 - omega) * w / total.max(f64::MIN_POSITIVE))
+            .collect()
     }
 
     /// `R_o = Σ H_o P_o H_oᵀ / ω_o + R`.
@@ -155,6 +166,16 @@ pub fn update(
             .iter()
             .map(|p| &p.h * &p.cov * p.h.transpose())
             .collect(),
+        nominal: peers
+            .iter()
+            .map(|p| {
+                let default = match weights {
+                    CiWeights::FixedPeer(w) => *w,
+                    _ => 1.0,
+                };
+                p.weight.unwrap_or(default).max(1e-9)
+            })
+            .collect(),
         r: r.clone(),
         n: state.dim(),
     };
@@ -164,7 +185,9 @@ pub fn update(
     } else {
         match weights {
             CiWeights::FixedOwn(w) => w.clamp(1e-6, 1.0 - 1e-6),
-            CiWeights::FixedPeer(w) => (1.0 - peers.len() as f64 * w).clamp(1e-3, 1.0 - 1e-6),
+            CiWeights::FixedPeer(_) => {
+                (1.0 - pieces.nominal.iter().sum::<f64>()).clamp(1e-3, 1.0 - 1e-6)
+            }
             CiWeights::MinTrace => golden_min(1e-4, 1.0 - 1e-4, |w| {
                 pieces
                     .objective(w, weights)
@@ -175,7 +198,17 @@ pub fn update(
             }),
         }
     };
-    let r_others = pieces.r_others(omega);
+    let naive = std::env::var("FVIO_NAIVE").is_ok();
+    let omega = if naive { 1.0 } else { omega };
+    let r_others = if naive {
+        let mut r = pieces.r.clone();
+        for t in &pieces.peers {
+            r += t;
+        }
+        r
+    } else {
+        pieces.r_others(omega)
+    };
     let s = &pieces.hph / omega + &r_others;
     let chol = s
         .clone()
@@ -284,6 +317,7 @@ mod tests {
                 &[PeerTerm {
                     h: h_o.clone(),
                     cov: p_o.clone(),
+                    weight: None,
                 }],
                 &weights,
             )
@@ -329,7 +363,11 @@ mod tests {
         let h_i = DMatrix::from_fn(4, 15, |_, _| rng.random_range(-1.0..1.0));
         let h_o = DMatrix::from_fn(4, 6, |_, _| rng.random_range(-1.0..1.0));
         let r = DMatrix::identity(4, 4) * 0.3;
-        let peer = [PeerTerm { h: h_o, cov: p_o }];
+        let peer = [PeerTerm {
+            h: h_o,
+            cov: p_o,
+            weight: None,
+        }];
         let run = |w: &CiWeights| {
             let mut s = state_with(&p_i);
             update(&mut s, &[Var::Imu], &h_i, &DVector::zeros(4), &r, &peer, w).unwrap();

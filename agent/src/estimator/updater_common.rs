@@ -17,6 +17,7 @@
 //!   of them in the CI-EKF update (the larger system the thesis compares against).
 
 use super::chi2::Chi2Table;
+use super::ci_system::{self, correct_residuals, CiRows, Part, PeerRows};
 use super::feature_db::FeatureDb;
 use super::feature_system::{build_at, camera_observations, Columns};
 use super::linalg::{compress_in_place, givens_qr_split, nullspace_project_in_place};
@@ -24,7 +25,6 @@ use super::options::EstimatorOptions;
 use super::peer_window::{project_normalized, PeerWindow};
 use super::state::{State, Var};
 use super::triangulation::{triangulate, CameraObservation, TriangulationOptions};
-use super::updater_ci::{self, CiWeights, PeerTerm};
 use common::estimator_options::CommonProjection;
 use nalgebra::{DMatrix, DVector, Vector2};
 #[cfg(test)]
@@ -338,8 +338,100 @@ fn place(dst: &mut DMatrix<f64>, r0: usize, src: &DMatrix<f64>, vars: &[Var], co
     }
 }
 
-/// Updates `state` with the common tracks: our own rows by the EKF, the rows
-/// relating us to peers by the CI-EKF (Eqs. 5.15-5.17).
+/// The common tracks' rows, ready for the updates.
+#[derive(Clone, Debug, Default)]
+pub struct CommonRows {
+    /// What was built, gated and used.
+    pub outcome: CommonOutcome,
+    /// Rows relating us to peers, one block per feature (for the CI-EKF).
+    pub ci: Vec<CiRows>,
+    /// Our own rows over the window (two-stage only), for a standard EKF
+    /// update: variables, `H`, `r` (whitened).
+    pub own: Option<(Vec<Var>, DMatrix<f64>, DVector<f64>)>,
+}
+
+/// Linearizes, projects and gates the common tracks at the current estimate.
+#[allow(clippy::too_many_arguments)]
+pub fn rows(
+    state: &State,
+    db: &FeatureDb,
+    tracks: &[CommonTrack],
+    participants: &[PeerWindow],
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+    tri: &TriangulationOptions,
+) -> CommonRows {
+    let projection = opts.cooperation.projection;
+    let mut out = CommonRows::default();
+    let mut own_blocks = Vec::new();
+    for t in tracks {
+        match feature_rows(state, db, t, participants, opts, projection, chi2, tri) {
+            Ok(r) => {
+                out.outcome.used.push(t.id);
+                out.outcome.stats.peer_measurements += r.peer_measurements;
+                out.outcome.stats.ci_rows += r.res.len();
+                if let Some((h, v)) = r.own {
+                    out.outcome.stats.own_rows += v.len();
+                    own_blocks.push((r.our_vars.clone(), h, v));
+                }
+                out.ci.push(CiRows {
+                    vars: r.our_vars,
+                    h: r.h_i,
+                    res: r.res,
+                    peers: r
+                        .peers
+                        .into_iter()
+                        .map(|p| PeerRows {
+                            part: Part::Poses(p.participant),
+                            items: p.poses,
+                            h: p.h,
+                        })
+                        .collect(),
+                });
+            }
+            Err(gated) => {
+                if gated {
+                    out.outcome.stats.rejected_chi2 += 1;
+                } else {
+                    out.outcome.stats.failed += 1;
+                }
+                out.outcome.fallback.push(t.id);
+            }
+        }
+    }
+    out.outcome.stats.used = out.ci.len();
+    let m_own: usize = own_blocks.iter().map(|(_, _, v)| v.len()).sum();
+    if m_own > 0 {
+        let cols = Columns::window(state);
+        let mut h = DMatrix::zeros(m_own, cols.dim);
+        let mut res = DVector::zeros(m_own);
+        let mut r0 = 0;
+        for (vars, hb, vb) in &own_blocks {
+            place(&mut h, r0, hb, vars, &cols);
+            res.rows_mut(r0, vb.len()).copy_from(vb);
+            r0 += vb.len();
+        }
+        compress_in_place(&mut h, &mut res);
+        out.own = Some((cols.vars, h, res));
+    }
+    out
+}
+
+/// Our own rows by a standard EKF update; the CI rows' residuals then follow its
+/// correction to first order (they were linearized before it).
+pub fn apply_own_rows(state: &mut State, rows: &mut CommonRows, others: &mut [CiRows]) {
+    let Some((vars, h, res)) = rows.own.take() else {
+        return;
+    };
+    let eye = DMatrix::identity(res.len(), res.len());
+    if let Ok(dx) = state.ekf_update_dx(&vars, &h, &res, &eye) {
+        correct_residuals(&mut rows.ci, state, &dx);
+        correct_residuals(others, state, &dx);
+    }
+}
+
+/// Updates `state` with the common tracks alone: our own rows by the EKF, the
+/// rows relating us to peers by one CI-EKF update (Eqs. 5.15-5.17).
 #[allow(clippy::too_many_arguments)]
 pub fn update(
     state: &mut State,
@@ -347,155 +439,17 @@ pub fn update(
     tracks: &[CommonTrack],
     participants: &[PeerWindow],
     opts: &EstimatorOptions,
-    weights: &CiWeights,
     chi2: &Chi2Table,
     tri: &TriangulationOptions,
 ) -> CommonOutcome {
-    let projection = opts.cooperation.projection;
-    let mut out = CommonOutcome::default();
-    let mut rows = Vec::with_capacity(tracks.len());
-    for t in tracks {
-        match feature_rows(state, db, t, participants, opts, projection, chi2, tri) {
-            Ok(r) => {
-                out.used.push(t.id);
-                rows.push(r);
-            }
-            Err(gated) => {
-                if gated {
-                    out.stats.rejected_chi2 += 1;
-                } else {
-                    out.stats.failed += 1;
-                }
-                out.fallback.push(t.id);
-            }
-        }
-    }
-    if rows.is_empty() {
-        return out;
-    }
-    let cols = Columns::window(state);
-    // Each participant's poses over all features, sorted: its columns.
-    let mut poses_of: Vec<(usize, Vec<usize>)> = Vec::new();
-    for r in &rows {
-        for part in &r.peers {
-            match poses_of.iter_mut().find(|(p, _)| *p == part.participant) {
-                Some((_, list)) => list.extend(&part.poses),
-                None => poses_of.push((part.participant, part.poses.clone())),
-            }
-        }
-    }
-    poses_of.sort_by_key(|(p, _)| *p);
-    for (_, list) in poses_of.iter_mut() {
-        list.sort_unstable();
-        list.dedup();
-    }
-    let m_ci: usize = rows.iter().map(|r| r.res.len()).sum();
-    let m_own: usize = rows
-        .iter()
-        .filter_map(|r| r.own.as_ref().map(|(_, v)| v.len()))
-        .sum();
-    let mut h_ci = DMatrix::zeros(m_ci, cols.dim);
-    let mut h_peers: Vec<DMatrix<f64>> = poses_of
-        .iter()
-        .map(|(_, p)| DMatrix::zeros(m_ci, 6 * p.len()))
-        .collect();
-    let mut res_ci = DVector::zeros(m_ci);
-    let mut h_own = DMatrix::zeros(m_own, cols.dim);
-    let mut res_own = DVector::zeros(m_own);
-    let (mut r_ci, mut r_own) = (0, 0);
-    for r in &rows {
-        let m = r.res.len();
-        place(&mut h_ci, r_ci, &r.h_i, &r.our_vars, &cols);
-        res_ci.rows_mut(r_ci, m).copy_from(&r.res);
-        for part in &r.peers {
-            let Some(j) = poses_of.iter().position(|(p, _)| *p == part.participant) else {
-                continue;
-            };
-            for (k, pose) in part.poses.iter().enumerate() {
-                let Ok(g) = poses_of[j].1.binary_search(pose) else {
-                    continue;
-                };
-                h_peers[j]
-                    .view_mut((r_ci, 6 * g), (m, 6))
-                    .copy_from(&part.h.view((0, 6 * k), (m, 6)));
-            }
-        }
-        r_ci += m;
-        if let Some((h, v)) = &r.own {
-            place(&mut h_own, r_own, h, &r.our_vars, &cols);
-            res_own.rows_mut(r_own, v.len()).copy_from(v);
-            r_own += v.len();
-        }
-        out.stats.peer_measurements += r.peer_measurements;
-    }
-    out.stats.used = rows.len();
-    out.stats.ci_rows = m_ci;
-    out.stats.own_rows = m_own;
-    // 1. Our own rows: a standard EKF update; the CI rows' residuals follow its
-    //    correction to first order (they were linearized before it).
-    if m_own > 0 {
-        compress_in_place(&mut h_own, &mut res_own);
-        let eye = DMatrix::identity(res_own.len(), res_own.len());
-        if let Ok(dx) = state.ekf_update_dx(&cols.vars, &h_own, &res_own, &eye) {
-            let mut dx_w = DVector::zeros(cols.dim);
-            for v in &cols.vars {
-                if let (Some(c), Some(o)) = (cols.col(*v), state.offset(*v)) {
-                    dx_w.rows_mut(c, v.size()).copy_from(&dx.rows(o, v.size()));
-                }
-            }
-            res_ci -= &h_ci * dx_w;
-        }
-    }
-    // 2. The rows relating us to peers: CI-EKF.
-    let (h_ci, h_peers, res_ci) = compress_joint(h_ci, h_peers, res_ci);
-    let terms: Vec<PeerTerm> = poses_of
-        .iter()
-        .zip(h_peers)
-        .map(|((p, poses), h)| PeerTerm {
-            h,
-            cov: participants[*p].sub_covariance(poses),
-        })
-        .collect();
-    let eye = DMatrix::identity(res_ci.len(), res_ci.len());
-    if updater_ci::update(state, &cols.vars, &h_ci, &res_ci, &eye, &terms, weights).is_err() {
+    let mut rows = rows(state, db, tracks, participants, opts, chi2, tri);
+    apply_own_rows(state, &mut rows, &mut []);
+    let mut out = rows.outcome;
+    if ci_system::update(state, &rows.ci, participants, &opts.cooperation).is_err() {
         out.stats.used = 0;
         out.fallback.append(&mut out.used);
     }
     out
-}
-
-/// Compresses `[H_i | H_1 | ... | H_L] , r` when it has more rows than columns
-/// (white noise stays white under the orthogonal transform).
-fn compress_joint(
-    h_i: DMatrix<f64>,
-    h_peers: Vec<DMatrix<f64>>,
-    res: DVector<f64>,
-) -> (DMatrix<f64>, Vec<DMatrix<f64>>, DVector<f64>) {
-    let m = res.len();
-    let widths: Vec<usize> = std::iter::once(h_i.ncols())
-        .chain(h_peers.iter().map(|h| h.ncols()))
-        .collect();
-    let total: usize = widths.iter().sum();
-    if m <= total {
-        return (h_i, h_peers, res);
-    }
-    let mut all = DMatrix::zeros(m, total);
-    let mut c0 = 0;
-    for h in std::iter::once(&h_i).chain(h_peers.iter()) {
-        all.view_mut((0, c0), (m, h.ncols())).copy_from(h);
-        c0 += h.ncols();
-    }
-    let mut res = res;
-    compress_in_place(&mut all, &mut res);
-    let mut parts = Vec::with_capacity(widths.len());
-    let mut c0 = 0;
-    for w in widths {
-        parts.push(all.columns(c0, w).into_owned());
-        c0 += w;
-    }
-    let mut it = parts.into_iter();
-    let h_i = it.next().unwrap_or_else(|| DMatrix::zeros(res.len(), 0));
-    (h_i, it.collect(), res)
 }
 
 #[cfg(test)]
@@ -576,7 +530,6 @@ mod tests {
             &tracks,
             std::slice::from_ref(&sc.peer),
             &opts,
-            &CiWeights::FixedPeer(0.001),
             &Chi2Table::new(0.95, 500),
             &TriangulationOptions::default(),
         );

@@ -11,31 +11,25 @@
 //!   two feature positions are involved, whatever the track lengths.
 
 use super::chi2::Chi2Table;
+use super::ci_system::{self, CiRows, Part, PeerRows};
 use super::feature_system::Columns;
 use super::options::EstimatorOptions;
-use super::peer_window::{project_normalized, PeerLandmark, PeerWindow};
+use super::peer_window::{project_normalized, PeerWindow};
 use super::slam_feature::global_position;
 use super::state::{State, Var};
-use super::updater_ci::{self, CiWeights, PeerTerm};
 use super::updater_common::{CommonOutcome, CommonTrack};
 use nalgebra::{DMatrix, DVector, Vector3};
 
-/// Our SLAM feature `id` is the peer's SLAM landmark.
+/// Our SLAM feature `id` is landmark `landmark` of participant window
+/// `participant`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SlamConstraint {
     /// Our SLAM feature (track id).
     pub id: u64,
-    /// The peer's landmark estimate and marginal covariance.
-    pub landmark: PeerLandmark,
-}
-
-/// One feature's rows over its own variables and its participants' poses.
-struct Rows {
-    vars: Vec<Var>,
-    h_i: DMatrix<f64>,
-    /// `(participant, poses, H)`; for constraints the "poses" are the landmark.
-    peers: Vec<(usize, Vec<usize>, DMatrix<f64>)>,
-    res: DVector<f64>,
+    /// The peer window.
+    pub participant: usize,
+    /// Index of the landmark in that window's list.
+    pub landmark: usize,
 }
 
 /// Adds Jacobian blocks `(var, J)` times `a` into row block `r0` of `h` over
@@ -72,7 +66,7 @@ fn measurement_rows(
     track: &CommonTrack,
     participants: &[PeerWindow],
     opts: &EstimatorOptions,
-) -> Option<Rows> {
+) -> Option<CiRows> {
     let f = state.features.get(&track.id)?;
     let (p_lin, jac) = global_position(state, track.id, f, opts.use_fej)?;
     let (p_cur, _) = global_position(state, track.id, f, false)?;
@@ -81,23 +75,26 @@ fn measurement_rows(
     let m = 2 * track.peer_obs.len();
     let mut h_i = DMatrix::zeros(m, cols.dim);
     let mut res = DVector::zeros(m);
-    let mut parts: Vec<(usize, Vec<usize>)> = Vec::new();
+    let mut peers: Vec<PeerRows> = Vec::new();
     for o in &track.peer_obs {
-        match parts.iter_mut().find(|(p, _)| *p == o.participant) {
-            Some((_, poses)) => poses.push(o.pose),
-            None => parts.push((o.participant, vec![o.pose])),
+        match peers
+            .iter_mut()
+            .find(|p| p.part == Part::Poses(o.participant))
+        {
+            Some(p) => p.items.push(o.pose),
+            None => peers.push(PeerRows {
+                part: Part::Poses(o.participant),
+                items: vec![o.pose],
+                h: DMatrix::zeros(0, 0),
+            }),
         }
     }
-    parts.sort_by_key(|(p, _)| *p);
-    let mut peers: Vec<(usize, Vec<usize>, DMatrix<f64>)> = parts
-        .into_iter()
-        .map(|(p, mut poses)| {
-            poses.sort_unstable();
-            poses.dedup();
-            let h = DMatrix::zeros(m, 6 * poses.len());
-            (p, poses, h)
-        })
-        .collect();
+    peers.sort_by_key(|p| p.part);
+    for p in peers.iter_mut() {
+        p.items.sort_unstable();
+        p.items.dedup();
+        p.h = DMatrix::zeros(m, 6 * p.items.len());
+    }
     for (i, o) in track.peer_obs.iter().enumerate() {
         let w = participants.get(o.participant)?;
         let pose = w.poses.get(o.pose)?;
@@ -110,213 +107,191 @@ fn measurement_rows(
         res[r + 1] = e.y;
         let h_f = DMatrix::from_iterator(2, 3, lin.h_feature.iter().map(|v| v * scale));
         add_blocks(&mut h_i, r, &h_f, &jac, &cols);
-        let (_, poses, h) = peers.iter_mut().find(|(p, _, _)| *p == o.participant)?;
-        let c = 6 * poses.binary_search(&o.pose).ok()?;
-        h.fixed_view_mut::<2, 6>(r, c)
+        let p = peers
+            .iter_mut()
+            .find(|p| p.part == Part::Poses(o.participant))?;
+        let c = 6 * p.items.binary_search(&o.pose).ok()?;
+        p.h.fixed_view_mut::<2, 6>(r, c)
             .copy_from(&(lin.h_pose * scale));
     }
-    Some(Rows {
+    Some(CiRows {
         vars,
-        h_i,
-        peers,
+        h: h_i,
         res,
+        peers,
     })
 }
 
-/// Gates one feature with the innovation covariance of uncorrelated robots
-/// (`cov_of` gives a participant's covariance of the listed poses).
+/// The constraint `p_Fa − p_Fb = 0` (Eqs. 5.22-5.24) whitened by the synthetic
+/// noise: `h(x) = p_Fa − p_Fb`, `z = 0`, so `r = p̂_Fb − p̂_Fa`, `H_b = −I`.
+fn constraint_rows(
+    state: &State,
+    c: &SlamConstraint,
+    participants: &[PeerWindow],
+    opts: &EstimatorOptions,
+) -> Option<CiRows> {
+    let lm = participants.get(c.participant)?.landmarks.get(c.landmark)?;
+    let f = state.features.get(&c.id)?;
+    let (_, jac) = global_position(state, c.id, f, opts.use_fej)?;
+    let (p_cur, _) = global_position(state, c.id, f, false)?;
+    let w = 1.0 / opts.cooperation.constraint_sigma_m;
+    let vars = vars_of(&jac);
+    let cols = Columns::of(vars.clone());
+    let mut h = DMatrix::zeros(3, cols.dim);
+    add_blocks(&mut h, 0, &(DMatrix::identity(3, 3) * w), &jac, &cols);
+    let res: Vector3<f64> = (lm.pos - p_cur) * w;
+    Some(CiRows {
+        vars,
+        h,
+        res: DVector::from_column_slice(res.as_slice()),
+        peers: vec![PeerRows {
+            part: Part::Landmarks(c.participant),
+            items: vec![c.landmark],
+            h: DMatrix::identity(3, 3) * -w,
+        }],
+    })
+}
+
+/// Gates one block with the innovation covariance of uncorrelated robots (unit
+/// noise: the rows are whitened).
 fn passes_gate(
     state: &State,
-    rows: &Rows,
-    r: &DMatrix<f64>,
-    cov_of: impl Fn(usize, &[usize]) -> DMatrix<f64>,
+    rows: &CiRows,
+    participants: &[PeerWindow],
     opts: &EstimatorOptions,
     chi2: &Chi2Table,
 ) -> bool {
-    let Ok(hph) = state.covariance().projected(&rows.vars, &rows.h_i) else {
+    let Ok(hph) = state.covariance().projected(&rows.vars, &rows.h) else {
         return false;
     };
-    let mut s = hph + r;
-    for (p, poses, h) in &rows.peers {
-        s += h * cov_of(*p, poses) * h.transpose();
+    let m = rows.res.len();
+    let mut s = hph + DMatrix::identity(m, m);
+    for p in &rows.peers {
+        let cov = match p.part {
+            Part::Poses(w) => participants[w].sub_covariance(&p.items),
+            Part::Landmarks(w) => {
+                let Some(lm) = p
+                    .items
+                    .first()
+                    .and_then(|j| participants[w].landmarks.get(*j))
+                else {
+                    return false;
+                };
+                DMatrix::from_iterator(3, 3, lm.cov.iter().copied())
+            }
+        };
+        s += &p.h * cov * p.h.transpose();
     }
     let Some(chol) = s.cholesky() else {
         return false;
     };
-    rows.res.dot(&chol.solve(&rows.res)) <= opts.chi2_multiplier * chi2.get(rows.res.len())
+    rows.res.dot(&chol.solve(&rows.res)) <= opts.chi2_multiplier * chi2.get(m)
 }
 
-/// Stacks the features' rows into one CI-EKF update over the union of their
-/// variables; participant `p`'s columns are the union of its poses.
-fn stacked_update(
-    state: &mut State,
-    rows: &[Rows],
-    noise_var: f64,
-    cov_of: impl Fn(usize, &[usize]) -> DMatrix<f64>,
-    weights: &CiWeights,
-) -> bool {
-    let mut vars: Vec<Var> = Vec::new();
-    // Per participant: its poses (or landmark) and the columns of each.
-    let mut poses_of: Vec<(usize, Vec<usize>, usize)> = Vec::new();
-    for r in rows {
-        for v in &r.vars {
-            if !vars.contains(v) {
-                vars.push(*v);
+/// Builds and gates one block per item; `build` gives the item's rows.
+fn gated<T>(
+    state: &State,
+    items: &[T],
+    id_of: impl Fn(&T) -> u64,
+    build: impl Fn(&T) -> Option<CiRows>,
+    participants: &[PeerWindow],
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+) -> (Vec<CiRows>, CommonOutcome) {
+    let mut out = CommonOutcome::default();
+    let mut rows = Vec::with_capacity(items.len());
+    for item in items {
+        match build(item) {
+            Some(r) if passes_gate(state, &r, participants, opts, chi2) => {
+                out.used.push(id_of(item));
+                out.stats.ci_rows += r.res.len();
+                rows.push(r);
             }
-        }
-        for (p, poses, hp) in &r.peers {
-            let width = hp.ncols() / poses.len().max(1);
-            match poses_of.iter_mut().find(|(q, _, _)| q == p) {
-                Some((_, list, _)) => list.extend(poses),
-                None => poses_of.push((*p, poses.clone(), width)),
+            Some(_) => {
+                out.stats.rejected_chi2 += 1;
+                out.fallback.push(id_of(item));
+            }
+            None => {
+                out.stats.failed += 1;
+                out.fallback.push(id_of(item));
             }
         }
     }
-    poses_of.sort_by_key(|(p, _, _)| *p);
-    for (_, list, _) in poses_of.iter_mut() {
-        list.sort_unstable();
-        list.dedup();
-    }
-    let cols = Columns::of(vars);
-    let m: usize = rows.iter().map(|r| r.res.len()).sum();
-    let mut h = DMatrix::zeros(m, cols.dim);
-    let mut res = DVector::zeros(m);
-    let mut h_peers: Vec<DMatrix<f64>> = poses_of
-        .iter()
-        .map(|(_, p, width)| DMatrix::zeros(m, width * p.len()))
-        .collect();
-    let mut r0 = 0;
-    for r in rows {
-        let k = r.res.len();
-        let local = Columns::of(r.vars.clone());
-        for v in &r.vars {
-            if let (Some(s), Some(d)) = (local.col(*v), cols.col(*v)) {
-                h.view_mut((r0, d), (k, v.size()))
-                    .copy_from(&r.h_i.view((0, s), (k, v.size())));
-            }
-        }
-        res.rows_mut(r0, k).copy_from(&r.res);
-        for (p, poses, hp) in &r.peers {
-            let Some(j) = poses_of.iter().position(|(q, _, _)| q == p) else {
-                continue;
-            };
-            let width = poses_of[j].2;
-            for (a, pose) in poses.iter().enumerate() {
-                let Ok(g) = poses_of[j].1.binary_search(pose) else {
-                    continue;
-                };
-                h_peers[j]
-                    .view_mut((r0, width * g), (k, width))
-                    .copy_from(&hp.view((0, width * a), (k, width)));
-            }
-        }
-        r0 += k;
-    }
-    let terms: Vec<PeerTerm> = poses_of
-        .iter()
-        .zip(h_peers)
-        .map(|((p, poses, _), h)| PeerTerm {
-            h,
-            cov: cov_of(*p, poses),
-        })
-        .collect();
-    let r = DMatrix::identity(m, m) * noise_var;
-    updater_ci::update(state, &cols.vars, &h, &res, &r, &terms, weights).is_ok()
+    out.stats.used = rows.len();
+    (rows, out)
 }
 
-/// Updates our SLAM features `tracks` with the peers' measurements of them.
+/// The peers' measurements of our SLAM features `tracks`, gated.
+pub fn measurement_blocks(
+    state: &State,
+    tracks: &[CommonTrack],
+    participants: &[PeerWindow],
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+) -> (Vec<CiRows>, CommonOutcome) {
+    let (rows, mut out) = gated(
+        state,
+        tracks,
+        |t| t.id,
+        |t| measurement_rows(state, t, participants, opts),
+        participants,
+        opts,
+        chi2,
+    );
+    out.stats.peer_measurements = tracks
+        .iter()
+        .filter(|t| out.used.contains(&t.id))
+        .map(|t| t.peer_obs.len())
+        .sum();
+    (rows, out)
+}
+
+/// The SLAM constraints, gated.
+pub fn constraint_blocks(
+    state: &State,
+    constraints: &[SlamConstraint],
+    participants: &[PeerWindow],
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+) -> (Vec<CiRows>, CommonOutcome) {
+    gated(
+        state,
+        constraints,
+        |c| c.id,
+        |c| constraint_rows(state, c, participants, opts),
+        participants,
+        opts,
+        chi2,
+    )
+}
+
+/// Updates our SLAM features with the peers' measurements alone (one CI-EKF
+/// update).
 pub fn measurement_update(
     state: &mut State,
     tracks: &[CommonTrack],
     participants: &[PeerWindow],
     opts: &EstimatorOptions,
-    weights: &CiWeights,
     chi2: &Chi2Table,
 ) -> CommonOutcome {
-    let mut out = CommonOutcome::default();
-    let cov_of = |p: usize, poses: &[usize]| participants[p].sub_covariance(poses);
-    let mut rows = Vec::with_capacity(tracks.len());
-    for t in tracks {
-        match measurement_rows(state, t, participants, opts) {
-            Some(r) => {
-                let eye = DMatrix::identity(r.res.len(), r.res.len());
-                if passes_gate(state, &r, &eye, cov_of, opts, chi2) {
-                    out.used.push(t.id);
-                    out.stats.peer_measurements += t.peer_obs.len();
-                    rows.push(r);
-                } else {
-                    out.stats.rejected_chi2 += 1;
-                    out.fallback.push(t.id);
-                }
-            }
-            None => {
-                out.stats.failed += 1;
-                out.fallback.push(t.id);
-            }
-        }
-    }
-    out.stats.used = rows.len();
-    out.stats.ci_rows = rows.iter().map(|r| r.res.len()).sum();
-    if !rows.is_empty() && !stacked_update(state, &rows, 1.0, cov_of, weights) {
+    let (rows, mut out) = measurement_blocks(state, tracks, participants, opts, chi2);
+    if ci_system::update(state, &rows, participants, &opts.cooperation).is_err() {
         out.stats.used = 0;
         out.fallback.append(&mut out.used);
     }
     out
 }
 
-/// The constraint update (Eqs. 5.22-5.24): each landmark is its own CI
-/// participant (its correlation with the peer's other landmarks is unknown too).
+/// The constraint updates alone (one CI-EKF update).
 pub fn constraint_update(
     state: &mut State,
     constraints: &[SlamConstraint],
+    participants: &[PeerWindow],
     opts: &EstimatorOptions,
-    weights: &CiWeights,
     chi2: &Chi2Table,
 ) -> CommonOutcome {
-    let mut out = CommonOutcome::default();
-    let sigma2 = opts.cooperation.constraint_sigma_m.powi(2);
-    let noise = DMatrix::identity(3, 3) * sigma2;
-    let cov_of = |p: usize, _: &[usize]| -> DMatrix<f64> {
-        constraints.get(p).map_or_else(
-            || DMatrix::identity(3, 3),
-            |c| DMatrix::from_iterator(3, 3, c.landmark.cov.iter().copied()),
-        )
-    };
-    let mut rows = Vec::with_capacity(constraints.len());
-    for (p, c) in constraints.iter().enumerate() {
-        let built = state.features.get(&c.id).and_then(|f| {
-            let (_, jac) = global_position(state, c.id, f, opts.use_fej)?;
-            let (p_cur, _) = global_position(state, c.id, f, false)?;
-            Some((jac, p_cur))
-        });
-        let Some((jac, p_cur)) = built else {
-            out.stats.failed += 1;
-            out.fallback.push(c.id);
-            continue;
-        };
-        let vars = vars_of(&jac);
-        let cols = Columns::of(vars.clone());
-        let mut h_i = DMatrix::zeros(3, cols.dim);
-        add_blocks(&mut h_i, 0, &DMatrix::identity(3, 3), &jac, &cols);
-        // h(x) = p_Fa − p_Fb, z = 0: r = p̂_Fb − p̂_Fa, H_b = −I.
-        let res: Vector3<f64> = c.landmark.pos - p_cur;
-        let r = Rows {
-            vars,
-            h_i,
-            peers: vec![(p, vec![0], -DMatrix::identity(3, 3))],
-            res: DVector::from_column_slice(res.as_slice()),
-        };
-        if passes_gate(state, &r, &noise, cov_of, opts, chi2) {
-            out.used.push(c.id);
-            rows.push(r);
-        } else {
-            out.stats.rejected_chi2 += 1;
-            out.fallback.push(c.id);
-        }
-    }
-    out.stats.used = rows.len();
-    out.stats.ci_rows = 3 * rows.len();
-    if !rows.is_empty() && !stacked_update(state, &rows, sigma2, cov_of, weights) {
+    let (rows, mut out) = constraint_blocks(state, constraints, participants, opts, chi2);
+    if ci_system::update(state, &rows, participants, &opts.cooperation).is_err() {
         out.stats.used = 0;
         out.fallback.append(&mut out.used);
     }
@@ -326,6 +301,7 @@ pub fn constraint_update(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::estimator::peer_window::PeerLandmark;
     use crate::estimator::test_scene::scene;
     use crate::estimator::updater_common::CommonTrack;
 
@@ -349,7 +325,6 @@ mod tests {
             &tracks,
             std::slice::from_ref(&sc.peer),
             &EstimatorOptions::default(),
-            &CiWeights::FixedPeer(0.001),
             &chi2(),
         );
         // Track 2 was given the peer's view of landmark 6: gated out.
@@ -380,22 +355,28 @@ mod tests {
             pos,
             cov: nalgebra::Matrix3::identity() * 1e-6,
         };
+        sc.peer.landmarks = vec![
+            lm(40, truth),
+            lm(41, sc.landmarks[1] + Vector3::new(1.5, 0.0, 0.0)),
+        ];
         let constraints = [
             SlamConstraint {
                 id: 0,
-                landmark: lm(40, truth),
+                participant: 0,
+                landmark: 0,
             },
             SlamConstraint {
                 id: 1,
-                landmark: lm(41, sc.landmarks[1] + Vector3::new(1.5, 0.0, 0.0)),
+                participant: 0,
+                landmark: 1,
             },
         ];
         let before = (sc.state.features[&0].pos - truth).norm();
         let out = constraint_update(
             &mut sc.state,
             &constraints,
+            std::slice::from_ref(&sc.peer),
             &EstimatorOptions::default(),
-            &CiWeights::FixedPeer(0.005),
             &chi2(),
         );
         assert_eq!(out.used, vec![0]);

@@ -8,6 +8,9 @@ use super::cooperative::{self, frame_features, CoopFrameStats};
 use super::feature_classes::{classify, clean_up, record_measurements, FeatureClasses};
 use super::feature_db::FeatureDb;
 use super::filter::Filter;
+pub use super::frame_output::{FrameOutput, FrameTiming};
+pub use super::inputs::InputError;
+use super::inputs::{check_frame, check_imu};
 use super::options::EstimatorOptions;
 use super::propagator::{propagate, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
@@ -23,53 +26,6 @@ use std::sync::Arc;
 use std::time::Instant;
 use thiserror::Error;
 use vocabulary::Vocabulary;
-
-/// Why an input was rejected. The estimator's state is unchanged.
-#[derive(Debug, Error, PartialEq)]
-pub enum InputError {
-    /// A value is NaN or infinite.
-    #[error("{what} at t={t} has a non-finite value")]
-    NonFinite {
-        /// Which input.
-        what: &'static str,
-        /// Its time stamp.
-        t: f64,
-    },
-    /// Time went backwards (or stood still).
-    #[error("{what} at t={t} is not after the previous one at t={previous}")]
-    TimeBackwards {
-        /// Which input.
-        what: &'static str,
-        /// Its time.
-        t: f64,
-        /// The previous time.
-        previous: f64,
-    },
-    /// A gap in the IMU stream larger than allowed.
-    #[error("IMU gap of {gap_s:.3} s before t={t} (max {max_s} s)")]
-    ImuGap {
-        /// The gap.
-        gap_s: f64,
-        /// Time of the sample after the gap.
-        t: f64,
-        /// The limit.
-        max_s: f64,
-    },
-    /// A frame without features.
-    #[error("frame at t={t} has no features")]
-    EmptyFrame {
-        /// Its time.
-        t: f64,
-    },
-    /// The same track id twice in one frame.
-    #[error("frame at t={t} repeats feature id {id}")]
-    DuplicateId {
-        /// Frame time.
-        t: f64,
-        /// The repeated id.
-        id: u64,
-    },
-}
 
 /// Why a queued frame could not be processed (it is dropped).
 #[derive(Debug, Error, PartialEq)]
@@ -105,56 +61,6 @@ pub struct InitialState {
     pub sigma_vel_mps: f64,
     /// Bias σ (both), rad/s and m/s².
     pub sigma_bias: f64,
-}
-
-/// Wall-clock cost of one frame, in milliseconds.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct FrameTiming {
-    /// Propagation and cloning.
-    pub propagate_ms: f64,
-    /// MSCKF update.
-    pub msckf_ms: f64,
-    /// SLAM update.
-    pub slam_update_ms: f64,
-    /// SLAM delayed initialization.
-    pub slam_init_ms: f64,
-    /// Marginalization and clean-up.
-    pub marginalize_ms: f64,
-    /// Cooperative matching and updates (also in [`FrameOutput::coop`]).
-    pub cooperation_ms: f64,
-    /// Everything.
-    pub total_ms: f64,
-}
-
-/// The estimate after one frame.
-#[derive(Clone, Debug)]
-pub struct FrameOutput {
-    /// IMU time of the estimate, s.
-    pub t: f64,
-    /// `R_ItoG`.
-    pub rot: Matrix3<f64>,
-    /// `p_IinG`, m.
-    pub pos: Vector3<f64>,
-    /// `v_IinG`, m/s.
-    pub vel: Vector3<f64>,
-    /// Orientation covariance (local error, rad²).
-    pub cov_ori: Matrix3<f64>,
-    /// Position covariance (m²).
-    pub cov_pos: Matrix3<f64>,
-    /// Features used in the MSCKF update.
-    pub msckf_features: usize,
-    /// What the MSCKF update did (used, gated out, failed).
-    pub msckf: updater_msckf::MsckfStats,
-    /// SLAM features in the state.
-    pub slam_features: usize,
-    /// What the SLAM step did.
-    pub slam: updater_slam::SlamStats,
-    /// The frame was a standstill handled by a zero-velocity update.
-    pub zero_velocity: bool,
-    /// What the cooperative updates did.
-    pub coop: CoopFrameStats,
-    /// Cost of the frame.
-    pub timing: FrameTiming,
 }
 
 /// The single-robot filter.
@@ -238,43 +144,8 @@ impl Estimator {
     /// Starts the filter at a given state (e.g. ground truth in simulation, or the
     /// static initializer's result) with a diagonal prior covariance.
     pub fn initialize(&mut self, init: &InitialState) {
-        let mut cov = DMatrix::zeros(15, 15);
-        let sig = [
-            init.sigma_ori_rad,
-            init.sigma_pos_m,
-            init.sigma_vel_mps,
-            init.sigma_bias,
-            init.sigma_bias,
-        ];
-        for (b, s) in sig.iter().enumerate() {
-            for i in 0..3 {
-                cov[(3 * b + i, 3 * b + i)] = s * s;
-            }
-        }
-        let p = &self.opts.calib_prior;
-        let mut calib_vars = Vec::new();
-        if self.opts.calib_time_offset {
-            calib_vars.push((
-                Var::TimeOffset,
-                DMatrix::from_element(1, 1, p.time_offset_s.powi(2)),
-            ));
-        }
-        if self.opts.calib_extrinsics {
-            let mut c = DMatrix::zeros(6, 6);
-            for i in 0..3 {
-                c[(i, i)] = p.extrinsic_rot_rad.powi(2);
-                c[(3 + i, 3 + i)] = p.extrinsic_pos_m.powi(2);
-            }
-            calib_vars.push((Var::Extrinsic, c));
-        }
-        if self.opts.calib_intrinsics {
-            let mut c = DMatrix::zeros(8, 8);
-            for i in 0..4 {
-                c[(i, i)] = p.intrinsics_px.powi(2);
-                c[(4 + i, 4 + i)] = p.distortion.powi(2);
-            }
-            calib_vars.push((Var::Intrinsics, c));
-        }
+        let mut blocks = initial_blocks(&self.opts, init);
+        let imu_cov = blocks.remove(0).1;
         let imu = ImuState {
             rot: init.rot,
             pos: init.pos,
@@ -294,9 +165,9 @@ impl Estimator {
         self.state = Some(State::new(
             init.t,
             imu,
-            cov,
+            imu_cov,
             self.calib.clone(),
-            &calib_vars,
+            &blocks,
         ));
         // Frames before the start are not used.
         self.frames
@@ -330,31 +201,7 @@ impl Estimator {
 
     /// Adds an IMU sample (rejects NaN, time going backwards and gaps).
     pub fn feed_imu(&mut self, s: ImuSample) -> Result<(), InputError> {
-        if !(s.t.is_finite()
-            && s.gyro.iter().all(|v| v.is_finite())
-            && s.accel.iter().all(|v| v.is_finite()))
-        {
-            return Err(InputError::NonFinite {
-                what: "IMU sample",
-                t: s.t,
-            });
-        }
-        if let Some(prev) = self.imu.back() {
-            if s.t <= prev.t {
-                return Err(InputError::TimeBackwards {
-                    what: "IMU sample",
-                    t: s.t,
-                    previous: prev.t,
-                });
-            }
-            if s.t - prev.t > self.opts.max_imu_gap_s {
-                return Err(InputError::ImuGap {
-                    gap_s: s.t - prev.t,
-                    t: s.t,
-                    max_s: self.opts.max_imu_gap_s,
-                });
-            }
-        }
+        check_imu(self.imu.back(), &s, self.opts.max_imu_gap_s)?;
         self.imu.push_back(s);
         Ok(())
     }
@@ -362,37 +209,10 @@ impl Estimator {
     /// Queues a feature frame (validated); it is processed by [`Estimator::poll`]
     /// once the IMU covers its time.
     pub fn feed_frame(&mut self, frame: FeatureFrame) -> Result<(), InputError> {
-        if !frame.t.is_finite()
-            || frame
-                .features
-                .iter()
-                .any(|f| !(f.uv.x.is_finite() && f.uv.y.is_finite()))
-        {
-            return Err(InputError::NonFinite {
-                what: "frame",
-                t: frame.t,
-            });
-        }
-        if let Some(prev) = self.frames.back().map(|f| f.t).or(self.last_frame_t) {
-            if frame.t <= prev {
-                return Err(InputError::TimeBackwards {
-                    what: "frame",
-                    t: frame.t,
-                    previous: prev,
-                });
-            }
-        }
-        if frame.features.is_empty() {
-            return Err(InputError::EmptyFrame { t: frame.t });
-        }
-        let mut ids: Vec<u64> = frame.features.iter().map(|f| f.id).collect();
-        ids.sort_unstable();
-        if let Some(w) = ids.windows(2).find(|w| w[0] == w[1]) {
-            return Err(InputError::DuplicateId {
-                t: frame.t,
-                id: w[0],
-            });
-        }
+        check_frame(
+            self.frames.back().map(|f| f.t).or(self.last_frame_t),
+            &frame,
+        )?;
         self.frames.push_back(frame);
         Ok(())
     }
@@ -506,29 +326,15 @@ impl Estimator {
             .map(|c| c.evidence(msckf_ids, &slam_ids, peers))
             .unwrap_or_default();
 
-        // 5. Common VIO features (CI-EKF), then the independent ones (MSCKF).
-        let common_vio = cooperative::common_vio(
-            state,
-            &self.features,
-            &ev,
-            &opts,
-            &self.chi2,
-            &self.tri,
-            &mut coop,
-        );
+        // 5. MSCKF update with the independent VIO features.
         let t = Instant::now();
+        let common: Vec<u64> = ev.vio.iter().map(|c| c.id).collect();
         let independent: Vec<u64> = msckf_used
             .iter()
-            .chain(ev.vio.iter().map(|c| &c.id))
             .copied()
-            .filter(|id| !common_vio.contains(id))
-            .fold(Vec::new(), |mut v, id| {
-                if !v.contains(&id) {
-                    v.push(id);
-                }
-                v
-            });
-        let msckf = updater_msckf::update(
+            .filter(|id| !common.contains(id))
+            .collect();
+        let mut msckf = updater_msckf::update(
             state,
             &self.features,
             &independent,
@@ -552,9 +358,30 @@ impl Estimator {
         );
         timing.slam_update_ms = ms(t);
 
-        // 7. Common SLAM features: constraints and the peers' measurements.
-        let (common_slam, constraints) =
-            cooperative::common_slam(state, &ev, &opts, &self.chi2, &mut coop);
+        // 7. What the peers saw: common VIO and SLAM features, SLAM constraints,
+        //    in one CI-EKF update; common tracks it could not use go to the MSCKF.
+        let used = cooperative::update(
+            state,
+            &self.features,
+            &ev,
+            &opts,
+            &self.chi2,
+            &self.tri,
+            &mut coop,
+        );
+        if !used.vio_fallback.is_empty() {
+            let fallback = updater_msckf::update(
+                state,
+                &self.features,
+                &used.vio_fallback,
+                &opts,
+                &self.chi2,
+                &self.tri,
+            );
+            msckf.used += fallback.used;
+            msckf.rejected_chi2 += fallback.rejected_chi2;
+            msckf.failed += fallback.failed;
+        }
 
         // 8. Delayed initialization of new SLAM features.
         let t = Instant::now();
@@ -563,7 +390,7 @@ impl Estimator {
                 slam.initialized += 1;
             } else {
                 slam.init_failed += 1;
-                if !independent.contains(id) {
+                if !independent.contains(id) && !common.contains(id) {
                     // Not initialized: its measurements are still useful, once.
                     let _ = updater_msckf::update(
                         state,
@@ -583,7 +410,7 @@ impl Estimator {
         let t = Instant::now();
         clean_up(&mut self.features, state, &classes, opts.max_clones);
         if let Some(c) = self.coop.as_mut() {
-            cooperative::finish(c, &ev, (&common_vio, &common_slam, &constraints), &mut coop);
+            cooperative::finish(c, &ev, &used, &mut coop);
             let (db, st) = (&self.features, &*state);
             c.retain_tracks(|id| db.contains(id) || st.features.contains_key(&id), peers);
         }
@@ -594,10 +421,59 @@ impl Estimator {
         timing.marginalize_ms = ms(t);
         timing.total_ms = ms(t_start);
 
-        timing.cooperation_ms =
-            coop.matching_ms + coop.common_vio_ms + coop.common_slam_ms + coop.constraint_ms;
+        timing.cooperation_ms = coop.matching_ms
+            + coop.common_vio_ms
+            + coop.common_slam_ms
+            + coop.constraint_ms
+            + coop.ci_update_ms;
         Ok(output(state, timing, msckf, slam, coop, false))
     }
+}
+
+/// The prior blocks of a filter started at `init`: the IMU (15, first), then the
+/// calibration variables the options estimate, with their prior covariances.
+pub(crate) fn initial_blocks(
+    opts: &EstimatorOptions,
+    init: &InitialState,
+) -> Vec<(Var, DMatrix<f64>)> {
+    let mut cov = DMatrix::zeros(15, 15);
+    let sig = [
+        init.sigma_ori_rad,
+        init.sigma_pos_m,
+        init.sigma_vel_mps,
+        init.sigma_bias,
+        init.sigma_bias,
+    ];
+    for (b, s) in sig.iter().enumerate() {
+        for i in 0..3 {
+            cov[(3 * b + i, 3 * b + i)] = s * s;
+        }
+    }
+    let mut blocks = vec![(Var::Imu, cov)];
+    let p = &opts.calib_prior;
+    if opts.calib_time_offset {
+        blocks.push((
+            Var::TimeOffset,
+            DMatrix::from_element(1, 1, p.time_offset_s.powi(2)),
+        ));
+    }
+    if opts.calib_extrinsics {
+        let mut c = DMatrix::zeros(6, 6);
+        for i in 0..3 {
+            c[(i, i)] = p.extrinsic_rot_rad.powi(2);
+            c[(3 + i, 3 + i)] = p.extrinsic_pos_m.powi(2);
+        }
+        blocks.push((Var::Extrinsic, c));
+    }
+    if opts.calib_intrinsics {
+        let mut c = DMatrix::zeros(8, 8);
+        for i in 0..4 {
+            c[(i, i)] = p.intrinsics_px.powi(2);
+            c[(4 + i, 4 + i)] = p.distortion.powi(2);
+        }
+        blocks.push((Var::Intrinsics, c));
+    }
+    blocks
 }
 
 /// The estimate and its marginal covariances after a frame.
@@ -611,21 +487,14 @@ fn output(
 ) -> FrameOutput {
     let p = state.cov();
     let o = state.offset(Var::Imu).unwrap_or(0);
-    FrameOutput {
-        t: state.t,
-        rot: state.imu.rot,
-        pos: state.imu.pos,
-        vel: state.imu.vel,
-        cov_ori: p.fixed_view::<3, 3>(o, o).into_owned(),
-        cov_pos: p.fixed_view::<3, 3>(o + 3, o + 3).into_owned(),
-        msckf_features: msckf.used,
-        msckf,
-        slam_features: state.features.len(),
-        slam,
-        zero_velocity,
-        coop,
+    FrameOutput::of(
+        state,
+        p.fixed_view::<3, 3>(o, o).into_owned(),
+        p.fixed_view::<3, 3>(o + 3, o + 3).into_owned(),
         timing,
-    }
+        (msckf, slam, coop),
+        zero_velocity,
+    )
 }
 
 /// Stochastic cloning of the IMU pose at the image time; with online time-offset

@@ -8,7 +8,7 @@
 use crate::render::RenderSpec;
 use common::calibration::CameraCalibration;
 use common::camera::{CameraModel, Distortion};
-use common::estimator_options::{EstimatorOptions, FeatureRepresentation};
+use common::estimator_options::{CooperationOptions, EstimatorOptions, FeatureRepresentation};
 use nalgebra::{Matrix3, Vector3, Vector4};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -323,6 +323,9 @@ pub struct EstimatorSpec {
     pub init_sigma_bias: f64,
     /// Distance the robot must have moved before the filter starts, metres.
     pub start_after_motion_m: f64,
+    /// What the cooperative variants take from peers and how (weights,
+    /// matching); the variant decides which classes are on.
+    pub cooperation: CooperationOptions,
 }
 
 impl Default for EstimatorSpec {
@@ -347,6 +350,7 @@ impl Default for EstimatorSpec {
             init_sigma_vel_mps: 0.01,
             init_sigma_bias: 0.02,
             start_after_motion_m: 1.1,
+            cooperation: o.cooperation,
         }
     }
 }

@@ -1,0 +1,442 @@
+//! The centralized estimators `ce-cmsckf` and `ce-cmsckf-cslam` (thesis Section
+//! 5.4): every robot's state in one joint EKF with the full cross-covariance, in
+//! one process. They are the accuracy and cost reference of the distributed
+//! CI-EKF: common features update every robot they involve through the tracked
+//! correlations, and every update costs the joint state's size squared.
+//!
+//! Each robot's frame runs the single-robot steps through [`joint::RobotSlot`];
+//! matching links its tracks to the other robots' current tracks (the same
+//! descriptor and epipolar checks as the agents), and [`common`] adds the joint
+//! common-feature updates.
+
+pub mod common;
+pub mod joint;
+pub mod run;
+
+use crate::cooperation::loop_closure::FrameFeatures;
+use crate::cooperation::matcher::{epipolar_inliers, match_descriptors, MatchRules};
+use crate::estimator::chi2::Chi2Table;
+use crate::estimator::cooperative::{frame_features, CoopFrameStats};
+use crate::estimator::feature_classes::{classify, clean_up, record_measurements};
+use crate::estimator::feature_db::FeatureDb;
+use crate::estimator::filter::FilterView;
+use crate::estimator::inputs::{check_frame, check_imu, InputError};
+use crate::estimator::propagator::{propagate, PropagateError};
+use crate::estimator::state::{ImuState, Means, Var};
+use crate::estimator::triangulation::TriangulationOptions;
+use crate::estimator::vio::{augment_clone, initial_blocks, FrameError};
+use crate::estimator::{updater_msckf, updater_slam, updater_zupt};
+use crate::estimator::{EstimatorOptions, FrameOutput, InitialState};
+use ::common::calibration::CameraCalibration;
+use ::common::measurement::{FeatureFrame, ImuSample};
+use joint::{JointState, JointVar};
+use nalgebra::Matrix3;
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::time::Instant;
+
+/// One robot's inputs and tracks.
+#[derive(Debug)]
+struct Robot {
+    calib: CameraCalibration,
+    imu: VecDeque<ImuSample>,
+    frames: VecDeque<FeatureFrame>,
+    features: FeatureDb,
+    seq: u64,
+    last_frame_t: Option<f64>,
+    start_t: f64,
+    /// The newest processed frame, for the other robots' matching.
+    latest: Option<FrameFeatures>,
+}
+
+/// A track of a robot: `(robot, track id)`.
+pub type TrackKey = (u16, u64);
+
+/// The centralized estimator of a fleet.
+#[derive(Debug)]
+pub struct CentralEstimator {
+    opts: EstimatorOptions,
+    joint: JointState,
+    robots: Vec<Robot>,
+    /// Cross-robot links between tracks (symmetric).
+    links: BTreeMap<TrackKey, BTreeSet<TrackKey>>,
+    chi2: Chi2Table,
+    tri: TriangulationOptions,
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+impl CentralEstimator {
+    /// A fleet of robots with options `opts` and each robot's initial calibration.
+    pub fn new(opts: EstimatorOptions, calibs: Vec<CameraCalibration>) -> Self {
+        Self {
+            robots: calibs
+                .into_iter()
+                .map(|calib| Robot {
+                    calib,
+                    imu: VecDeque::new(),
+                    frames: VecDeque::new(),
+                    features: FeatureDb::default(),
+                    seq: 0,
+                    last_frame_t: None,
+                    start_t: 0.0,
+                    latest: None,
+                })
+                .collect(),
+            opts,
+            joint: JointState::default(),
+            links: BTreeMap::new(),
+            chi2: Chi2Table::new(0.95, 1000),
+            tri: TriangulationOptions::default(),
+        }
+    }
+
+    /// The joint state.
+    pub fn joint(&self) -> &JointState {
+        &self.joint
+    }
+
+    /// Starts robot `r` at `init` (its variables join the joint state,
+    /// uncorrelated with the others).
+    pub fn initialize(&mut self, r: usize, init: &InitialState) {
+        let Some(robot) = self.robots.get_mut(r) else {
+            return;
+        };
+        let imu = ImuState {
+            rot: init.rot,
+            pos: init.pos,
+            vel: init.vel,
+            bias_gyro: init.bias_gyro,
+            bias_accel: init.bias_accel,
+        };
+        robot.start_t = init.t;
+        let td = robot.calib.time_offset_s;
+        robot.frames.retain(|f| f.t + td > init.t);
+        let blocks = initial_blocks(&self.opts, init);
+        self.joint.add_robot(
+            r as u16,
+            Means::new(init.t, imu, robot.calib.clone()),
+            &blocks,
+        );
+    }
+
+    /// Adds an IMU sample of robot `r`.
+    pub fn feed_imu(&mut self, r: usize, s: ImuSample) -> Result<(), InputError> {
+        let Some(robot) = self.robots.get_mut(r) else {
+            return Ok(());
+        };
+        check_imu(robot.imu.back(), &s, self.opts.max_imu_gap_s)?;
+        robot.imu.push_back(s);
+        Ok(())
+    }
+
+    /// Queues a feature frame of robot `r`.
+    pub fn feed_frame(&mut self, r: usize, frame: FeatureFrame) -> Result<(), InputError> {
+        let Some(robot) = self.robots.get_mut(r) else {
+            return Ok(());
+        };
+        check_frame(
+            robot.frames.back().map(|f| f.t).or(robot.last_frame_t),
+            &frame,
+        )?;
+        robot.frames.push_back(frame);
+        Ok(())
+    }
+
+    /// Processes robot `r`'s queued frames its IMU covers.
+    pub fn poll(&mut self, r: usize) -> Vec<Result<FrameOutput, FrameError>> {
+        let mut out = Vec::new();
+        while let Some(robot) = self.robots.get_mut(r) {
+            let Some(front) = robot.frames.front() else {
+                break;
+            };
+            let td = self
+                .joint
+                .means(r as u16)
+                .map_or(robot.calib.time_offset_s, |m| m.calib.time_offset_s);
+            if !robot.imu.back().is_some_and(|s| s.t >= front.t + td) {
+                break;
+            }
+            let Some(frame) = robot.frames.pop_front() else {
+                break;
+            };
+            robot.last_frame_t = Some(frame.t);
+            if self.joint.means(r as u16).is_none() {
+                out.push(Err(FrameError::NotInitialized(frame.t)));
+                continue;
+            }
+            out.push(self.process_frame(r, &frame));
+        }
+        out
+    }
+
+    /// Links robot `r`'s current features to the other robots' newest frames.
+    fn match_frame(&mut self, r: usize, ours: &FrameFeatures, seq: u64) {
+        let c = &self.opts.cooperation;
+        let rules = MatchRules {
+            max_distance: c.max_descriptor_distance_bits,
+            ratio: c.match_ratio,
+        };
+        let k = &self.robots[r].calib.camera.intrinsics;
+        let threshold = c.epipolar_threshold_px / (k[0] * k[1]).abs().sqrt().max(1.0);
+        let mut new_links = Vec::new();
+        for (q, other) in self.robots.iter().enumerate() {
+            let Some(theirs) = other.latest.as_ref().filter(|_| q != r) else {
+                continue;
+            };
+            let pairs = match_descriptors(&ours.descriptors, &theirs.descriptors, &rules);
+            let x1: Vec<_> = pairs.iter().map(|(a, _)| ours.xy[*a]).collect();
+            let x2: Vec<_> = pairs.iter().map(|(_, b)| theirs.xy[*b]).collect();
+            let seed = seq.wrapping_mul(1_000_003) ^ ((r as u64) << 32 | q as u64);
+            let Some(inl) = epipolar_inliers(&x1, &x2, threshold, c.min_window_inliers, seed)
+            else {
+                continue;
+            };
+            for ((a, b), keep) in pairs.into_iter().zip(inl) {
+                if keep {
+                    new_links.push(((r as u16, ours.ids[a]), (q as u16, theirs.ids[b])));
+                }
+            }
+        }
+        for (a, b) in new_links {
+            self.links.entry(a).or_default().insert(b);
+            self.links.entry(b).or_default().insert(a);
+        }
+    }
+
+    /// The flow of one frame of robot `r`: propagate and clone, link to the
+    /// other robots' tracks, update (common features jointly), marginalize.
+    fn process_frame(&mut self, r: usize, frame: &FeatureFrame) -> Result<FrameOutput, FrameError> {
+        let t_start = Instant::now();
+        let opts = self.opts.clone();
+        let rid = r as u16;
+        let mut timing = crate::estimator::vio::FrameTiming::default();
+        let mut coop = CoopFrameStats::default();
+
+        // 1. Propagate to the image's IMU time and clone the pose there.
+        let (t_imu, t_prev) = {
+            let m = self
+                .joint
+                .means(rid)
+                .ok_or(FrameError::NotInitialized(frame.t))?;
+            (frame.t + m.calib.time_offset_s, m.t)
+        };
+        if t_imu <= t_prev {
+            return Err(FrameError::Propagate(PropagateError::Backwards {
+                from: t_prev,
+                to: t_imu,
+            }));
+        }
+        let robot = &mut self.robots[r];
+        let buf = robot.imu.make_contiguous();
+        let Some(mut slot) = self.joint.slot(rid) else {
+            return Err(FrameError::NotInitialized(frame.t));
+        };
+        let omega = propagate(&mut slot, buf, t_imu, &opts.imu, opts.use_fej)?;
+        if opts.zero_velocity_update {
+            let readings: Vec<ImuSample> = buf
+                .iter()
+                .filter(|s| s.t > t_prev && s.t <= t_imu)
+                .copied()
+                .collect();
+            if updater_zupt::try_update(&mut slot, &readings, &opts, &self.chi2) {
+                timing.propagate_ms = ms(t_start);
+                timing.total_ms = timing.propagate_ms;
+                return Ok(self.output(
+                    rid,
+                    timing,
+                    Default::default(),
+                    Default::default(),
+                    coop,
+                    true,
+                ));
+            }
+        }
+        robot.seq += 1;
+        let key = robot.seq;
+        augment_clone(&mut slot, key, frame.t, &omega);
+        timing.propagate_ms = ms(t_start);
+
+        // 2. Record the measurements; 3. link them to the other robots' tracks.
+        record_measurements(&mut robot.features, slot.means(), frame, key);
+        let ours = frame_features(frame, &robot.features, key);
+        let t = Instant::now();
+        if opts.cooperation.common_vio || opts.cooperation.common_slam {
+            self.match_frame(r, &ours, key);
+        }
+        coop.matching_ms = ms(t);
+
+        // 4. Classes; the linked tracks leaving the window are common.
+        let robot = &self.robots[r];
+        let Some(means) = self.joint.means(rid) else {
+            return Err(FrameError::NotInitialized(frame.t));
+        };
+        let slam_allowed = means.t - robot.start_t >= opts.slam_delay_s;
+        let classes = classify(&robot.features, means, key, &opts, slam_allowed);
+
+        // 5. Common VIO features: one joint update with every robot's measurements.
+        let t = Instant::now();
+        let common_ids: Vec<u64> = if opts.cooperation.common_vio {
+            classes
+                .msckf_ids
+                .iter()
+                .copied()
+                .filter(|id| self.links.contains_key(&(rid, *id)))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let common_used = common::common_vio(self, r, &common_ids, &mut coop);
+        coop.common_vio_ms = ms(t);
+
+        // 6. MSCKF with the rest; 7. SLAM update; 8. common SLAM; 9. SLAM init.
+        let t = Instant::now();
+        let independent: Vec<u64> = classes
+            .msckf_used
+            .iter()
+            .chain(common_ids.iter())
+            .copied()
+            .filter(|id| !common_used.contains(id))
+            .fold(Vec::new(), |mut v, id| {
+                if !v.contains(&id) {
+                    v.push(id);
+                }
+                v
+            });
+        let robot = &mut self.robots[r];
+        let Some(mut slot) = self.joint.slot(rid) else {
+            return Err(FrameError::NotInitialized(frame.t));
+        };
+        let msckf = updater_msckf::update(
+            &mut slot,
+            &robot.features,
+            &independent,
+            &opts,
+            &self.chi2,
+            &self.tri,
+        );
+        timing.msckf_ms = ms(t);
+        let t = Instant::now();
+        let mut slam = updater_slam::SlamStats::default();
+        updater_slam::update(
+            &mut slot,
+            &robot.features,
+            &classes.slam_seen,
+            key,
+            &opts,
+            &self.chi2,
+            &mut slam,
+        );
+        timing.slam_update_ms = ms(t);
+        if opts.cooperation.common_slam {
+            let t = Instant::now();
+            common::common_slam(self, r, &mut coop);
+            coop.common_slam_ms = ms(t);
+        }
+        let t = Instant::now();
+        let robot = &mut self.robots[r];
+        let Some(mut slot) = self.joint.slot(rid) else {
+            return Err(FrameError::NotInitialized(frame.t));
+        };
+        for id in &classes.slam_candidates {
+            if updater_slam::initialize(
+                &mut slot,
+                &robot.features,
+                *id,
+                &opts,
+                &self.chi2,
+                &self.tri,
+            ) {
+                slam.initialized += 1;
+            } else {
+                slam.init_failed += 1;
+                if !independent.contains(id) {
+                    let _ = updater_msckf::update(
+                        &mut slot,
+                        &robot.features,
+                        &[*id],
+                        &opts,
+                        &self.chi2,
+                        &self.tri,
+                    );
+                }
+            }
+        }
+        timing.slam_init_ms = ms(t);
+
+        // 10. Clean up, and forget the links of ended tracks.
+        let t = Instant::now();
+        clean_up(&mut robot.features, &mut slot, &classes, opts.max_clones);
+        let state_t = slot.means().t;
+        while robot.imu.len() > 2 && robot.imu[1].t < state_t {
+            robot.imu.pop_front();
+        }
+        robot.latest = Some(ours);
+        self.forget_ended_links();
+        timing.marginalize_ms = ms(t);
+        timing.total_ms = ms(t_start);
+        timing.cooperation_ms = coop.matching_ms + coop.common_vio_ms + coop.common_slam_ms;
+        Ok(self.output(rid, timing, msckf, slam, coop, false))
+    }
+
+    /// Drops links whose tracks no longer exist.
+    fn forget_ended_links(&mut self) {
+        let alive = |robots: &[Robot], joint: &JointState, (q, id): TrackKey| {
+            robots
+                .get(usize::from(q))
+                .is_some_and(|rb| rb.features.contains(id))
+                || joint.means(q).is_some_and(|m| m.features.contains_key(&id))
+        };
+        let (robots, joint) = (&self.robots, &self.joint);
+        self.links.retain(|k, set| {
+            set.retain(|o| alive(robots, joint, *o));
+            alive(robots, joint, *k) && !set.is_empty()
+        });
+    }
+
+    fn output(
+        &self,
+        r: u16,
+        timing: crate::estimator::vio::FrameTiming,
+        msckf: updater_msckf::MsckfStats,
+        slam: updater_slam::SlamStats,
+        coop: CoopFrameStats,
+        zero_velocity: bool,
+    ) -> FrameOutput {
+        let cov = self.joint.cov.matrix();
+        let o = self
+            .joint
+            .cov
+            .offset(JointVar {
+                robot: r,
+                var: Var::Imu,
+            })
+            .unwrap_or(0);
+        let block = |a: usize| -> Matrix3<f64> {
+            if cov.nrows() >= o + a + 3 {
+                cov.fixed_view::<3, 3>(o + a, o + a).into_owned()
+            } else {
+                Matrix3::zeros()
+            }
+        };
+        match self.joint.means(r) {
+            Some(m) => FrameOutput::of(
+                m,
+                block(0),
+                block(3),
+                timing,
+                (msckf, slam, coop),
+                zero_velocity,
+            ),
+            None => FrameOutput::of(
+                &Means::new(0.0, ImuState::default(), CameraCalibration::euroc_cam0()),
+                Matrix3::zeros(),
+                Matrix3::zeros(),
+                timing,
+                (msckf, slam, coop),
+                zero_velocity,
+            ),
+        }
+    }
+}

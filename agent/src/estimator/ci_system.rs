@@ -1,0 +1,224 @@
+//! One CI-EKF update per frame (thesis Eqs. 5.14-5.17) from every cooperative
+//! row of the frame: common VIO features, peers' measurements of our SLAM
+//! features and SLAM constraints.
+//!
+//! Each CI update inflates our whole covariance by `1/ω_i`, and that inflation
+//! compounds in the directions no measurement constrains (global position and
+//! yaw); stacking the frame's cooperative rows into one update pays it once.
+//!
+//! A participant is a part of one peer window: its camera poses (weight
+//! `ci_peer_weight`) or some of its SLAM landmarks (weight
+//! `constraint_peer_weight`). Peers send only the landmarks' marginals, whose
+//! cross-correlations are unknown too: `k` landmarks of one window are bounded
+//! together by CI with equal weights, `Diag(k P_1, ..., k P_k)`.
+
+use super::feature_system::Columns;
+use super::linalg::compress_in_place;
+use super::peer_window::PeerWindow;
+use super::state::{State, StateError, Var};
+use super::updater_ci::{self, CiOutcome, CiWeights, PeerTerm};
+use common::estimator_options::CooperationOptions;
+use nalgebra::{DMatrix, DVector};
+
+/// Which part of a peer window a row block involves.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Part {
+    /// The camera poses of window `w` (index into the participants).
+    Poses(usize),
+    /// The SLAM landmarks of window `w`.
+    Landmarks(usize),
+}
+
+impl Part {
+    /// Columns per item: 6 per pose, 3 per landmark.
+    pub fn width(self) -> usize {
+        match self {
+            Part::Poses(_) => 6,
+            Part::Landmarks(_) => 3,
+        }
+    }
+}
+
+/// A block's Jacobian with respect to one participant: over `items` (pose or
+/// landmark indices of the window, sorted), `m x width·items`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PeerRows {
+    /// The participant.
+    pub part: Part,
+    /// Its items, sorted.
+    pub items: Vec<usize>,
+    /// The Jacobian.
+    pub h: DMatrix<f64>,
+}
+
+/// A block of whitened rows (unit noise) relating our variables `vars` to
+/// participants: `r = H δx + Σ H_o δx_o + n`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CiRows {
+    /// Our variables, the columns of `h` in order.
+    pub vars: Vec<Var>,
+    /// Our Jacobian.
+    pub h: DMatrix<f64>,
+    /// Residuals.
+    pub res: DVector<f64>,
+    /// The participants' Jacobians.
+    pub peers: Vec<PeerRows>,
+}
+
+/// Moves the residuals of blocks linearized before an update that applied `dx`
+/// to first order: `r ← r − H δx`.
+pub fn correct_residuals(rows: &mut [CiRows], state: &State, dx: &DVector<f64>) {
+    for b in rows {
+        let mut d = DVector::zeros(b.h.ncols());
+        let mut c = 0;
+        for v in &b.vars {
+            if let Some(o) = state.offset(*v) {
+                d.rows_mut(c, v.size()).copy_from(&dx.rows(o, v.size()));
+            }
+            c += v.size();
+        }
+        b.res -= &b.h * d;
+    }
+}
+
+/// The covariance of `items` of participant `part`.
+fn part_covariance(part: Part, items: &[usize], participants: &[PeerWindow]) -> DMatrix<f64> {
+    match part {
+        Part::Poses(w) => participants[w].sub_covariance(items),
+        Part::Landmarks(w) => {
+            let k = items.len();
+            let mut out = DMatrix::identity(3 * k, 3 * k);
+            for (a, &j) in items.iter().enumerate() {
+                if let Some(lm) = participants[w].landmarks.get(j) {
+                    out.view_mut((3 * a, 3 * a), (3, 3))
+                        .copy_from(&(lm.cov * k as f64));
+                }
+            }
+            out
+        }
+    }
+}
+
+/// Stacks `rows` and applies one CI-EKF update. `Ok(None)` when there is
+/// nothing to do.
+pub fn update(
+    state: &mut State,
+    rows: &[CiRows],
+    participants: &[PeerWindow],
+    opts: &CooperationOptions,
+) -> Result<Option<CiOutcome>, StateError> {
+    let m: usize = rows.iter().map(|r| r.res.len()).sum();
+    if m == 0 {
+        return Ok(None);
+    }
+    let mut vars: Vec<Var> = Vec::new();
+    let mut parts: Vec<(Part, Vec<usize>)> = Vec::new();
+    for r in rows {
+        for v in &r.vars {
+            if !vars.contains(v) {
+                vars.push(*v);
+            }
+        }
+        for p in &r.peers {
+            match parts.iter_mut().find(|(q, _)| *q == p.part) {
+                Some((_, items)) => items.extend(&p.items),
+                None => parts.push((p.part, p.items.clone())),
+            }
+        }
+    }
+    parts.sort_by_key(|(p, _)| *p);
+    for (_, items) in parts.iter_mut() {
+        items.sort_unstable();
+        items.dedup();
+    }
+    let cols = Columns::of(vars);
+    let mut h = DMatrix::zeros(m, cols.dim);
+    let mut res = DVector::zeros(m);
+    let mut h_parts: Vec<DMatrix<f64>> = parts
+        .iter()
+        .map(|(p, items)| DMatrix::zeros(m, p.width() * items.len()))
+        .collect();
+    let mut r0 = 0;
+    for r in rows {
+        let k = r.res.len();
+        let local = Columns::of(r.vars.clone());
+        for v in &r.vars {
+            if let (Some(s), Some(d)) = (local.col(*v), cols.col(*v)) {
+                let mut dst = h.view_mut((r0, d), (k, v.size()));
+                dst += r.h.view((0, s), (k, v.size()));
+            }
+        }
+        res.rows_mut(r0, k).copy_from(&r.res);
+        for p in &r.peers {
+            let Some(j) = parts.iter().position(|(q, _)| *q == p.part) else {
+                continue;
+            };
+            let w = p.part.width();
+            for (a, item) in p.items.iter().enumerate() {
+                if let Ok(g) = parts[j].1.binary_search(item) {
+                    h_parts[j]
+                        .view_mut((r0, w * g), (k, w))
+                        .copy_from(&p.h.view((0, w * a), (k, w)));
+                }
+            }
+        }
+        r0 += k;
+    }
+    let (h, h_parts, res) = compress_joint(h, h_parts, res);
+    let terms: Vec<PeerTerm> = parts
+        .iter()
+        .zip(h_parts)
+        .map(|((p, items), hp)| PeerTerm {
+            h: hp,
+            cov: part_covariance(*p, items, participants),
+            weight: Some(match p {
+                Part::Poses(_) => opts.ci_peer_weight,
+                Part::Landmarks(_) => opts.constraint_peer_weight,
+            }),
+        })
+        .collect();
+    let weights = match opts.ci_weighting {
+        common::estimator_options::CiWeighting::FixedPeer => {
+            CiWeights::FixedPeer(opts.ci_peer_weight)
+        }
+        common::estimator_options::CiWeighting::FixedOwn => CiWeights::FixedOwn(opts.ci_own_weight),
+        common::estimator_options::CiWeighting::MinTrace => CiWeights::MinTrace,
+        common::estimator_options::CiWeighting::MinDeterminant => CiWeights::MinDeterminant,
+    };
+    let eye = DMatrix::identity(res.len(), res.len());
+    updater_ci::update(state, &cols.vars, &h, &res, &eye, &terms, &weights).map(Some)
+}
+
+/// Compresses `[H | H_1 | ... | H_L], r` when it has more rows than columns
+/// (white noise stays white under the orthogonal transform).
+fn compress_joint(
+    h: DMatrix<f64>,
+    h_parts: Vec<DMatrix<f64>>,
+    res: DVector<f64>,
+) -> (DMatrix<f64>, Vec<DMatrix<f64>>, DVector<f64>) {
+    let m = res.len();
+    let widths: Vec<usize> = std::iter::once(h.ncols())
+        .chain(h_parts.iter().map(|p| p.ncols()))
+        .collect();
+    let total: usize = widths.iter().sum();
+    if m <= total {
+        return (h, h_parts, res);
+    }
+    let mut all = DMatrix::zeros(m, total);
+    let mut c0 = 0;
+    for part in std::iter::once(&h).chain(h_parts.iter()) {
+        all.view_mut((0, c0), (m, part.ncols())).copy_from(part);
+        c0 += part.ncols();
+    }
+    let mut res = res;
+    compress_in_place(&mut all, &mut res);
+    let mut split = Vec::with_capacity(widths.len());
+    let mut c0 = 0;
+    for w in widths {
+        split.push(all.columns(c0, w).into_owned());
+        c0 += w;
+    }
+    let mut it = split.into_iter();
+    let h = it.next().unwrap_or_else(|| DMatrix::zeros(res.len(), 0));
+    (h, it.collect(), res)
+}

@@ -1,0 +1,90 @@
+//! What an estimator returns after each frame: the estimate, its marginal
+//! covariances, what each update did and what it cost.
+
+use super::cooperative::CoopFrameStats;
+use super::state::Means;
+use super::{updater_msckf, updater_slam};
+use nalgebra::{Matrix3, Vector3};
+
+/// Wall-clock cost of one frame, in milliseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FrameTiming {
+    /// Propagation and cloning.
+    pub propagate_ms: f64,
+    /// MSCKF update.
+    pub msckf_ms: f64,
+    /// SLAM update.
+    pub slam_update_ms: f64,
+    /// SLAM delayed initialization.
+    pub slam_init_ms: f64,
+    /// Marginalization and clean-up.
+    pub marginalize_ms: f64,
+    /// Cooperative matching and updates (also in [`FrameOutput::coop`]).
+    pub cooperation_ms: f64,
+    /// Everything.
+    pub total_ms: f64,
+}
+
+/// The estimate after one frame.
+#[derive(Clone, Debug)]
+pub struct FrameOutput {
+    /// IMU time of the estimate, s.
+    pub t: f64,
+    /// `R_ItoG`.
+    pub rot: Matrix3<f64>,
+    /// `p_IinG`, m.
+    pub pos: Vector3<f64>,
+    /// `v_IinG`, m/s.
+    pub vel: Vector3<f64>,
+    /// Orientation covariance (local error, rad²).
+    pub cov_ori: Matrix3<f64>,
+    /// Position covariance (m²).
+    pub cov_pos: Matrix3<f64>,
+    /// Features used in the MSCKF update.
+    pub msckf_features: usize,
+    /// What the MSCKF update did (used, gated out, failed).
+    pub msckf: updater_msckf::MsckfStats,
+    /// SLAM features in the state.
+    pub slam_features: usize,
+    /// What the SLAM step did.
+    pub slam: updater_slam::SlamStats,
+    /// The frame was a standstill handled by a zero-velocity update.
+    pub zero_velocity: bool,
+    /// What the cooperative updates did.
+    pub coop: CoopFrameStats,
+    /// Cost of the frame.
+    pub timing: FrameTiming,
+}
+
+impl FrameOutput {
+    /// The output for a robot's `means` with its orientation and position
+    /// covariance blocks, the frame's cost and what its updates did.
+    pub fn of(
+        means: &Means,
+        cov_ori: Matrix3<f64>,
+        cov_pos: Matrix3<f64>,
+        timing: FrameTiming,
+        (msckf, slam, coop): (
+            updater_msckf::MsckfStats,
+            updater_slam::SlamStats,
+            CoopFrameStats,
+        ),
+        zero_velocity: bool,
+    ) -> Self {
+        Self {
+            t: means.t,
+            rot: means.imu.rot,
+            pos: means.imu.pos,
+            vel: means.imu.vel,
+            cov_ori,
+            cov_pos,
+            msckf_features: msckf.used,
+            msckf,
+            slam_features: means.features.len(),
+            slam,
+            zero_velocity,
+            coop,
+            timing,
+        }
+    }
+}
