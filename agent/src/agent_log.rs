@@ -2,7 +2,7 @@
 //! opens it as is: `/estimate` and `/groundtruth` (`foxglove.PoseInFrame`), the
 //! estimate's covariance (`fleet.PoseCovariance`), peers' newest camera poses
 //! (`/peers/<id>/pose`, `foxglove.PoseInFrame`) and peer events (`/log`,
-//! `foxglove.Log`).
+//! `foxglove.Log`). [`crate::agent_log_views`] adds paths, scenes and images.
 
 use common::so3::xyzw_from_rot;
 use nalgebra::{Matrix3, Vector3};
@@ -28,6 +28,9 @@ pub enum LogError {
     /// MCAP error.
     #[error("agent log: {0}")]
     Mcap(#[from] mcap::McapError),
+    /// An image could not be encoded.
+    #[error("agent log: {0}")]
+    Image(#[from] common::image::ImageError),
 }
 
 const POSE_IN_FRAME: &str = r#"{"title":"foxglove.PoseInFrame","type":"object","properties":{"timestamp":{"type":"object","properties":{"sec":{"type":"integer","minimum":0},"nsec":{"type":"integer","minimum":0,"maximum":999999999}}},"frame_id":{"type":"string"},"pose":{"type":"object","properties":{"position":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}},"orientation":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"},"w":{"type":"number"}}}}}}}"#;
@@ -52,7 +55,7 @@ impl std::fmt::Debug for AgentLog {
     }
 }
 
-fn stamp(t: f64) -> serde_json::Value {
+pub(crate) fn stamp(t: f64) -> serde_json::Value {
     let t = if t.is_finite() { t.max(0.0) } else { 0.0 };
     let sec = t.floor();
     json!({"sec": sec as u64, "nsec": ((t - sec) * 1e9).round().min(999_999_999.0) as u64})
@@ -85,7 +88,12 @@ impl AgentLog {
         })
     }
 
-    fn channel(&mut self, topic: &str, schema: &'static str, text: &str) -> Result<u16, LogError> {
+    pub(crate) fn channel(
+        &mut self,
+        topic: &str,
+        schema: &'static str,
+        text: &str,
+    ) -> Result<u16, LogError> {
         if let Some(id) = self.channels.get(topic) {
             return Ok(*id);
         }
@@ -102,7 +110,12 @@ impl AgentLog {
         Ok(id)
     }
 
-    fn put(&mut self, channel_id: u16, t: f64, value: &impl Serialize) -> Result<(), LogError> {
+    pub(crate) fn put(
+        &mut self,
+        channel_id: u16,
+        t: f64,
+        value: &impl Serialize,
+    ) -> Result<(), LogError> {
         let data = serde_json::to_vec(value).unwrap_or_default();
         let header = mcap::records::MessageHeader {
             channel_id,

@@ -2,6 +2,7 @@
 //! keys follow OpenVINS's names where one exists (`max_clones`, `max_slam`,
 //! `use_fej`, `calib_cam_extrinsics`, ...).
 
+use crate::frontend::FrontendOptions;
 use crate::runner::Variant;
 use crate::transport::{Iceoryx2Settings, TransportKind, TransportSettings, ZenohSettings};
 use common::estimator_options::{CommonProjection, EstimatorOptions, FeatureRepresentation};
@@ -70,6 +71,28 @@ pub struct AgentConfig {
     /// Whether to write the MCAP log.
     #[serde(default = "yes")]
     pub mcap_log: bool,
+    /// Camera images (rendered or real): the frontend and their logging.
+    #[serde(default)]
+    pub images: ImagesConfig,
+}
+
+/// What an agent does with camera images.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ImagesConfig {
+    /// The image frontend (KLT + ORB; needs the `vision` feature).
+    pub frontend: FrontendOptions,
+    /// Log every this many images, with their tracks, to the MCAP file.
+    pub mcap_every: u64,
+}
+
+impl Default for ImagesConfig {
+    fn default() -> Self {
+        Self {
+            frontend: FrontendOptions::default(),
+            mcap_every: 5,
+        }
+    }
 }
 
 fn default_fleet() -> String {

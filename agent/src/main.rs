@@ -1,4 +1,5 @@
 //! `agent`: runs one robot of the fleet.
+use agent::agent_log::AgentLog;
 use agent::agent_output::{metrics_of, write_outputs};
 use agent::config::AgentConfig;
 use agent::node::{run_node, RobotSetup};
@@ -32,6 +33,10 @@ struct Cli {
 enum Command {
     /// Run one robot of a simulated scenario standalone (no peers) and score it.
     Run(RunArgs),
+    /// Run on a real sequence in the EuRoC ASL layout (EuRoC MAV, TUM-VI):
+    /// images through the frontend, IMU into the estimator, static start.
+    #[cfg(feature = "vision")]
+    Dataset(agent::dataset_cli::DatasetArgs),
     /// Robustness probe: join a fleet as another robot and send it malformed
     /// payloads and a message of a foreign fleet (they must be dropped and
     /// counted, and the agents must keep running).
@@ -74,6 +79,18 @@ struct RunArgs {
     /// Output folder.
     #[arg(long, default_value = "out/agent")]
     out: PathBuf,
+    /// Hybrid run: this real IMU recording (EuRoC CSV, in the trajectory
+    /// file's clock) replaces the simulated IMU; the camera stays simulated.
+    #[arg(long, value_name = "CSV")]
+    real_imu: Option<PathBuf>,
+    /// EuRoC ground truth with bias columns, for the real IMU's biases at the
+    /// start (default: the robot's trajectory file when it is a .csv).
+    #[arg(long, value_name = "CSV")]
+    real_imu_biases: Option<PathBuf>,
+    /// Render camera images and make the features with the image frontend
+    /// (needs the `vision` feature).
+    #[arg(long)]
+    render: bool,
 }
 
 fn main() -> Result<()> {
@@ -89,6 +106,8 @@ fn main() -> Result<()> {
     match (&cli.command, &cli.config) {
         (Some(Command::Run(args)), _) => run(args),
         (Some(Command::Probe(args)), _) => probe(args),
+        #[cfg(feature = "vision")]
+        (Some(Command::Dataset(args)), _) => agent::dataset_cli::run_dataset_command(args),
         (None, Some(config)) => run_agent(config, cli.progress),
         (None, None) => {
             println!("agent {} (see --help)", env!("CARGO_PKG_VERSION"));
@@ -216,18 +235,87 @@ fn probe(args: &ProbeArgs) -> Result<()> {
     Ok(())
 }
 
+/// Images (with their tracks) logged by `agent run --render`: one in this many.
+#[cfg(feature = "vision")]
+const LOG_IMAGE_EVERY: usize = 5;
+
+/// A rendered run through the image frontend, with the tracks' accuracy
+/// printed and every 5th image logged.
+#[cfg(feature = "vision")]
+fn rendered(
+    fleet: &Fleet,
+    robot: usize,
+    opts: agent::estimator::EstimatorOptions,
+    log: &mut AgentLog,
+) -> Result<agent::runner::RobotRun> {
+    let mut k = 0usize;
+    let r = agent::image_runner::run_robot_rendered(
+        fleet,
+        robot,
+        opts,
+        Default::default(),
+        |c, out| {
+            if k % LOG_IMAGE_EVERY == 0 {
+                if let Some(img) = &c.image {
+                    let _ = log.image(c.frame.t, img);
+                    let _ = log.tracks(&out.frame, &out.new_ids);
+                }
+            }
+            k += 1;
+        },
+    )?;
+    let q = &r.tracks;
+    println!(
+        "frontend: {} images, {:.0} features/image, {:.2} ms/image; KLT reprojection error vs the rendered truth: mean {:.3} px, median {:.3} px, p95 {:.3} px, {:.2}% over 3 px ({} observations)",
+        q.frames,
+        q.features_per_frame,
+        q.ms_per_frame,
+        q.reprojection_mean_px,
+        q.reprojection_median_px,
+        q.reprojection_p95_px,
+        100.0 * q.outlier_fraction,
+        q.observations
+    );
+    Ok(r.run)
+}
+
+#[cfg(not(feature = "vision"))]
+fn rendered(
+    _: &Fleet,
+    _: usize,
+    _: agent::estimator::EstimatorOptions,
+    _: &mut AgentLog,
+) -> Result<agent::runner::RobotRun> {
+    anyhow::bail!("rendered images need the image frontend: build with `--features agent/vision`")
+}
+
 fn run(args: &RunArgs) -> Result<()> {
     let wall = Instant::now();
-    let scenario = Scenario::load(&args.scenario)?;
+    let mut scenario = Scenario::load(&args.scenario)?;
+    scenario.render.enabled |= args.render;
     let seed = args.seed.unwrap_or(scenario.seed);
     let variant: Variant = args.variant.parse()?;
     let fleet = Fleet::build(&scenario, seed)?;
     let opts = options_for(&scenario.estimator, &fleet, variant);
-    let run = run_robot(&fleet, args.robot, opts)?;
+    let out = &args.out;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let mut log = AgentLog::create(&out.join("agent.mcap"))?;
+    let run = if let Some(imu) = &args.real_imu {
+        let default_biases = scenario
+            .trajectory_path(args.robot)
+            .filter(|p| p.extension().is_some_and(|e| e == "csv"));
+        let biases = args.real_imu_biases.clone().or(default_biases);
+        agent::hybrid::run_robot_hybrid(&fleet, args.robot, opts, imu, biases.as_deref())?
+    } else if fleet.renderer.is_some() {
+        rendered(&fleet, args.robot, opts, &mut log)?
+    } else {
+        run_robot(&fleet, args.robot, opts)?
+    };
+    log.run_poses(&run.estimate, &run.covariance, &run.truth)?;
+    log.finish()?;
     for r in run.rejected.iter().take(5) {
         tracing::warn!("rejected: {r}");
     }
-    let out = &args.out;
     write_run_outputs(&run, out).with_context(|| format!("writing {}", out.display()))?;
     let metrics = run.metrics();
     println!(

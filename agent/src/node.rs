@@ -11,10 +11,12 @@
 //! At the end it says so (a `Finished` heartbeat) and keeps listening while peers
 //! still run, so nothing they send is lost.
 
+use crate::agent_log_views::PeerPose;
 use crate::config::{AgentConfig, ClockMode, InputSource};
 use crate::estimator::{Estimator, FrameOutput};
 use crate::fleet_clock::{Lockstep, Pacer, TickGrid};
 use crate::inbox::{Inbox, NetStats};
+use crate::node_images::ImageFrames;
 use crate::outbox::Outbox;
 use crate::peer_events::{PeerEvent, PeerEvents};
 use crate::peer_history::{HistoryLimits, PeerHistory};
@@ -49,6 +51,9 @@ pub enum NodeError {
     /// The transport failed beyond recovery.
     #[error(transparent)]
     Transport(#[from] TransportError),
+    /// Camera images could not be turned into features.
+    #[error("camera images: {0}")]
+    Images(String),
 }
 
 /// Progress of a run, for the launcher's display.
@@ -182,6 +187,8 @@ struct Node {
     started: Instant,
     fleet_t: Option<f64>,
     log: Option<crate::agent_log::AgentLog>,
+    /// Peers' newest camera poses, for the logged scene.
+    peer_poses: BTreeMap<u32, PeerPose>,
 }
 
 impl Node {
@@ -308,14 +315,17 @@ impl Node {
                 Body::Tracks(t) => h.add_tracks(t, &self.limits),
                 Body::Descriptors(d) => h.add_descriptors(d),
                 Body::Snapshot(s) => {
-                    if let (Some(log), Some(c)) = (self.log.as_mut(), s.clones.last()) {
-                        let _ = log.pose(
-                            &format!("/peers/{}/camera", env.robot_id),
-                            "world",
-                            c.t_s,
-                            &c.rot_c_to_g(),
-                            &c.p_c_in_g(),
-                        );
+                    if let Some(c) = s.clones.last() {
+                        let pose = PeerPose {
+                            robot: env.robot_id,
+                            rot: c.rot_c_to_g(),
+                            pos: c.p_c_in_g(),
+                        };
+                        self.peer_poses.insert(env.robot_id, pose);
+                        if let Some(log) = self.log.as_mut() {
+                            let topic = format!("/peers/{}/camera", env.robot_id);
+                            let _ = log.pose(&topic, "world", c.t_s, &pose.rot, &pose.pos);
+                        }
                     }
                     h.add_snapshot(s, &self.limits);
                 }
@@ -409,7 +419,9 @@ pub fn run_node(
         started: Instant::now(),
         fleet_t: None,
         log,
+        peer_poses: BTreeMap::new(),
     };
+    let mut images: Option<ImageFrames> = None;
 
     // Wait for the expected peers (their presence means their subscribers exist).
     let deadline = Instant::now() + Duration::from_secs_f64(cfg.clock.start_timeout_s);
@@ -502,7 +514,22 @@ pub fn run_node(
                         node.report.run.rejected.push(e.to_string());
                     }
                 }
-                SimEvent::Camera(c) => {
+                SimEvent::Camera(mut c) => {
+                    if c.image.is_some() {
+                        let imgs = match images.as_mut() {
+                            Some(i) => i,
+                            None => images.insert(
+                                ImageFrames::new(
+                                    &cfg.images.frontend,
+                                    fleet.initial_calibration(robot).camera,
+                                    cfg.images.mcap_every,
+                                )
+                                .map_err(NodeError::Images)?,
+                            ),
+                        };
+                        imgs.apply(&mut c, node.log.as_mut())
+                            .map_err(NodeError::Images)?;
+                    }
                     let index = frames_seen;
                     frames_seen += 1;
                     if !initialized {
@@ -535,7 +562,7 @@ pub fn run_node(
                                 envs.extend(node.outbox.snapshot(index, &frame, plan, &w));
                             }
                         }
-                        log_estimate(&mut node, &o, truth);
+                        log_estimate(&mut node, &o, truth, &est);
                         record(&mut node.report.run, truth, o);
                     }
                     Err(e) => node.report.run.rejected.push(e.to_string()),
@@ -617,7 +644,17 @@ pub fn run_node(
     Ok(node.report)
 }
 
-fn log_estimate(node: &mut Node, o: &FrameOutput, truth: &simulator::truth::RobotTruth) {
+/// Frames between two logged paths and scenes.
+const SCENE_EVERY_FRAMES: usize = 10;
+/// Most poses in one logged path.
+const MAX_PATH_POSES: usize = 2000;
+
+fn log_estimate(
+    node: &mut Node,
+    o: &FrameOutput,
+    truth: &simulator::truth::RobotTruth,
+    est: &Estimator,
+) {
     let Some(log) = node.log.as_mut() else {
         return;
     };
@@ -625,5 +662,16 @@ fn log_estimate(node: &mut Node, o: &FrameOutput, truth: &simulator::truth::Robo
     let _ = log.covariance(o.t, &o.cov_ori, &o.cov_pos);
     if let Some(gt) = truth.spline.pose(o.t) {
         let _ = log.pose("/groundtruth", "world", o.t, &gt.rot, &gt.trans);
+    }
+    let run = &node.report.run;
+    if run.frames.len() % SCENE_EVERY_FRAMES == 0 {
+        let _ = log.path("/estimate/path", o.t, &run.estimate, MAX_PATH_POSES);
+        let _ = log.path("/groundtruth/path", o.t, &run.truth, MAX_PATH_POSES);
+        let landmarks: Vec<nalgebra::Vector3<f64>> = est
+            .camera_window(true)
+            .map(|w| w.landmarks.iter().map(|l| l.pos).collect())
+            .unwrap_or_default();
+        let peers: Vec<PeerPose> = node.peer_poses.values().copied().collect();
+        let _ = log.scene(o.t, &landmarks, &peers);
     }
 }

@@ -3,10 +3,11 @@
 //! robot reads its own, and the result is scored against the simulator's truth.
 
 use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, InitialState};
+use common::measurement::FeatureFrame;
 use common::metrics::{ate, nees, rpe, Alignment, PosePair, DEFAULT_RPE_SEGMENTS_M};
 use common::summary::MetricSet;
 use common::trajectory::{StampedCovariance, StampedPose};
-use simulator::camera_sim::TruthState;
+use simulator::camera_sim::{CameraEvent, TruthState};
 use simulator::scenario::EstimatorSpec;
 use simulator::{Fleet, SimEvent};
 use std::str::FromStr;
@@ -117,6 +118,14 @@ pub enum RunError {
     /// The robot never moved enough to start.
     #[error("robot {0} has no camera frame after its start time")]
     NeverStarted(usize),
+    /// The camera frames could not be made (e.g. by the image frontend).
+    #[error("camera frame at t={t}: {reason}")]
+    Frames {
+        /// Camera time of the image.
+        t: f64,
+        /// What went wrong.
+        reason: String,
+    },
 }
 
 /// The estimator options a scenario asks for, for one variant.
@@ -172,6 +181,47 @@ pub fn run_robot(
     robot: usize,
     opts: EstimatorOptions,
 ) -> Result<RobotRun, RunError> {
+    require_features(fleet)?;
+    run_robot_with(fleet, robot, opts, |c| Ok(Some(c.frame)))
+}
+
+/// Refuses a fleet that renders images where simulated features are expected:
+/// rendered frames carry images, and without the image frontend every frame
+/// would be empty.
+pub fn require_features(fleet: &Fleet) -> Result<(), RunError> {
+    if fleet.renderer.is_some() {
+        return Err(RunError::Frames {
+            t: f64::NAN,
+            reason: "the scenario renders images: run it through the image frontend \
+                     (`agent run --render`, cargo feature `vision`)"
+                .into(),
+        });
+    }
+    Ok(())
+}
+
+/// [`run_robot`] with the feature frames made by `frames` from each camera
+/// event (an image frontend, for rendered images). `frames` sees every event,
+/// also those before the estimator starts (tracks must begin somewhere), and
+/// returns `None` for an image without a frame; its errors stop the run.
+pub fn run_robot_with(
+    fleet: &Fleet,
+    robot: usize,
+    opts: EstimatorOptions,
+    frames: impl FnMut(CameraEvent) -> Result<Option<FeatureFrame>, RunError>,
+) -> Result<RobotRun, RunError> {
+    run_stream(fleet, robot, opts, fleet.stream(robot)?, frames)
+}
+
+/// [`run_robot_with`] on a given measurement stream of robot `robot` (e.g.
+/// [`Fleet::stream_with_imu`]: recorded IMU, simulated camera).
+pub fn run_stream(
+    fleet: &Fleet,
+    robot: usize,
+    opts: EstimatorOptions,
+    events: impl Iterator<Item = SimEvent>,
+    mut frames: impl FnMut(CameraEvent) -> Result<Option<FeatureFrame>, RunError>,
+) -> Result<RobotRun, RunError> {
     let spec = &fleet.scenario.estimator;
     let truth = fleet
         .truths
@@ -183,7 +233,7 @@ pub fn run_robot(
     let mut est = Estimator::new(opts, fleet.initial_calibration(robot));
     let mut run = RobotRun::default();
     let mut initialized = false;
-    for ev in fleet.stream(robot)? {
+    for ev in events {
         match ev {
             SimEvent::Imu(s) => {
                 if let Err(e) = est.feed_imu(s) {
@@ -191,15 +241,18 @@ pub fn run_robot(
                 }
             }
             SimEvent::Camera(c) => {
+                let state = c.truth;
+                let frame = frames(*c)?;
                 if !initialized {
-                    if c.truth.t < start {
+                    if state.t < start {
                         continue;
                     }
-                    est.initialize(&initial_state(spec, &c.truth));
+                    est.initialize(&initial_state(spec, &state));
                     initialized = true;
                     continue;
                 }
-                if let Err(e) = est.feed_frame(c.frame) {
+                let Some(frame) = frame else { continue };
+                if let Err(e) = est.feed_frame(frame) {
                     run.rejected.push(e.to_string());
                 }
             }

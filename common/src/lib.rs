@@ -4,9 +4,11 @@
 //!   file quaternion orders, stated once for the whole workspace.
 //! * [`so3`]: SO(3)/SE(3) math (`exp`, `log`, right Jacobians, skew).
 //! * [`camera`]: pinhole + radtan / equidistant models with Jacobians.
+//! * [`base64`]: bytes in JSON messages.
 //! * [`calibration`]: a camera's intrinsics, camera-IMU extrinsics and time offset.
 //! * [`descriptor`]: 256-bit binary descriptors.
 //! * [`epipolar`]: fundamental matrix (eight-point, Sampson error, RANSAC).
+//! * [`image`]: 8-bit grayscale images and their PNG encoding.
 //! * [`estimator_options`]: the estimator's options and their defaults.
 //! * [`measurement`]: IMU samples and camera feature frames.
 //! * [`trajectory`]: TUM / EuRoC ground-truth readers and a TUM writer.
@@ -15,12 +17,14 @@
 //! * [`summary`]: the `summary.json` schema shared by the agent and the fleet tools.
 #![warn(missing_docs)]
 
+pub mod base64;
 pub mod calibration;
 pub mod camera;
 pub mod conventions;
 pub mod descriptor;
 pub mod epipolar;
 pub mod estimator_options;
+pub mod image;
 pub mod measurement;
 pub mod messages;
 pub mod metrics;

@@ -186,6 +186,7 @@ pub fn agent_configs(
                 publish: PublishConfig::default(),
                 history: HistoryConfig::default(),
                 mcap_log: true,
+                images: Default::default(),
             }
         })
         .collect())

@@ -2,6 +2,7 @@
 //! launch a fleet of agents).
 use anyhow::Result;
 use clap::{Parser, Subcommand};
+use sim_fleet::convert::{run_convert, ConvertArgs};
 use sim_fleet::eval::{run_eval, EvalArgs};
 use sim_fleet::fleet_run::{run_fleet, RunArgs};
 use sim_fleet::montecarlo::{run_montecarlo, MontecarloArgs};
@@ -28,6 +29,9 @@ enum Command {
     /// Launch one agent process per robot (Zenoh or iceoryx2; threads for
     /// inproc), supervise them and collect their outputs into DIR/summary.json.
     Run(RunArgs),
+    /// Convert a sequence in the EuRoC ASL layout (EuRoC MAV, TUM-VI) to an
+    /// MCAP file: IMU, images and ground truth, on the fleet clock.
+    ConvertEuroc(ConvertArgs),
 }
 
 fn main() -> Result<()> {
@@ -44,5 +48,6 @@ fn main() -> Result<()> {
         Command::Eval(args) => run_eval(&args),
         Command::Montecarlo(args) => run_montecarlo(&args),
         Command::Run(args) => run_fleet(&args),
+        Command::ConvertEuroc(args) => run_convert(&args),
     }
 }

@@ -7,12 +7,14 @@ use crate::truth::RobotTruth;
 use crate::world::{camera_pose, ViewBounds, World};
 use common::calibration::CameraCalibration;
 use common::descriptor::Descriptor;
+use common::image::GrayImage;
 use common::measurement::{FeatureFrame, FeatureObservation};
 use nalgebra::{Matrix3, Vector2, Vector3};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Binomial, Distribution, StandardNormal};
 use std::collections::HashMap;
+use std::sync::Arc;
 
 /// The true state of a robot at the IMU time of one image.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -40,6 +42,9 @@ pub struct CameraEvent {
     pub landmark_ids: Vec<u64>,
     /// Which features are injected outliers (same order); ground truth only.
     pub outlier: Vec<bool>,
+    /// The camera image, when the scenario renders images or a dataset has
+    /// them; `frame` then has no features until an image frontend makes them.
+    pub image: Option<Arc<GrayImage>>,
 }
 
 /// Generates one robot's camera frames in time order.
@@ -136,6 +141,33 @@ impl CameraGenerator {
             },
             landmark_ids,
             outlier,
+            image: None,
+        })
+    }
+
+    /// The next image's time and truth without simulated features (for
+    /// rendered images), or `None` once its IMU time is past the spline.
+    pub fn next_blank_frame(&mut self, truth: &RobotTruth, biases: Biases) -> Option<CameraEvent> {
+        let t_cam = self.next_time();
+        let t_imu = self.next_imu_time();
+        let state = truth.state(t_imu)?;
+        self.k += 1;
+        Some(CameraEvent {
+            frame: FeatureFrame {
+                t: t_cam,
+                camera: 0,
+                features: Vec::new(),
+            },
+            truth: TruthState {
+                t: t_imu,
+                rot: state.rot,
+                pos: state.pos,
+                vel: state.vel,
+                biases,
+            },
+            landmark_ids: Vec::new(),
+            outlier: Vec::new(),
+            image: None,
         })
     }
 

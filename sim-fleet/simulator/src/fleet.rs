@@ -3,16 +3,20 @@
 
 use crate::bspline::SplineError;
 use crate::camera_sim::{CameraEvent, CameraGenerator};
-use crate::imu::ImuGenerator;
+use crate::imu::{Biases, ImuGenerator};
 use crate::perturb::perturb_calibration;
+use crate::render::{RenderError, Renderer};
 use crate::rng::{stream_rng, Stream};
 use crate::scenario::Scenario;
 use crate::truth::RobotTruth;
-use crate::world::{ViewBounds, World};
+use crate::world::{camera_pose, ViewBounds, World};
 use common::calibration::CameraCalibration;
 use common::measurement::ImuSample;
 use common::trajectory::{read_trajectory, TrajectoryError};
+use nalgebra::Vector3;
+use rand_chacha::ChaCha8Rng;
 use std::path::PathBuf;
+use std::sync::Arc;
 use thiserror::Error;
 
 /// Why a fleet could not be simulated.
@@ -34,6 +38,12 @@ pub enum SimError {
     /// The requested robot does not exist.
     #[error("robot {0} is not in the scenario")]
     NoSuchRobot(usize),
+    /// The rendered world could not be built.
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    /// An image could not be rendered.
+    #[error("rendering an image: {0}")]
+    Image(#[from] common::image::ImageError),
 }
 
 /// One item of a robot's measurement stream.
@@ -58,6 +68,8 @@ pub struct Fleet {
     pub world: World,
     /// The true camera calibration (the same for every robot).
     pub true_calibration: CameraCalibration,
+    /// The rendered world, when the scenario renders images.
+    pub renderer: Option<Arc<Renderer>>,
 }
 
 impl Fleet {
@@ -86,12 +98,25 @@ impl Fleet {
         for truth in &truths {
             world.grow_along(truth, &true_calibration, &bounds, &scenario.world, &mut rng);
         }
+        let renderer = if scenario.render.enabled {
+            let mut rng = stream_rng(seed, Stream::Texture);
+            let r = Renderer::new(
+                &scenario.render,
+                &true_calibration,
+                truths.iter().flat_map(trajectory_points),
+                &mut rng,
+            )?;
+            Some(Arc::new(r))
+        } else {
+            None
+        };
         Ok(Self {
             scenario: scenario.clone(),
             seed,
             truths,
             world,
             true_calibration,
+            renderer,
         })
     }
 
@@ -103,16 +128,42 @@ impl Fleet {
     /// Robot `robot`'s measurement stream, from the start of its spline.
     pub fn stream(&self, robot: usize) -> Result<RobotStream<'_>, SimError> {
         let truth = self.truths.get(robot).ok_or(SimError::NoSuchRobot(robot))?;
+        let imu = ImuGenerator::new(
+            self.scenario.sensors.imu.clone(),
+            stream_rng(self.seed, Stream::Imu(robot)),
+            truth.start_time(),
+        );
+        self.stream_from(robot, ImuSource::Simulated(Box::new(imu)))
+    }
+
+    /// A hybrid stream: recorded IMU `samples` (fleet clock, time order) with
+    /// camera frames simulated from robot `robot`'s trajectory. `biases` are
+    /// the recorded IMU's biases as far as they are known (the truth that
+    /// camera events carry). Samples outside the trajectory's span are dropped.
+    pub fn stream_with_imu(
+        &self,
+        robot: usize,
+        samples: Vec<ImuSample>,
+        biases: Biases,
+    ) -> Result<RobotStream<'_>, SimError> {
+        let truth = self.truths.get(robot).ok_or(SimError::NoSuchRobot(robot))?;
+        let (t0, t1) = (truth.start_time(), truth.end_time());
+        let mut samples: Vec<ImuSample> = samples
+            .into_iter()
+            .filter(|s| s.t >= t0 && s.t <= t1)
+            .collect();
+        samples.reverse();
+        self.stream_from(robot, ImuSource::Recorded { samples, biases })
+    }
+
+    fn stream_from(&self, robot: usize, imu: ImuSource) -> Result<RobotStream<'_>, SimError> {
+        let truth = self.truths.get(robot).ok_or(SimError::NoSuchRobot(robot))?;
         let sensors = &self.scenario.sensors;
         let t0 = truth.start_time();
         Ok(RobotStream {
             fleet: self,
             truth,
-            imu: ImuGenerator::new(
-                sensors.imu.clone(),
-                stream_rng(self.seed, Stream::Imu(robot)),
-                t0,
-            ),
+            imu,
             camera: CameraGenerator::new(
                 sensors.camera.clone(),
                 self.scenario.world.clone(),
@@ -120,6 +171,7 @@ impl Fleet {
                 t0 - self.true_calibration.time_offset_s,
             ),
             camera_done: false,
+            render_rng: stream_rng(self.seed, Stream::Render(robot)),
         })
     }
 
@@ -141,15 +193,82 @@ impl Fleet {
     }
 }
 
+/// Where a stream's IMU samples come from.
+#[derive(Debug)]
+enum ImuSource {
+    /// The IMU model of the scenario.
+    Simulated(Box<ImuGenerator>),
+    /// A recording, latest sample first (popped from the back).
+    Recorded {
+        samples: Vec<ImuSample>,
+        biases: Biases,
+    },
+}
+
+impl ImuSource {
+    fn next_time(&self) -> f64 {
+        match self {
+            ImuSource::Simulated(g) => g.next_time(),
+            ImuSource::Recorded { samples, .. } => samples.last().map_or(f64::INFINITY, |s| s.t),
+        }
+    }
+
+    fn biases(&self) -> Biases {
+        match self {
+            ImuSource::Simulated(g) => g.biases(),
+            ImuSource::Recorded { biases, .. } => *biases,
+        }
+    }
+
+    fn next_sample(&mut self, truth: &RobotTruth) -> Option<ImuSample> {
+        match self {
+            ImuSource::Simulated(g) => g.next_sample(truth),
+            ImuSource::Recorded { samples, .. } => samples.pop(),
+        }
+    }
+}
+
 /// A robot's measurements in time order: IMU samples, and each image right after
 /// the IMU has passed the image's IMU time.
 #[derive(Debug)]
 pub struct RobotStream<'a> {
     fleet: &'a Fleet,
     truth: &'a RobotTruth,
-    imu: ImuGenerator,
+    imu: ImuSource,
     camera: CameraGenerator,
     camera_done: bool,
+    render_rng: ChaCha8Rng,
+}
+
+impl RobotStream<'_> {
+    /// The next camera event: simulated features, or a rendered image.
+    fn next_camera(&mut self) -> Option<CameraEvent> {
+        let biases = self.imu.biases();
+        let Some(renderer) = &self.fleet.renderer else {
+            return self
+                .camera
+                .next_frame(self.truth, &self.fleet.world, biases);
+        };
+        let mut ev = self.camera.next_blank_frame(self.truth, biases)?;
+        let pose = camera_pose(self.truth, &self.fleet.true_calibration, ev.truth.t)?;
+        match renderer.render(&pose, &mut self.render_rng) {
+            Ok(img) => ev.image = Some(Arc::new(img)),
+            // Only an image size GrayImage cannot hold fails, which
+            // Renderer::new already refused.
+            Err(e) => tracing::warn!("frame at t={} not rendered: {e}", ev.frame.t),
+        }
+        Some(ev)
+    }
+}
+
+/// Positions along a trajectory every 0.1 s (to put the rendered room around).
+fn trajectory_points(truth: &RobotTruth) -> Vec<Vector3<f64>> {
+    let (t0, t1) = (truth.start_time(), truth.end_time());
+    let steps = ((t1 - t0) / 0.1).ceil().max(0.0) as usize;
+    (0..=steps)
+        .filter_map(|k| truth.spline.pose((t0 + k as f64 * 0.1).min(t1)))
+        .map(|p| p.trans)
+        .collect()
 }
 
 impl Iterator for RobotStream<'_> {
@@ -157,10 +276,7 @@ impl Iterator for RobotStream<'_> {
 
     fn next(&mut self) -> Option<SimEvent> {
         if !self.camera_done && self.imu.next_time() > self.camera.next_imu_time() {
-            match self
-                .camera
-                .next_frame(self.truth, &self.fleet.world, self.imu.biases())
-            {
+            match self.next_camera() {
                 Some(ev) => return Some(SimEvent::Camera(Box::new(ev))),
                 None => self.camera_done = true,
             }

@@ -13,6 +13,7 @@ pub mod fleet;
 pub mod imu;
 pub mod mcap_io;
 pub mod perturb;
+pub mod render;
 pub mod rng;
 pub mod scenario;
 pub mod truth;

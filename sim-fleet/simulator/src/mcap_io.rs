@@ -1,24 +1,28 @@
 //! A robot's simulated measurements in an MCAP file (JSON messages with JSON
 //! schemas, so Foxglove and `mcap cat` show them), and reading them back.
 //!
-//! Topics: `/imu` (schema `fleet.ImuSample`), `/features` (`fleet.FeatureFrame`)
-//! and `/groundtruth` (`fleet.TruthState`). Log times are nanoseconds of the
+//! Topics: `/imu` (schema `fleet.ImuSample`), `/features` (`fleet.FeatureFrame`),
+//! `/groundtruth` (`fleet.TruthState`) and, for rendered or recorded images,
+//! `/camera/image` (`foxglove.CompressedImage`, PNG). Log times are nanoseconds of the
 //! fleet clock (IMU time for `/imu` and `/groundtruth`, camera time for `/features`).
 
 use crate::camera_sim::{CameraEvent, TruthState};
 use crate::fleet::SimEvent;
 use crate::imu::Biases;
 use common::descriptor::Descriptor;
+use common::image::{GrayImage, ImageError};
 use common::measurement::{FeatureFrame, FeatureObservation, ImuSample};
 use nalgebra::{Matrix3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::io::{BufReader, BufWriter};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use thiserror::Error;
 
-/// Largest message accepted when reading (bytes): a frame of 10 000 features fits.
-const MAX_MESSAGE_BYTES: usize = 4 << 20;
+/// Largest message accepted when reading (bytes): a frame of 10 000 features
+/// fits, and a base64 PNG of a 2048x2048 image.
+const MAX_MESSAGE_BYTES: usize = 16 << 20;
 
 /// Why an MCAP measurement file could not be written or read.
 #[derive(Debug, Error)]
@@ -92,6 +96,47 @@ const IMU_SCHEMA: &str = r#"{"type":"object","title":"fleet.ImuSample","properti
 const FRAME_SCHEMA: &str = r#"{"type":"object","title":"fleet.FeatureFrame","properties":{"t":{"type":"number","description":"camera time, s"},"camera":{"type":"integer"},"features":{"type":"array","items":{"type":"object","properties":{"id":{"type":"integer","description":"track id"},"u":{"type":"number","description":"raw pixel x"},"v":{"type":"number","description":"raw pixel y"},"descriptor":{"type":"string","description":"256-bit, hex"},"landmark":{"type":"integer","description":"true landmark id (ground truth)"},"outlier":{"type":"boolean","description":"injected outlier (ground truth)"}}}}}}"#;
 const TRUTH_SCHEMA: &str = r#"{"type":"object","title":"fleet.TruthState","properties":{"t":{"type":"number","description":"IMU time, s"},"q_xyzw":{"type":"array","items":{"type":"number"},"description":"R_ItoG quaternion, scalar last"},"p":{"type":"array","items":{"type":"number"},"description":"p_IinG, m"},"v":{"type":"array","items":{"type":"number"},"description":"v_IinG, m/s"},"bias_gyro":{"type":"array","items":{"type":"number"}},"bias_accel":{"type":"array","items":{"type":"number"}}}}"#;
 
+/// JSON schema of Foxglove's `CompressedImage` (bytes are base64 in JSON).
+pub const COMPRESSED_IMAGE_SCHEMA: &str = r#"{"title":"foxglove.CompressedImage","type":"object","properties":{"timestamp":{"type":"object","properties":{"sec":{"type":"integer","minimum":0},"nsec":{"type":"integer","minimum":0,"maximum":999999999}}},"frame_id":{"type":"string"},"data":{"type":"string","contentEncoding":"base64"},"format":{"type":"string"}}}"#;
+
+#[derive(Serialize, Deserialize)]
+struct Stamp {
+    sec: u64,
+    nsec: u32,
+}
+
+#[derive(Serialize, Deserialize)]
+struct ImageRecord {
+    timestamp: Stamp,
+    frame_id: String,
+    data: String,
+    format: String,
+}
+
+/// A Foxglove `CompressedImage` JSON message of a gray image at time `t` (PNG).
+pub fn image_message(t: f64, image: &GrayImage) -> Result<Vec<u8>, ImageError> {
+    let t = if t.is_finite() { t.max(0.0) } else { 0.0 };
+    let record = ImageRecord {
+        timestamp: Stamp {
+            sec: t.floor() as u64,
+            nsec: ((t - t.floor()) * 1e9).round().min(999_999_999.0) as u32,
+        },
+        frame_id: "camera".into(),
+        data: common::base64::encode(&image.to_png()?),
+        format: "png".into(),
+    };
+    Ok(encode(&record))
+}
+
+fn decode_image(data: &[u8]) -> Result<GrayImage, String> {
+    let r: ImageRecord = serde_json::from_slice(data).map_err(|e| e.to_string())?;
+    if r.format != "png" {
+        return Err(format!("image format `{}` is not png", r.format));
+    }
+    let png = common::base64::decode(&r.data).ok_or("image data is not base64")?;
+    GrayImage::from_png(&png).map_err(|e| e.to_string())
+}
+
 fn nanos(t: f64) -> u64 {
     (t.max(0.0) * 1e9).round() as u64
 }
@@ -124,6 +169,11 @@ pub fn write_stream<I: IntoIterator<Item = SimEvent>>(
     let imu_ch = channel("fleet.ImuSample", "/imu", IMU_SCHEMA)?;
     let frame_ch = channel("fleet.FeatureFrame", "/features", FRAME_SCHEMA)?;
     let truth_ch = channel("fleet.TruthState", "/groundtruth", TRUTH_SCHEMA)?;
+    let image_ch = channel(
+        "foxglove.CompressedImage",
+        "/camera/image",
+        COMPRESSED_IMAGE_SCHEMA,
+    )?;
     let mut count = 0u64;
     for ev in events {
         let (ch, t, data) = match ev {
@@ -138,6 +188,17 @@ pub fn write_stream<I: IntoIterator<Item = SimEvent>>(
                 )
                 .map_err(mc_err)?;
                 count += 1;
+                if let Some(img) = &c.image {
+                    let data =
+                        image_message(c.frame.t, img).map_err(|e| McapIoError::BadMessage {
+                            path: path.to_path_buf(),
+                            index: count as usize,
+                            topic: "/camera/image".into(),
+                            reason: e.to_string(),
+                        })?;
+                    put(&mut w, image_ch, count, c.frame.t, &data).map_err(mc_err)?;
+                    count += 1;
+                }
                 (frame_ch, c.frame.t, encode(&frame_record(&c)))
             }
         };
@@ -222,6 +283,7 @@ pub fn read_stream(path: &Path) -> Result<Vec<SimEvent>, McapIoError> {
     })?;
     let mut events = Vec::new();
     let mut pending_truth: Option<TruthState> = None;
+    let mut pending_image: Option<Arc<GrayImage>> = None;
     for (index, msg) in mcap::io::MessageReader::new(BufReader::new(file)).enumerate() {
         let msg = msg.map_err(|source| McapIoError::Mcap {
             path: path.to_path_buf(),
@@ -238,6 +300,9 @@ pub fn read_stream(path: &Path) -> Result<Vec<SimEvent>, McapIoError> {
             return Err(bad(format!("{} bytes exceeds the limit", msg.data.len())));
         }
         match topic.as_str() {
+            "/camera/image" => {
+                pending_image = Some(Arc::new(decode_image(&msg.data).map_err(bad)?));
+            }
             "/imu" => {
                 let r: ImuRecord =
                     serde_json::from_slice(&msg.data).map_err(|e| bad(e.to_string()))?;
@@ -304,6 +369,7 @@ pub fn read_stream(path: &Path) -> Result<Vec<SimEvent>, McapIoError> {
                     truth,
                     landmark_ids,
                     outlier,
+                    image: pending_image.take(),
                 })));
             }
             _ => {}

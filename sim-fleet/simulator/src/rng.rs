@@ -15,6 +15,10 @@ pub enum Stream {
     Camera(usize),
     /// A robot's perturbed initial calibration.
     Calibration(usize),
+    /// The textures of the rendered world.
+    Texture,
+    /// A robot's rendered image noise.
+    Render(usize),
 }
 
 /// A ChaCha8 generator for `stream` of `seed`; streams never overlap.
@@ -24,6 +28,9 @@ pub fn stream_rng(seed: u64, stream: Stream) -> ChaCha8Rng {
         Stream::Imu(r) => 1 + 4 * r as u64,
         Stream::Camera(r) => 2 + 4 * r as u64,
         Stream::Calibration(r) => 3 + 4 * r as u64,
+        // 4 + 4r is free for every r (the world took only 0).
+        Stream::Render(r) => 4 + 4 * r as u64,
+        Stream::Texture => u64::MAX,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(id);

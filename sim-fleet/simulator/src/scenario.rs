@@ -5,6 +5,7 @@
 //! trajectory is re-timed onto the fleet clock: its first pose is at fleet time
 //! `start_time_s` (default 0), so recordings made at different times fly together.
 
+use crate::render::RenderSpec;
 use common::calibration::CameraCalibration;
 use common::camera::{CameraModel, Distortion};
 use common::estimator_options::{CooperationOptions, EstimatorOptions, FeatureRepresentation};
@@ -72,6 +73,9 @@ pub struct Scenario {
     /// Estimator settings (used by the agents).
     #[serde(default)]
     pub estimator: EstimatorSpec,
+    /// Rendered camera images (off by default: feature-level simulation).
+    #[serde(default)]
+    pub render: RenderSpec,
     /// Folder the scenario file was in (paths are relative to it); not in the file.
     #[serde(skip)]
     pub base_dir: PathBuf,
@@ -460,6 +464,7 @@ impl Scenario {
             .camera
             .validate()
             .map_err(|e| invalid(format!("sensors.camera: {e}")))?;
+        self.render.validate().map_err(|e| invalid(e.to_string()))?;
         Ok(())
     }
 }

@@ -13,6 +13,9 @@ pub const MIN_CONTROL_DT_S: f64 = 0.05;
 pub struct RobotTruth {
     /// The spline on the fleet clock.
     pub spline: SplineSe3,
+    /// Fleet time minus the trajectory file's time, s (recordings made with the
+    /// same clock as the file, e.g. its IMU, shift by this much).
+    pub time_shift_s: f64,
 }
 
 impl RobotTruth {
@@ -28,6 +31,7 @@ impl RobotTruth {
             .collect();
         Ok(Self {
             spline: SplineSe3::fit(&shifted, MIN_CONTROL_DT_S)?,
+            time_shift_s: start_time_s - t0,
         })
     }
 

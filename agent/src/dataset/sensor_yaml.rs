@@ -1,0 +1,165 @@
+//! The `sensor.yaml` of an ASL sensor folder: camera intrinsics, distortion,
+//! resolution, rate and the extrinsics `T_BS` (sensor to body).
+//!
+//! The files start with OpenCV's `%YAML:1.0` directive, which is not YAML 1.2:
+//! directive lines are skipped before parsing.
+
+use common::camera::{CameraModel, Distortion};
+use nalgebra::{Matrix3, Matrix4, Vector3, Vector4};
+use serde::Deserialize;
+
+/// A 4x4 matrix as ASL files write it.
+#[derive(Debug, Deserialize)]
+struct AslMatrix {
+    rows: usize,
+    cols: usize,
+    data: Vec<f64>,
+}
+
+/// The keys of a camera or IMU `sensor.yaml` that matter here; others are ignored.
+#[derive(Debug, Deserialize)]
+struct RawSensor {
+    #[serde(rename = "T_BS")]
+    t_bs: Option<AslMatrix>,
+    rate_hz: Option<f64>,
+    resolution: Option<[u32; 2]>,
+    camera_model: Option<String>,
+    intrinsics: Option<[f64; 4]>,
+    distortion_model: Option<String>,
+    distortion_coefficients: Option<Vec<f64>>,
+}
+
+/// A parsed camera sensor.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CameraSensor {
+    /// Intrinsics, distortion and image size.
+    pub camera: CameraModel,
+    /// `T_BS`: the camera pose in the body frame.
+    pub t_bs: Matrix4<f64>,
+    /// Frame rate, Hz (if given).
+    pub rate_hz: Option<f64>,
+}
+
+fn parse(text: &str) -> Result<RawSensor, String> {
+    let yaml: String = text
+        .lines()
+        .filter(|l| !l.trim_start().starts_with('%'))
+        .collect::<Vec<_>>()
+        .join("\n");
+    serde_yaml::from_str(&yaml).map_err(|e| e.to_string())
+}
+
+fn matrix4(m: &AslMatrix) -> Result<Matrix4<f64>, String> {
+    if m.rows != 4 || m.cols != 4 || m.data.len() != 16 {
+        return Err(format!(
+            "T_BS must be 4x4 with 16 values, got {}x{} with {}",
+            m.rows,
+            m.cols,
+            m.data.len()
+        ));
+    }
+    if m.data.iter().any(|v| !v.is_finite()) {
+        return Err("T_BS has a non-finite value".into());
+    }
+    let t = Matrix4::from_row_slice(&m.data);
+    let r: Matrix3<f64> = t.fixed_view::<3, 3>(0, 0).into_owned();
+    if (r.transpose() * r - Matrix3::identity()).norm() > 1e-3 {
+        return Err("T_BS rotation is not orthonormal".into());
+    }
+    Ok(t)
+}
+
+/// `T_BS` of a sensor file (identity when absent, as for EuRoC's IMU).
+pub fn parse_t_bs(text: &str) -> Result<Matrix4<f64>, String> {
+    match parse(text)?.t_bs {
+        Some(m) => matrix4(&m),
+        None => Ok(Matrix4::identity()),
+    }
+}
+
+/// A camera `sensor.yaml`: pinhole with `radial-tangential` (or `radtan`) or
+/// `equidistant` distortion.
+pub fn parse_camera(text: &str) -> Result<CameraSensor, String> {
+    let raw = parse(text)?;
+    if let Some(model) = &raw.camera_model {
+        if model != "pinhole" {
+            return Err(format!(
+                "camera_model `{model}` is not supported (pinhole only)"
+            ));
+        }
+    }
+    let model = match raw.distortion_model.as_deref() {
+        Some("radial-tangential") | Some("radtan") | Some("plumb_bob") => Distortion::RadTan,
+        Some("equidistant") | Some("fisheye") => Distortion::Equidistant,
+        Some(other) => return Err(format!("distortion_model `{other}` is not supported")),
+        None => return Err("distortion_model is missing".into()),
+    };
+    let [width, height] = raw.resolution.ok_or("resolution is missing")?;
+    let k = raw.intrinsics.ok_or("intrinsics are missing")?;
+    let d = raw
+        .distortion_coefficients
+        .ok_or("distortion_coefficients are missing")?;
+    if d.len() != 4 {
+        return Err(format!("need 4 distortion_coefficients, got {}", d.len()));
+    }
+    let camera = CameraModel {
+        model,
+        width,
+        height,
+        intrinsics: Vector4::from(k),
+        distortion: Vector4::new(d[0], d[1], d[2], d[3]),
+    };
+    camera.validate().map_err(|e| e.to_string())?;
+    if let Some(r) = raw.rate_hz {
+        if !(r.is_finite() && r > 0.0) {
+            return Err(format!("rate_hz must be positive, got {r}"));
+        }
+    }
+    Ok(CameraSensor {
+        camera,
+        t_bs: match &raw.t_bs {
+            Some(m) => matrix4(m)?,
+            None => return Err("T_BS is missing".into()),
+        },
+        rate_hz: raw.rate_hz,
+    })
+}
+
+/// Rotation and translation of a homogeneous transform.
+pub fn split(t: &Matrix4<f64>) -> (Matrix3<f64>, Vector3<f64>) {
+    (
+        t.fixed_view::<3, 3>(0, 0).into_owned(),
+        t.fixed_view::<3, 1>(0, 3).into_owned(),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const CAM0: &str = "%YAML:1.0\nsensor_type: camera\nT_BS:\n  cols: 4\n  rows: 4\n  data: [1.0, 0.0, 0.0, 0.1, 0.0, 1.0, 0.0, 0.2, 0.0, 0.0, 1.0, 0.3, 0.0, 0.0, 0.0, 1.0]\nrate_hz: 20\nresolution: [752, 480]\ncamera_model: pinhole\nintrinsics: [458.654, 457.296, 367.215, 248.375]\ndistortion_model: radial-tangential\ndistortion_coefficients: [-0.28, 0.07, 0.0002, 0.00002]\n";
+
+    #[test]
+    fn reads_an_asl_camera_file_with_its_opencv_directive() {
+        let s = parse_camera(CAM0).expect("valid");
+        assert_eq!(s.camera.width, 752);
+        assert_eq!(s.camera.model, Distortion::RadTan);
+        assert_eq!(s.rate_hz, Some(20.0));
+        assert_eq!(split(&s.t_bs).1, Vector3::new(0.1, 0.2, 0.3));
+    }
+
+    #[test]
+    fn bad_camera_files_name_the_problem() {
+        let fisheye_free = CAM0.replace("radial-tangential", "kannala");
+        assert!(parse_camera(&fisheye_free).unwrap_err().contains("kannala"));
+        let no_res = CAM0.replace("resolution: [752, 480]\n", "");
+        assert!(parse_camera(&no_res).unwrap_err().contains("resolution"));
+        let bad_t = CAM0.replace("cols: 4", "cols: 3");
+        assert!(parse_camera(&bad_t).unwrap_err().contains("4x4"));
+        assert!(parse_camera("::: not yaml").is_err());
+        assert_eq!(
+            parse_t_bs("sensor_type: imu\n").unwrap(),
+            Matrix4::identity()
+        );
+    }
+}

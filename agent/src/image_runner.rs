@@ -1,0 +1,147 @@
+//! One robot of a scenario that renders images, through the image frontend into
+//! the estimator (the rendered counterpart of [`crate::runner::run_robot`]),
+//! with the quality of the KLT tracks measured against the rendered truth.
+//!
+//! Track accuracy: when a track starts, its pixel is cast into the rendered
+//! room from the true camera pose, which gives the true 3-D point behind it;
+//! every later observation of the track is compared with that point projected
+//! through the true pose and calibration. The error is what KLT drift,
+//! interpolation and image noise add to the ideal measurement (the detection's
+//! own position is exact by construction).
+
+use crate::estimator::EstimatorOptions;
+use crate::frontend::{Frontend, FrontendOptions, FrontendOutput};
+use crate::runner::{run_robot_with, RobotRun, RunError};
+use nalgebra::Vector3;
+use simulator::camera_sim::CameraEvent;
+use simulator::world::camera_pose;
+use simulator::Fleet;
+use std::collections::HashMap;
+
+/// Summary of the frontend over a run.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TrackQuality {
+    /// Images processed.
+    pub frames: usize,
+    /// Mean features per frame.
+    pub features_per_frame: f64,
+    /// Mean frontend cost per frame, ms (wall clock).
+    pub ms_per_frame: f64,
+    /// Track observations compared with the truth.
+    pub observations: usize,
+    /// Reprojection error of the tracked pixels, px: mean, median, 95th percentile.
+    pub reprojection_mean_px: f64,
+    /// Median, px.
+    pub reprojection_median_px: f64,
+    /// 95th percentile, px.
+    pub reprojection_p95_px: f64,
+    /// Fraction of observations more than 3 px off (tracking failures).
+    pub outlier_fraction: f64,
+}
+
+/// A rendered run: the estimator's run and the frontend's track quality.
+#[derive(Clone, Debug, Default)]
+pub struct ImageRun {
+    /// The estimator's outputs.
+    pub run: RobotRun,
+    /// The frontend's tracks.
+    pub tracks: TrackQuality,
+}
+
+/// Runs robot `robot` of a fleet that renders images (`render.enabled`);
+/// `on_image` sees every image with the frontend's output (e.g. to log it).
+pub fn run_robot_rendered(
+    fleet: &Fleet,
+    robot: usize,
+    opts: EstimatorOptions,
+    frontend: FrontendOptions,
+    mut on_image: impl FnMut(&CameraEvent, &FrontendOutput),
+) -> Result<ImageRun, RunError> {
+    let renderer = fleet.renderer.clone().ok_or(RunError::Frames {
+        t: f64::NAN,
+        reason: "the scenario does not render images (render.enabled: false)".into(),
+    })?;
+    let truth = fleet
+        .truths
+        .get(robot)
+        .ok_or(simulator::SimError::NoSuchRobot(robot))?;
+    let calib = fleet.true_calibration.clone();
+    let mut fe = Frontend::new(frontend, fleet.initial_calibration(robot).camera).map_err(|e| {
+        RunError::Frames {
+            t: f64::NAN,
+            reason: e.to_string(),
+        }
+    })?;
+    let mut landmarks: HashMap<u64, Vector3<f64>> = HashMap::new();
+    let mut errors = Vec::new();
+    let (mut frames, mut features, mut ms) = (0usize, 0usize, 0.0);
+    let run = run_robot_with(fleet, robot, opts, |c| {
+        let t = c.frame.t;
+        let fail = |reason: String| RunError::Frames { t, reason };
+        let image = c.image.as_ref().ok_or_else(|| fail("no image".into()))?;
+        let out = fe.process(t, image).map_err(|e| fail(e.to_string()))?;
+        on_image(&c, &out);
+        frames += 1;
+        features += out.frame.features.len();
+        ms += out.stats.ms;
+        if let Some(pose) = camera_pose(truth, &calib, c.truth.t) {
+            let to_c = pose.inverse();
+            let ids: std::collections::HashSet<u64> = out.new_ids.iter().copied().collect();
+            for f in &out.frame.features {
+                if ids.contains(&f.id) {
+                    if let Some(p) = renderer.raycast(&pose, &f.uv) {
+                        landmarks.insert(f.id, p);
+                    }
+                } else if let Some(p) = landmarks.get(&f.id) {
+                    if let Some(uv) = calib.camera.project(&to_c.transform_point(p)) {
+                        errors.push((uv - f.uv).norm());
+                    }
+                }
+            }
+            let alive: std::collections::HashSet<u64> =
+                out.frame.features.iter().map(|f| f.id).collect();
+            landmarks.retain(|id, _| alive.contains(id));
+        }
+        Ok(Some(out.frame))
+    })?;
+    Ok(ImageRun {
+        run,
+        tracks: quality(frames, features, ms, errors),
+    })
+}
+
+fn quality(frames: usize, features: usize, ms: f64, mut errors: Vec<f64>) -> TrackQuality {
+    errors.sort_by(f64::total_cmp);
+    let n = errors.len();
+    let pick = |q: f64| {
+        errors
+            .get(((n as f64 - 1.0) * q).round() as usize)
+            .copied()
+            .unwrap_or(f64::NAN)
+    };
+    let per = |v: f64| {
+        if frames > 0 {
+            v / frames as f64
+        } else {
+            f64::NAN
+        }
+    };
+    TrackQuality {
+        frames,
+        features_per_frame: per(features as f64),
+        ms_per_frame: per(ms),
+        observations: n,
+        reprojection_mean_px: if n > 0 {
+            errors.iter().sum::<f64>() / n as f64
+        } else {
+            f64::NAN
+        },
+        reprojection_median_px: pick(0.5),
+        reprojection_p95_px: pick(0.95),
+        outlier_fraction: if n > 0 {
+            errors.iter().filter(|e| **e > 3.0).count() as f64 / n as f64
+        } else {
+            f64::NAN
+        },
+    }
+}

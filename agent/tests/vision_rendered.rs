@@ -1,0 +1,60 @@
+//! Rendered images of the single-robot V1_01 scenario through the frontend and
+//! the estimator, next to the feature-level simulation of the same seed.
+
+#![allow(clippy::expect_used, clippy::unwrap_used)]
+
+use agent::frontend::FrontendOptions;
+use agent::image_runner::run_robot_rendered;
+use agent::runner::{options_for, run_robot, Variant};
+use simulator::{Fleet, Scenario};
+use std::path::PathBuf;
+
+#[test]
+fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
+    let path =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sim-fleet/scenarios/v1_01_easy.yaml");
+    let mut sc = Scenario::load(&path).expect("scenario");
+    let seed = 1;
+    let features = Fleet::build(&sc, seed).expect("fleet");
+    let opts = options_for(&sc.estimator, &features, Variant::IndpSlam);
+    let feature_level = run_robot(&features, 0, opts.clone())
+        .expect("feature run")
+        .metrics();
+    sc.render.enabled = true;
+    let rendered_fleet = Fleet::build(&sc, seed).expect("rendered fleet");
+    let r = run_robot_rendered(
+        &rendered_fleet,
+        0,
+        opts,
+        FrontendOptions::default(),
+        |_, _| {},
+    )
+    .expect("rendered run");
+    let rendered = r.run.metrics();
+    let q = &r.tracks;
+    println!(
+        "seed {seed}: feature-level ATE {:.3} deg / {:.3} m, NEES {:.2} / {:.2}; rendered ATE {:.3} deg / {:.3} m, NEES {:.2} / {:.2}",
+        feature_level.ate_ori_deg.unwrap(),
+        feature_level.ate_pos_m.unwrap(),
+        feature_level.nees_ori.unwrap(),
+        feature_level.nees_pos.unwrap(),
+        rendered.ate_ori_deg.unwrap(),
+        rendered.ate_pos_m.unwrap(),
+        rendered.nees_ori.unwrap(),
+        rendered.nees_pos.unwrap(),
+    );
+    println!("KLT tracks: {q:?}");
+    assert!(rendered.frames.unwrap() > 1000);
+    let (fa, ra) = (
+        feature_level.ate_pos_m.unwrap(),
+        rendered.ate_pos_m.unwrap(),
+    );
+    assert!(
+        ra <= 2.0 * fa,
+        "rendered ATE {ra} m vs feature-level {fa} m"
+    );
+    assert!(rendered.ate_ori_deg.unwrap() <= 2.0 * feature_level.ate_ori_deg.unwrap());
+    assert!(q.features_per_frame > 150.0, "{q:?}");
+    assert!(q.reprojection_median_px < 1.0, "{q:?}");
+    assert!(q.outlier_fraction < 0.1, "{q:?}");
+}
