@@ -378,11 +378,7 @@ impl Cooperation {
             }
         }
         // Most certain window first; ties to the newest keyframe (larger key).
-        historical.sort_by(|a, b| {
-            a.0.cmp(&b.0)
-                .then(a.1.total_cmp(&b.1))
-                .then(b.2.cmp(&a.2))
-        });
+        historical.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)).then(b.2.cmp(&a.2)));
         let mut per_peer: BTreeMap<u32, usize> = BTreeMap::new();
         for (peer, _, link) in historical {
             let n = per_peer.entry(peer).or_default();
