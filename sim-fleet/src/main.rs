@@ -35,15 +35,22 @@ enum Command {
 }
 
 fn main() -> Result<()> {
+    let cli = Cli::parse();
+    // Monte-Carlo studies run whole fleets in this process: their agents' peer
+    // events would drown the table, so agents log warnings only there.
+    let default_filter = match cli.command {
+        Command::Montecarlo(_) => "info,agent=warn",
+        _ => "info",
+    };
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_filter)),
         )
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
-    match Cli::parse().command {
+    match cli.command {
         Command::Simulate(args) => run_simulate(&args),
         Command::Eval(args) => run_eval(&args),
         Command::Montecarlo(args) => run_montecarlo(&args),

@@ -98,6 +98,11 @@ impl Fleet {
         for truth in &truths {
             world.grow_along(truth, &true_calibration, &bounds, &scenario.world, &mut rng);
         }
+        world.alias_places(
+            scenario.world.aliased_places,
+            scenario.world.aliased_place_radius_m,
+            &mut rng,
+        );
         let renderer = if scenario.render.enabled {
             let mut rng = stream_rng(seed, Stream::Texture);
             let r = Renderer::new(

@@ -270,6 +270,13 @@ pub struct WorldSpec {
     /// Probability that an observation carries another landmark's descriptor (a
     /// wrong descriptor association, which misleads matching and loop closure).
     pub outlier_descriptor_prob: f64,
+    /// Perceptual aliasing: this many places are made to look like other places
+    /// (their landmarks replaced by a rigid copy of another place's, descriptors
+    /// included), so that descriptor matching and the epipolar check accept a
+    /// loop closure to the wrong place. The estimator must reject it.
+    pub aliased_places: usize,
+    /// Radius of an aliased place, metres.
+    pub aliased_place_radius_m: f64,
 }
 
 impl Default for WorldSpec {
@@ -281,6 +288,8 @@ impl Default for WorldSpec {
             descriptor_bit_flip_prob: 0.03,
             outlier_pixel_prob: 0.0,
             outlier_descriptor_prob: 0.0,
+            aliased_places: 0,
+            aliased_place_radius_m: 1.5,
         }
     }
 }

@@ -119,6 +119,43 @@ impl World {
         out
     }
 
+    /// Perceptual aliasing: `count` times, the landmarks within `radius` of a
+    /// random landmark `b` are moved and re-described to become a rigid copy of
+    /// the landmarks around another random landmark `a` at least 4 radii away
+    /// (ids and counts unchanged, so the copies are seen as often as the
+    /// originals were).
+    pub fn alias_places(&mut self, count: usize, radius: f64, rng: &mut ChaCha8Rng) {
+        let n = self.landmarks.len();
+        if n < 2 || radius <= 0.0 {
+            return;
+        }
+        let near = |w: &World, c: Vector3<f64>| -> Vec<usize> {
+            let mut v: Vec<(f64, usize)> = w
+                .landmarks
+                .iter()
+                .enumerate()
+                .map(|(i, l)| ((l.p_in_g - c).norm(), i))
+                .filter(|(d, _)| *d <= radius)
+                .collect();
+            v.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+            v.into_iter().map(|(_, i)| i).collect()
+        };
+        for _ in 0..count {
+            let a = self.landmarks[rng.random_range(0..n)].p_in_g;
+            let b = self.landmarks[rng.random_range(0..n)].p_in_g;
+            if (a - b).norm() < 4.0 * radius {
+                continue;
+            }
+            let (src, dst) = (near(self, a), near(self, b));
+            for (s, d) in src.iter().zip(dst.iter()) {
+                let original = self.landmarks[*s];
+                let l = &mut self.landmarks[*d];
+                l.p_in_g = b + (original.p_in_g - a);
+                l.descriptor = original.descriptor;
+            }
+        }
+    }
+
     /// Grows the world along `truth`: every `spec.check_interval_s` of its span, fills
     /// the view up to `spec.min_visible` landmarks.
     pub fn grow_along(
