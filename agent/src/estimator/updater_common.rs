@@ -558,6 +558,51 @@ mod tests {
         }
     }
 
+    /// A wrong loop closure: the peer's window saw a rigid copy of our scene
+    /// 2 m away (perceptual aliasing), so every match is consistent with one
+    /// epipolar geometry but not with the two robots' poses: all are rejected.
+    #[test]
+    fn a_whole_wrong_loop_closure_is_rejected() {
+        let mut sc = scene(6, 12, 1e-4, 1e-5);
+        let offset = nalgebra::Vector3::new(2.0, 0.0, 0.3);
+        let tracks: Vec<CommonTrack> = (0..12)
+            .map(|l| {
+                let seen_at = sc.landmarks[l] + offset;
+                let peer_obs = sc
+                    .peer
+                    .poses
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(j, pose)| {
+                        let p = crate::estimator::peer_window::project_normalized(pose, &seen_at)?;
+                        Some(PeerObservation {
+                            participant: 0,
+                            pose: j,
+                            xy: p.xy,
+                        })
+                    })
+                    .collect();
+                CommonTrack {
+                    id: l as u64,
+                    peer_obs,
+                }
+            })
+            .collect();
+        let before = sc.state.clone();
+        let out = update(
+            &mut sc.state,
+            &sc.db,
+            &tracks,
+            std::slice::from_ref(&sc.peer),
+            &EstimatorOptions::default(),
+            &Chi2Table::new(0.95, 500),
+            &TriangulationOptions::default(),
+        );
+        assert_eq!(out.stats.used, 0, "{:?}", out.stats);
+        assert_eq!(out.fallback.len(), 12);
+        assert_eq!(sc.state.cov(), before.cov());
+    }
+
     #[test]
     fn a_wrong_association_is_gated_out_and_falls_back() {
         let (out, _, _) = run(CommonProjection::TwoStage, true);
