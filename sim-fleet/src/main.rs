@@ -2,6 +2,7 @@
 //! launch a fleet of agents).
 use anyhow::Result;
 use clap::{Parser, Subcommand};
+use sim_fleet::compare::{run_compare, CompareArgs};
 use sim_fleet::convert::{run_convert, ConvertArgs};
 use sim_fleet::eval::{run_eval, EvalArgs};
 use sim_fleet::fleet_run::{run_fleet, RunArgs};
@@ -29,6 +30,9 @@ enum Command {
     /// Launch one agent process per robot (Zenoh or iceoryx2; threads for
     /// inproc), supervise them and collect their outputs into DIR/summary.json.
     Run(RunArgs),
+    /// Plot several runs of one fleet side by side: trajectories against the
+    /// truth, position errors with ±3σ.
+    Compare(CompareArgs),
     /// Convert a sequence in the EuRoC ASL layout (EuRoC MAV, TUM-VI) to an
     /// MCAP file: IMU, images and ground truth, on the fleet clock.
     ConvertEuroc(ConvertArgs),
@@ -55,6 +59,7 @@ fn main() -> Result<()> {
         Command::Eval(args) => run_eval(&args),
         Command::Montecarlo(args) => run_montecarlo(&args),
         Command::Run(args) => run_fleet(&args),
+        Command::Compare(args) => run_compare(&args),
         Command::ConvertEuroc(args) => run_convert(&args),
     }
 }
