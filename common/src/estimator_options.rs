@@ -147,6 +147,9 @@ pub struct CooperationOptions {
     /// Historical keyframe windows of one peer a feature takes measurements
     /// from (the ones with the most; each is one more CI participant).
     pub max_keyframes_per_track: usize,
+    /// Peers whose current windows a feature takes measurements from (the
+    /// ones that saw it longest): bounds the update when many robots share a place.
+    pub max_peers_per_track: usize,
 }
 
 impl Default for CooperationOptions {
@@ -171,6 +174,7 @@ impl Default for CooperationOptions {
             loop_min_score: 0.05,
             loop_candidates: 2,
             max_keyframes_per_track: 1,
+            max_peers_per_track: 2,
         }
     }
 }

@@ -21,6 +21,7 @@ use crate::estimator::updater_common::{CommonTrack, PeerObservation};
 use crate::estimator::updater_common_slam::SlamConstraint;
 use crate::peer_history::{time_key, PeerHistory};
 use common::descriptor::Descriptor;
+use common::epipolar::{fundamental_eight_point, sampson_distance};
 use common::estimator_options::CooperationOptions;
 use loop_closure::{describe, detect, FrameFeatures, KeyframeDb, LoopParams};
 use matcher::{epipolar_inliers, match_descriptors, MatchRules};
@@ -205,24 +206,74 @@ impl Cooperation {
                     .map(|(id, (_, bits))| (*id, Descriptor(*bits))),
             )
             .collect();
+        // Pairs linked before and seen in both frames: their geometry is
+        // already verified, only the new tracks need descriptor matching.
+        let peer_xy: HashMap<u64, Vector2<f64>> =
+            newest.features.iter().map(|p| (p.id, p.xy())).collect();
+        let (mut linked1, mut linked2) = (Vec::new(), Vec::new());
+        let mut linked_theirs = std::collections::HashSet::new();
+        let mut unlinked: Vec<usize> = Vec::new();
+        for (a, id) in frame.ids.iter().enumerate() {
+            let mut found = false;
+            for l in self.links_of(*id) {
+                if l.peer == peer && l.source == LinkSource::Window {
+                    if let Some(x) = peer_xy.get(&l.peer_track) {
+                        linked1.push(frame.xy[a]);
+                        linked2.push(*x);
+                        linked_theirs.insert(l.peer_track);
+                        found = true;
+                    }
+                }
+            }
+            if !found {
+                unlinked.push(a);
+            }
+        }
         let (mut ids, mut desc, mut xy) = (vec![], vec![], vec![]);
         for p in &newest.features {
+            if linked_theirs.contains(&p.id) {
+                continue;
+            }
             if let Some(d) = known.get(&p.id) {
                 ids.push(p.id);
                 desc.push(*d);
                 xy.push(p.xy());
             }
         }
-        let pairs = match_descriptors(&frame.descriptors, &desc, rules);
+        let ours: Vec<Descriptor> = unlinked.iter().map(|a| frame.descriptors[*a]).collect();
+        let pairs: Vec<(usize, usize)> = match_descriptors(&ours, &desc, rules)
+            .into_iter()
+            .map(|(i, j)| (unlinked[i], j))
+            .collect();
+        if pairs.is_empty() {
+            return;
+        }
         let x1: Vec<Vector2<f64>> = pairs.iter().map(|(a, _)| frame.xy[*a]).collect();
         let x2: Vec<Vector2<f64>> = pairs.iter().map(|(_, b)| xy[*b]).collect();
-        let seed = seq.wrapping_mul(1_000_003) ^ u64::from(peer);
-        let Some(inl) = epipolar_inliers(&x1, &x2, threshold, self.opts.min_window_inliers, seed)
-        else {
-            return;
+        let keep = if linked1.len() >= self.opts.min_window_inliers {
+            // The geometry of the verified pairs (one least-squares solve) checks
+            // the new ones; no RANSAC.
+            match fundamental_eight_point(&linked1, &linked2) {
+                Ok(f) => x1
+                    .iter()
+                    .zip(&x2)
+                    .map(|(a, b)| sampson_distance(&f, a, b) <= threshold)
+                    .collect(),
+                Err(_) => return,
+            }
+        } else {
+            let all1: Vec<Vector2<f64>> = linked1.iter().chain(&x1).copied().collect();
+            let all2: Vec<Vector2<f64>> = linked2.iter().chain(&x2).copied().collect();
+            let seed = seq.wrapping_mul(1_000_003) ^ u64::from(peer);
+            let Some(inl) =
+                epipolar_inliers(&all1, &all2, threshold, self.opts.min_window_inliers, seed)
+            else {
+                return;
+            };
+            inl[linked1.len()..].to_vec()
         };
         self.stats.window_matches += 1;
-        for ((a, b), keep) in pairs.into_iter().zip(inl) {
+        for ((a, b), keep) in pairs.into_iter().zip(keep) {
             if keep {
                 let link = Link {
                     peer,
@@ -355,13 +406,22 @@ impl Cooperation {
     /// covariance once more, so only the most informative are used.
     fn chosen_links(&self, id: u64, slam: bool, peers: &Peers) -> Vec<Link> {
         let mut out: Vec<Link> = Vec::new();
+        let mut window: Vec<(usize, Link)> = Vec::new();
         let mut historical: Vec<(u32, f64, Link)> = Vec::new();
         for link in self.links_of(id) {
             if !self.allowed(link, slam) {
                 continue;
             }
             match link.source {
-                LinkSource::Window => out.push(*link),
+                LinkSource::Window => {
+                    let count = peers.get(&link.peer).map_or(0, |h| {
+                        h.recent
+                            .iter()
+                            .filter(|f| f.features.iter().any(|p| p.id == link.peer_track))
+                            .count()
+                    });
+                    window.push((count, *link));
+                }
                 LinkSource::Keyframe(k) => {
                     let Some(kf) = peers.get(&link.peer).and_then(|h| h.keyframes.get(&k)) else {
                         continue;
@@ -387,6 +447,15 @@ impl Cooperation {
                 out.push(link);
             }
         }
+        // The peers that saw the feature longest, at most `max_peers_per_track`:
+        // the update's size, and its cost, stay bounded however many robots
+        // share a place.
+        window.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+        let room = self
+            .opts
+            .max_peers_per_track
+            .saturating_sub(out.len().min(1));
+        out.extend(window.into_iter().take(room.max(1)).map(|(_, l)| l));
         out
     }
 
