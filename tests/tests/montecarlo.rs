@@ -49,7 +49,8 @@ fn montecarlo(scenario: &Path, jobs: &str, out: &Path) -> Result<Value> {
     )?)?)
 }
 
-/// The `mean` of every variant without the timing keys (which depend on the load).
+/// The `mean` of every variant without the timing and latency keys (which
+/// depend on the load).
 fn means_without_timing(summary: &Value) -> Vec<(String, Value)> {
     let Some(variants) = summary["variants"].as_object() else {
         return Vec::new();
@@ -58,7 +59,7 @@ fn means_without_timing(summary: &Value) -> Vec<(String, Value)> {
         .iter()
         .map(|(name, v)| {
             let mut mean = v["mean"].as_object().cloned().unwrap_or_default();
-            mean.retain(|k, _| !k.starts_with("ms_per_frame"));
+            mean.retain(|k, _| !k.starts_with("ms_per_frame") && !k.starts_with("latency"));
             (name.clone(), Value::Object(mean))
         })
         .collect()
@@ -136,4 +137,66 @@ fn montecarlo_rejects_an_unknown_variant_before_running_anything() {
         "{stderr}"
     );
     assert!(!out.join("summary.json").exists());
+}
+
+/// A cooperative study: each seed's fleet runs as in-process agents in lockstep
+/// (and the centralized variant in one estimator), every robot's files are
+/// written, and the aggregated accuracy does not depend on the job count.
+#[test]
+fn cooperative_variants_run_whole_fleets_and_aggregate_per_robot() {
+    let dir = tempfile::tempdir().unwrap();
+    write_loop_trajectory(&dir.path().join("loop.txt"), 24.0).unwrap();
+    let scenario = dir.path().join("two.yaml");
+    std::fs::write(
+        &scenario,
+        "name: two\nrobots:\n  - trajectory: loop.txt\n  - trajectory: loop.txt\n    start_time_s: 3.0\nestimator:\n  max_slam_features: 5\n",
+    )
+    .unwrap();
+    let study = |jobs: &str, out: &Path| -> Value {
+        let output = Command::new(bin("sim-fleet"))
+            .arg("montecarlo")
+            .arg(&scenario)
+            .args([
+                "--runs",
+                "2",
+                "--variants",
+                "dc-full-history,ce-cmsckf-cslam",
+                "--jobs",
+                jobs,
+                "--out",
+            ])
+            .arg(out)
+            .output()
+            .unwrap();
+        assert!(
+            output.status.success(),
+            "montecarlo failed: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap()
+    };
+    let one = study("1", &dir.path().join("one"));
+    let two = study("2", &dir.path().join("two"));
+    for v in ["dc-full-history", "ce-cmsckf-cslam"] {
+        assert_eq!(one["variants"][v]["runs"], 2, "{v}: 2 seeds");
+        for robot in [0, 1] {
+            assert_eq!(one["variants"][v]["robots"][robot]["runs"], 2, "{v} robot {robot}");
+        }
+        assert_eq!(one["variants"][v]["failed"], 0, "{v}");
+        for seed in [1, 2] {
+            for robot in [0, 1] {
+                let f = dir
+                    .path()
+                    .join(format!("one/runs/{v}/seed{seed}/robot{robot}/estimate.txt"));
+                assert!(f.is_file(), "{}", f.display());
+            }
+        }
+    }
+    assert!(
+        one["variants"]["dc-full-history"]["mean"]["common_feature_updates"]
+            .as_f64()
+            .unwrap()
+            > 0.0
+    );
+    assert_eq!(means_without_timing(&one), means_without_timing(&two));
 }

@@ -412,15 +412,23 @@ impl Cooperation {
             if !self.allowed(link, slam) {
                 continue;
             }
+            // Measurements of the peer's track not used yet.
+            let used = self.peers.get(&link.peer).map(|s| &s.used);
+            let fresh =
+                |t_s: f64| !used.is_some_and(|u| u.contains(&(time_key(t_s), link.peer_track)));
             match link.source {
                 LinkSource::Window => {
                     let count = peers.get(&link.peer).map_or(0, |h| {
                         h.recent
                             .iter()
-                            .filter(|f| f.features.iter().any(|p| p.id == link.peer_track))
+                            .filter(|f| {
+                                fresh(f.t_s) && f.features.iter().any(|p| p.id == link.peer_track)
+                            })
                             .count()
                     });
-                    window.push((count, *link));
+                    if count > 0 {
+                        window.push((count, *link));
+                    }
                 }
                 LinkSource::Keyframe(k) => {
                     let Some(kf) = peers.get(&link.peer).and_then(|h| h.keyframes.get(&k)) else {
@@ -429,7 +437,9 @@ impl Cooperation {
                     let count = kf
                         .frames
                         .iter()
-                        .filter(|f| f.observations.iter().any(|o| o.id == link.peer_track))
+                        .filter(|f| {
+                            fresh(f.t_s) && f.observations.iter().any(|o| o.id == link.peer_track)
+                        })
                         .count();
                     if count >= 2 {
                         historical.push((link.peer, position_variance(&kf.snapshot), *link));
@@ -589,3 +599,6 @@ fn measurements(h: &PeerHistory, link: &Link, w: &PeerWindow) -> Vec<(usize, f64
     }
     out
 }
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,214 @@
+//! Cooperation on a small synthetic scene: a peer flew past landmarks (its
+//! keyframe window is stored in its history, its newest frame is recent), and
+//! our camera now sees the same landmarks from elsewhere.
+
+use super::*;
+use crate::peer_history::HistoryLimits;
+use common::messages::{
+    CameraModelWire, CameraPose, DescriptorBatch, DescriptorEntry, PackedCovariance, StateSnapshot,
+    TrackFrame, TrackPoint,
+};
+use nalgebra::{DMatrix, Matrix3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// A camera looking along world +y.
+fn forward() -> Matrix3<f64> {
+    Matrix3::from_columns(&[
+        Vector3::new(1.0, 0.0, 0.0),
+        Vector3::new(0.0, 0.0, -1.0),
+        Vector3::new(0.0, 1.0, 0.0),
+    ])
+}
+
+fn project(pos: &Vector3<f64>, p: &Vector3<f64>) -> Vector2<f64> {
+    let c = forward().transpose() * (p - pos);
+    Vector2::new(c.x / c.z, c.y / c.z)
+}
+
+struct World {
+    landmarks: Vec<Vector3<f64>>,
+    descriptors: Vec<Descriptor>,
+}
+
+fn world(n: usize, rng: &mut ChaCha8Rng) -> World {
+    World {
+        landmarks: (0..n)
+            .map(|_| {
+                Vector3::new(
+                    rng.random_range(-2.5..2.5),
+                    rng.random_range(4.0..7.0),
+                    rng.random_range(-1.5..1.5),
+                )
+            })
+            .collect(),
+        descriptors: (0..n)
+            .map(|_| Descriptor([rng.random(), rng.random(), rng.random(), rng.random()]))
+            .collect(),
+    }
+}
+
+fn noisy(d: &Descriptor, rng: &mut ChaCha8Rng) -> Descriptor {
+    let mut d = *d;
+    for _ in 0..8 {
+        d.flip(rng.random_range(0..256));
+    }
+    d
+}
+
+/// The peer's track id of landmark `l` (peers number their tracks their way).
+fn peer_track(l: usize) -> u64 {
+    1000 + l as u64
+}
+
+/// A peer that flew 11 frames (t = 1.0 .. 2.0) along x and stored the window as
+/// a keyframe (descriptors of every track), with a small covariance.
+fn peer_history(w: &World, rng: &mut ChaCha8Rng) -> PeerHistory {
+    let mut h = PeerHistory::default();
+    let limits = HistoryLimits {
+        max_bytes: usize::MAX,
+        recent_s: 5.0,
+    };
+    let mut clones = Vec::new();
+    for k in 0..11 {
+        let t = 1.0 + 0.1 * k as f64;
+        let pos = Vector3::new(-1.0 + 0.1 * k as f64, 0.0, 0.4);
+        clones.push(CameraPose::new(t, &forward(), &pos));
+        let features = w
+            .landmarks
+            .iter()
+            .enumerate()
+            .map(|(l, p)| {
+                let xy = project(&pos, p);
+                TrackPoint::new(
+                    peer_track(l),
+                    &Vector2::new(460.0 * xy.x + 376.0, 460.0 * xy.y + 240.0),
+                    &xy,
+                )
+            })
+            .collect();
+        h.add_tracks(
+            TrackFrame {
+                frame_index: k,
+                t_s: t,
+                features,
+            },
+            &limits,
+        );
+    }
+    h.add_descriptors(DescriptorBatch {
+        frame_index: 10,
+        t_s: 2.0,
+        keyframe: true,
+        entries: w
+            .descriptors
+            .iter()
+            .enumerate()
+            .map(|(l, d)| DescriptorEntry::new(peer_track(l), noisy(d, rng)))
+            .collect(),
+    });
+    let snap = StateSnapshot {
+        frame_index: 10,
+        t_s: 2.0,
+        keyframe: true,
+        camera: CameraModelWire::default(),
+        covariance: PackedCovariance::from_dmatrix(&(DMatrix::identity(66, 66) * 1e-4))
+            .unwrap_or_default(),
+        clones,
+        landmarks: Vec::new(),
+    };
+    h.add_snapshot(snap, &limits);
+    h
+}
+
+/// Our frame: landmarks `seen` from a camera 0.8 m to the right, our tracks
+/// numbered 1, 2, ... in that order.
+fn our_frame(w: &World, seen: &[usize], rng: &mut ChaCha8Rng) -> FrameFeatures {
+    let pos = Vector3::new(0.8, -0.3, 0.0);
+    let mut f = FrameFeatures::default();
+    for (i, l) in seen.iter().enumerate() {
+        f.ids.push(i as u64 + 1);
+        f.descriptors.push(noisy(&w.descriptors[*l], rng));
+        f.xy.push(project(&pos, &w.landmarks[*l]));
+    }
+    f
+}
+
+fn options() -> CooperationOptions {
+    CooperationOptions {
+        common_vio: true,
+        common_slam: true,
+        historical: true,
+        ..CooperationOptions::default()
+    }
+}
+
+#[test]
+fn our_tracks_are_linked_to_the_peers_tracks_of_the_same_landmarks() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let w = world(40, &mut rng);
+    let peers: Peers = [(7u32, peer_history(&w, &mut rng))].into_iter().collect();
+    let seen: Vec<usize> = (5..35).collect();
+    let frame = our_frame(&w, &seen, &mut rng);
+    let mut coop = Cooperation::new(options(), None, 460.0);
+    coop.match_frame(&frame, &peers, 1);
+    assert_eq!(coop.stats.window_matches, 1);
+    let mut right = 0;
+    for (i, l) in seen.iter().enumerate() {
+        for link in coop.links_of(i as u64 + 1) {
+            assert_eq!(link.peer, 7);
+            assert_eq!(link.peer_track, peer_track(*l), "our track {}", i + 1);
+            right += 1;
+        }
+    }
+    assert!(right >= 25, "{right} of 30 tracks linked");
+}
+
+#[test]
+fn a_loop_closure_finds_the_keyframe_and_its_measurements() {
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let w = world(40, &mut rng);
+    let mut h = peer_history(&w, &mut rng);
+    // The peer has moved on: its newest frames see nothing we see.
+    h.recent.clear();
+    let peers: Peers = [(3u32, h)].into_iter().collect();
+    let seen: Vec<usize> = (0..30).collect();
+    let frame = our_frame(&w, &seen, &mut rng);
+    let voc = builtin_vocabulary();
+    assert!(voc.is_some());
+    let mut coop = Cooperation::new(options(), voc, 460.0);
+    coop.match_frame(&frame, &peers, 1);
+    assert_eq!(coop.stats.loop_closures, 1);
+    let key = *peers[&3].keyframes.keys().next().unwrap_or(&0);
+    let linked: Vec<u64> = (1..=30u64)
+        .filter(|id| {
+            coop.links_of(*id)
+                .iter()
+                .any(|l| l.source == LinkSource::Keyframe(key))
+        })
+        .collect();
+    assert!(linked.len() >= 20, "{} of 30 linked", linked.len());
+    // The evidence for a linked track: 11 measurements from the keyframe window,
+    // then nothing once they are marked used.
+    let ev = coop.evidence(&linked[..1], &[], &peers);
+    assert_eq!(ev.vio.len(), 1);
+    assert_eq!(ev.vio[0].peer_obs.len(), 11);
+    assert_eq!(ev.participants.len(), 1);
+    assert!(ev.historical[0]);
+    coop.mark_used(&ev, &[linked[0]], &[], &[]);
+    let again = coop.evidence(&linked[..1], &[], &peers);
+    assert!(again.vio.is_empty());
+}
+
+#[test]
+fn a_frame_of_another_place_makes_no_link() {
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let w = world(40, &mut rng);
+    let other = world(40, &mut rng);
+    let peers: Peers = [(1u32, peer_history(&w, &mut rng))].into_iter().collect();
+    let frame = our_frame(&other, &(0..30).collect::<Vec<_>>(), &mut rng);
+    let mut coop = Cooperation::new(options(), builtin_vocabulary(), 460.0);
+    coop.match_frame(&frame, &peers, 1);
+    assert_eq!(coop.stats.links, 0);
+    assert_eq!(coop.stats.loop_closures, 0);
+}

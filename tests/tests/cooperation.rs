@@ -1,0 +1,119 @@
+//! Cooperating agents as real processes: robots flying the same loop one after
+//! the other share features over Zenoh and iceoryx2 and close loops on their
+//! peers' histories (`dc-full-history`); the centralized baseline runs in one
+//! process.
+#![allow(clippy::unwrap_used)] // helpers outside #[test] functions
+
+use integration_tests::{bin, write_loop_trajectory};
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// Three robots on one 24 s loop: the second starts 4 s after the first, the
+/// third 30 s after (after the first has finished: only its history is left).
+fn scenario(dir: &Path) -> PathBuf {
+    write_loop_trajectory(&dir.join("loop.txt"), 24.0).unwrap();
+    let p = dir.join("coop.yaml");
+    std::fs::write(
+        &p,
+        "name: coop\nrobots:\n  - trajectory: loop.txt\n  - trajectory: loop.txt\n    start_time_s: 4.0\n  - trajectory: loop.txt\n    start_time_s: 30.0\nsensors:\n  camera:\n    max_features: 60\nestimator:\n  max_slam_features: 5\n",
+    )
+    .unwrap();
+    p
+}
+
+fn run(scenario: &Path, out: &Path, extra: &[&str]) -> Value {
+    let output = Command::new(bin("sim-fleet"))
+        .arg("run")
+        .arg(scenario)
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "sim-fleet run failed:\n{}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let text = std::fs::read_to_string(out.join("summary.json")).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
+
+fn metric(summary: &Value, robot: usize, key: &str) -> f64 {
+    summary["robots"][robot][key].as_f64().unwrap_or(f64::NAN)
+}
+
+fn assert_cooperates(summary: &Value) {
+    for r in 0..3 {
+        let ate = metric(summary, r, "ate_pos_m");
+        assert!(ate.is_finite() && ate < 0.5, "robot {r}: ATE {ate} m");
+        let nees = metric(summary, r, "nees_pos");
+        assert!(nees.is_finite() && nees < 10.0, "robot {r}: NEES {nees}");
+    }
+    // The followers used what the others saw, now and before.
+    for r in 1..3 {
+        let updates = metric(summary, r, "common_feature_updates");
+        assert!(
+            updates > 10.0,
+            "robot {r}: {updates} common feature updates"
+        );
+    }
+    let loops = metric(summary, 2, "loop_closures");
+    assert!(
+        loops > 5.0,
+        "robot 2 closed {loops} loops on its peers' histories"
+    );
+}
+
+#[test]
+fn agents_over_zenoh_share_features_and_close_loops_on_peer_histories() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path());
+    let summary = run(
+        &sc,
+        &dir.path().join("zenoh"),
+        &[
+            "--transport",
+            "zenoh",
+            "--variant",
+            "dc-full-history",
+            "--seed",
+            "2",
+        ],
+    );
+    assert_cooperates(&summary);
+}
+
+#[test]
+fn agents_over_iceoryx2_share_features_and_close_loops_on_peer_histories() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path());
+    let summary = run(
+        &sc,
+        &dir.path().join("iox"),
+        &[
+            "--transport",
+            "iceoryx2",
+            "--variant",
+            "dc-full-history",
+            "--seed",
+            "2",
+        ],
+    );
+    assert_cooperates(&summary);
+}
+
+#[test]
+fn the_centralized_estimator_runs_the_fleet_in_one_process() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path());
+    let out = dir.path().join("ce");
+    let summary = run(&sc, &out, &["--variant", "ce-cmsckf-cslam", "--seed", "2"]);
+    for r in 0..3 {
+        let ate = metric(&summary, r, "ate_pos_m");
+        assert!(ate.is_finite() && ate < 0.5, "robot {r}: ATE {ate} m");
+        assert!(out.join(format!("robot{r}/estimate.txt")).is_file());
+    }
+}
