@@ -5,8 +5,8 @@
 
 use common::messages::{
     decode, decode_with, encode, encode_with, samples, Body, CameraPose, DecodeError, EncodeError,
-    Envelope, Limits, ValidationError, DECODE_CLAIM_LIMIT_BYTES, HEADER_LEN, MAGIC,
-    SUPPORTED_VERSIONS, WIRE_VERSION,
+    Envelope, Limits, PackedCovariance, ValidationError, DECODE_CLAIM_LIMIT_BYTES, HEADER_LEN,
+    MAGIC, SUPPORTED_VERSIONS, WIRE_VERSION,
 };
 
 /// The wire encoding without validation: what a buggy or hostile peer could send.
@@ -48,16 +48,36 @@ fn bad_magic() {
 }
 
 #[test]
-fn version_2_is_refused_naming_both_versions() {
-    let mut bytes = encode(&samples::heartbeat(1)).unwrap();
-    bytes[4..6].copy_from_slice(&2u16.to_le_bytes());
-    let err = decode(&bytes).unwrap_err();
+fn other_versions_are_refused_naming_both_versions() {
+    for other in [1u16, 3] {
+        let mut bytes = encode(&samples::heartbeat(1)).unwrap();
+        bytes[4..6].copy_from_slice(&other.to_le_bytes());
+        let err = decode(&bytes).unwrap_err();
+        assert!(matches!(
+            err,
+            DecodeError::UnsupportedVersion { found, supported } if found == other && supported == SUPPORTED_VERSIONS
+        ));
+        let msg = err.to_string();
+        assert!(
+            msg.contains(&format!("version {other}")) && msg.contains("[2]"),
+            "{msg}"
+        );
+    }
+}
+
+#[test]
+fn a_covariance_may_end_with_the_intrinsics_but_nothing_else() {
+    let mut env = samples::snapshot(20, 11, 0, false);
+    let with = |dim: usize| {
+        PackedCovariance::from_dmatrix(&nalgebra::DMatrix::identity(dim, dim)).unwrap()
+    };
+    snapshot_body(&mut env).covariance = with(66 + 8);
+    assert!(decode(&raw_encode(&env)).is_ok());
+    snapshot_body(&mut env).covariance = with(66 + 3);
     assert!(matches!(
-        err,
-        DecodeError::UnsupportedVersion { found: 2, supported } if supported == SUPPORTED_VERSIONS
+        invalid(&raw_encode(&env)),
+        ValidationError::CovarianceDim { dim: 69, .. }
     ));
-    let msg = err.to_string();
-    assert!(msg.contains("version 2") && msg.contains("[1]"), "{msg}");
 }
 
 #[test]

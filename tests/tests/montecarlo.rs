@@ -180,7 +180,10 @@ fn cooperative_variants_run_whole_fleets_and_aggregate_per_robot() {
     for v in ["dc-full-history", "ce-cmsckf-cslam"] {
         assert_eq!(one["variants"][v]["runs"], 2, "{v}: 2 seeds");
         for robot in [0, 1] {
-            assert_eq!(one["variants"][v]["robots"][robot]["runs"], 2, "{v} robot {robot}");
+            assert_eq!(
+                one["variants"][v]["robots"][robot]["runs"], 2,
+                "{v} robot {robot}"
+            );
         }
         assert_eq!(one["variants"][v]["failed"], 0, "{v}");
         for seed in [1, 2] {

@@ -47,7 +47,9 @@ pub struct CameraWindow {
     pub t: f64,
     /// Camera poses, oldest first.
     pub poses: Vec<CameraPoseEstimate>,
-    /// Joint covariance of the poses, `6n x 6n`, per pose `[δθ_C, δp_C]`.
+    /// Joint covariance of the poses, per pose `[δθ_C, δp_C]` (`6n x 6n`), then,
+    /// when the intrinsics are estimated, of `[fx, fy, cx, cy, d0..d3]`
+    /// (`6n + 8`).
     pub cov: DMatrix<f64>,
     /// SLAM features.
     pub landmarks: Vec<LandmarkEstimate>,
@@ -59,15 +61,24 @@ pub struct CameraWindow {
 pub fn camera_window(state: &State, with_landmarks: bool) -> CameraWindow {
     let c = &state.calib;
     let has_ext = state.has(Var::Extrinsic);
-    // Variables involved: every clone, then the extrinsic (when estimated).
+    let has_intr = state.has(Var::Intrinsics);
+    // Variables involved: every clone, then the extrinsic and the intrinsics
+    // (when estimated; the intrinsics pass through, appended after the poses).
     let mut vars: Vec<Var> = state.clones.keys().map(|k| Var::Clone(*k)).collect();
     if has_ext {
         vars.push(Var::Extrinsic);
     }
+    if has_intr {
+        vars.push(Var::Intrinsics);
+    }
     let sub = gather(state, &vars);
     let n = state.clones.len();
     let m = sub.nrows();
-    let mut jac = DMatrix::zeros(6 * n, m);
+    let rows = 6 * n + if has_intr { 8 } else { 0 };
+    let mut jac = DMatrix::zeros(rows, m);
+    if has_intr {
+        jac.view_mut((6 * n, m - 8), (8, 8)).fill_with_identity();
+    }
     let mut poses = Vec::with_capacity(n);
     for (i, (key, clone)) in state.clones.iter().enumerate() {
         let r = 6 * i;
@@ -176,7 +187,10 @@ mod tests {
             ImuState::default(),
             DMatrix::identity(15, 15) * 1e-3,
             calib,
-            &[(Var::Extrinsic, ext)],
+            &[
+                (Var::Extrinsic, ext),
+                (Var::Intrinsics, DMatrix::identity(8, 8) * 1e-2),
+            ],
         );
         for k in 0..3u64 {
             let rot = exp_so3(&Vector3::new(0.1 * k as f64, -0.2, 0.3));
@@ -216,11 +230,19 @@ mod tests {
     /// Camera-pose errors of a perturbed state relative to the nominal one.
     fn camera_errors(nominal: &CameraWindow, s: &State) -> DVector<f64> {
         let w = camera_window(s, false);
-        let mut e = DVector::zeros(6 * w.poses.len());
+        let n = w.poses.len();
+        let mut e = DVector::zeros(w.cov.nrows());
         for (i, (a, b)) in nominal.poses.iter().zip(&w.poses).enumerate() {
             let dth = log_so3(&(a.rot.transpose() * b.rot));
             e.fixed_rows_mut::<3>(6 * i).copy_from(&dth);
             e.fixed_rows_mut::<3>(6 * i + 3).copy_from(&(b.pos - a.pos));
+        }
+        if e.len() == 6 * n + 8 {
+            let (a, b) = (&nominal.calib.camera, &w.calib.camera);
+            for k in 0..4 {
+                e[6 * n + k] = b.intrinsics[k] - a.intrinsics[k];
+                e[6 * n + 4 + k] = b.distortion[k] - a.distortion[k];
+            }
         }
         e
     }
@@ -233,7 +255,7 @@ mod tests {
         let nominal = camera_window(&s, false);
         let n = s.dim();
         let eps = 1e-6;
-        let mut jac = DMatrix::zeros(6 * s.clones.len(), n);
+        let mut jac = DMatrix::zeros(nominal.cov.nrows(), n);
         for col in 0..n {
             let mut dx = DVector::zeros(n);
             dx[col] = eps;

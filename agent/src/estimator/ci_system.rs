@@ -30,12 +30,24 @@ pub enum Part {
 }
 
 impl Part {
-    /// Columns per item: 6 per pose, 3 per landmark.
-    pub fn width(self) -> usize {
+    /// Columns of item `item`: a pose (6) or the intrinsics (8) of a window, a
+    /// landmark (3).
+    pub fn item_size(self, item: usize, participants: &[PeerWindow]) -> usize {
         match self {
-            Part::Poses(_) => 6,
+            Part::Poses(w) => participants.get(w).map_or(6, |p| p.item_size(item)),
             Part::Landmarks(_) => 3,
         }
+    }
+
+    /// Column offset of each of `items`, and the total.
+    fn layout(self, items: &[usize], participants: &[PeerWindow]) -> (Vec<usize>, usize) {
+        let mut offsets = Vec::with_capacity(items.len());
+        let mut total = 0;
+        for i in items {
+            offsets.push(total);
+            total += self.item_size(*i, participants);
+        }
+        (offsets, total)
     }
 }
 
@@ -134,9 +146,13 @@ pub fn update(
     let cols = Columns::of(vars);
     let mut h = DMatrix::zeros(m, cols.dim);
     let mut res = DVector::zeros(m);
-    let mut h_parts: Vec<DMatrix<f64>> = parts
+    let layouts: Vec<(Vec<usize>, usize)> = parts
         .iter()
-        .map(|(p, items)| DMatrix::zeros(m, p.width() * items.len()))
+        .map(|(p, items)| p.layout(items, participants))
+        .collect();
+    let mut h_parts: Vec<DMatrix<f64>> = layouts
+        .iter()
+        .map(|(_, total)| DMatrix::zeros(m, *total))
         .collect();
     let mut r0 = 0;
     for r in rows {
@@ -153,12 +169,14 @@ pub fn update(
             let Some(j) = parts.iter().position(|(q, _)| *q == p.part) else {
                 continue;
             };
-            let w = p.part.width();
+            let (src, _) = p.part.layout(&p.items, participants);
             for (a, item) in p.items.iter().enumerate() {
+                let w = p.part.item_size(*item, participants);
                 if let Ok(g) = parts[j].1.binary_search(item) {
+                    let dst = layouts[j].0[g];
                     h_parts[j]
-                        .view_mut((r0, w * g), (k, w))
-                        .copy_from(&p.h.view((0, w * a), (k, w)));
+                        .view_mut((r0, dst), (k, w))
+                        .copy_from(&p.h.view((0, src[a]), (k, w)));
                 }
             }
         }

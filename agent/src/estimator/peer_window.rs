@@ -9,7 +9,8 @@
 //! ordered `[δθ, δp]`. A peer's window is never updated by us (Eq. 5.16 only
 //! changes our own state); historical windows are used exactly as stored.
 
-use common::messages::StateSnapshot;
+use common::camera::CameraModel;
+use common::messages::{StateSnapshot, INTRINSICS_DIM};
 use common::so3::skew;
 use nalgebra::{DMatrix, Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 
@@ -45,11 +46,12 @@ pub struct PeerWindow {
     pub key: u64,
     /// Camera poses, oldest first.
     pub poses: Vec<PeerPose>,
-    /// Their joint covariance, `6n x 6n`, per pose `[δθ, δp]`.
+    /// Their joint covariance, per pose `[δθ, δp]`, then (when the peer
+    /// estimates them) its intrinsics `[fx, fy, cx, cy, d0..d3]`.
     pub cov: DMatrix<f64>,
-    /// The peer's focal length, px (normalized-coordinate noise is pixel noise
-    /// divided by it).
-    pub focal_px: f64,
+    /// The peer's camera model as it estimated it (its normalized coordinates
+    /// were undistorted with it).
+    pub camera: CameraModel,
     /// SLAM landmarks of the window (keyframe snapshots carry them).
     pub landmarks: Vec<PeerLandmark>,
 }
@@ -61,12 +63,14 @@ impl PeerWindow {
     pub fn from_snapshot(peer: u32, key: u64, snap: &StateSnapshot) -> Option<Self> {
         let n = snap.clones.len();
         let cov = snap.covariance.to_dmatrix();
+        let dim = cov.nrows();
         if n == 0
-            || cov.nrows() != 6 * n
-            || (0..6 * n).any(|i| cov[(i, i)].is_nan() || cov[(i, i)] <= 0.0)
+            || (dim != 6 * n && dim != 6 * n + INTRINSICS_DIM)
+            || (0..dim).any(|i| cov[(i, i)].is_nan() || cov[(i, i)] <= 0.0)
         {
             return None;
         }
+        let camera = snap.camera.to_camera_model().ok()?;
         let poses = snap
             .clones
             .iter()
@@ -76,17 +80,12 @@ impl PeerWindow {
                 pos: c.p_c_in_g(),
             })
             .collect();
-        let k = &snap.camera.intrinsics;
-        let focal_px = (k[0] * k[1]).abs().sqrt();
-        if focal_px.is_nan() || focal_px <= 1.0 {
-            return None;
-        }
         Some(Self {
             peer,
             key,
             poses,
             cov,
-            focal_px,
+            camera,
             landmarks: snap
                 .landmarks
                 .iter()
@@ -97,6 +96,21 @@ impl PeerWindow {
                 })
                 .collect(),
         })
+    }
+
+    /// The item of the peer's intrinsics (after the poses), when its covariance
+    /// has them.
+    pub fn intrinsics_item(&self) -> Option<usize> {
+        (self.cov.nrows() == 6 * self.poses.len() + INTRINSICS_DIM).then_some(self.poses.len())
+    }
+
+    /// Size of item `i`: a pose (6) or the intrinsics (8).
+    pub fn item_size(&self, i: usize) -> usize {
+        if i < self.poses.len() {
+            6
+        } else {
+            INTRINSICS_DIM
+        }
     }
 
     /// Index of the pose taken at camera time `t_s` (the same image: times are
@@ -110,18 +124,68 @@ impl PeerWindow {
         self.landmarks.iter().find(|l| l.id == id)
     }
 
-    /// The covariance of the poses `idx` (in that order), `6k x 6k`.
+    /// The covariance of the items `idx` (poses, or the intrinsics item), in
+    /// that order.
     pub fn sub_covariance(&self, idx: &[usize]) -> DMatrix<f64> {
-        let k = idx.len();
-        let mut out = DMatrix::zeros(6 * k, 6 * k);
-        for (a, &i) in idx.iter().enumerate() {
-            for (b, &j) in idx.iter().enumerate() {
-                out.view_mut((6 * a, 6 * b), (6, 6))
-                    .copy_from(&self.cov.view((6 * i, 6 * j), (6, 6)));
+        let sizes: Vec<usize> = idx.iter().map(|i| self.item_size(*i)).collect();
+        let total = sizes.iter().sum();
+        let mut out = DMatrix::zeros(total, total);
+        let (mut ra, mut rb);
+        ra = 0;
+        for (&i, &si) in idx.iter().zip(&sizes) {
+            rb = 0;
+            for (&j, &sj) in idx.iter().zip(&sizes) {
+                out.view_mut((ra, rb), (si, sj))
+                    .copy_from(&self.cov.view((6 * i, 6 * j), (si, sj)));
+                rb += sj;
             }
+            ra += si;
         }
         out
     }
+}
+
+/// One measurement of a feature by a peer, whitened (unit noise): the residual
+/// and Jacobians of `W (xy − π(p_F))`, `W = (∂uv/∂xy) / σ_px`, which turns
+/// normalized coordinates back into pixels of the peer's camera.
+#[derive(Clone, Copy, Debug)]
+pub struct PeerMeasurement {
+    /// Whitened residual.
+    pub res: Vector2<f64>,
+    /// Jacobian w.r.t. the camera pose `[δθ, δp]` (2x6).
+    pub h_pose: SMatrix<f64, 2, 6>,
+    /// Jacobian w.r.t. `p_FinG` (2x3).
+    pub h_feature: Matrix2x3<f64>,
+    /// Jacobian w.r.t. the peer's intrinsics (2x8).
+    pub h_intrinsics: SMatrix<f64, 2, 8>,
+}
+
+/// The peer's normalized measurement `xy` of a feature from pose `pose` of
+/// window `w`, linearized at `p_lin` (Jacobians) and `p_cur` (residual).
+///
+/// The peer undistorted its pixel with its intrinsics estimate `θ̂`: with
+/// `distort(θ, n(θ)) = uv`, `∂n/∂θ = −(∂uv/∂n)⁻¹ ∂uv/∂θ`, so an error `δθ` of the
+/// peer's intrinsics moves its reported coordinates by `(∂uv/∂n)⁻¹ (∂uv/∂θ) δθ`:
+/// whitened, `H_θ = (∂uv/∂θ) / σ`.
+pub fn peer_measurement(
+    w: &PeerWindow,
+    pose: usize,
+    xy: &Vector2<f64>,
+    p_lin: &Vector3<f64>,
+    p_cur: &Vector3<f64>,
+    pixel_sigma: f64,
+) -> Option<PeerMeasurement> {
+    let pose = w.poses.get(pose)?;
+    let lin = project_normalized(pose, p_lin)?;
+    let cur = project_normalized(pose, p_cur)?;
+    let (_, dz_dn, dz_dintr) = w.camera.distort_with_jacobians(xy);
+    let white = dz_dn / pixel_sigma;
+    Some(PeerMeasurement {
+        res: white * (xy - cur.xy),
+        h_pose: white * lin.h_pose,
+        h_feature: white * lin.h_feature,
+        h_intrinsics: dz_dintr / pixel_sigma,
+    })
 }
 
 /// A feature seen from a peer camera, in normalized coordinates, and its
@@ -191,6 +255,46 @@ mod tests {
             let num = (f(pose.rot, pose.pos, p_f + e) - f(pose.rot, pose.pos, p_f - e)) / (2.0 * h);
             assert!((p.h_feature.column(i) - num).norm() < 1e-6, "dpf {i}");
         }
+    }
+
+    /// A peer whose intrinsics estimate is off by `δθ` reports coordinates that
+    /// the measurement's intrinsics Jacobian predicts: `res ≈ H_θ δθ`.
+    #[test]
+    fn the_intrinsics_jacobian_predicts_the_coordinates_a_miscalibrated_peer_reports() {
+        let truth = CameraModel::euroc_cam0();
+        let pose = PeerPose {
+            t_s: 0.0,
+            rot: Matrix3::identity(),
+            pos: Vector3::zeros(),
+        };
+        let p_f = Vector3::new(1.2, -0.7, 3.0);
+        let n_true = Vector2::new(p_f.x / p_f.z, p_f.y / p_f.z);
+        let uv = truth.distort(&n_true);
+        let delta = [0.8, -0.6, 0.5, 0.9, 0.004, -0.003, 0.0005, -0.0004];
+        let mut estimate = truth.clone();
+        for k in 0..4 {
+            estimate.intrinsics[k] -= delta[k] * 1e-3;
+            estimate.distortion[k] -= delta[4 + k] * 1e-3;
+        }
+        let xy = estimate.undistort(&uv).unwrap();
+        let w = PeerWindow {
+            peer: 1,
+            key: 0,
+            poses: vec![pose],
+            cov: DMatrix::identity(14, 14),
+            camera: estimate,
+            landmarks: Vec::new(),
+        };
+        assert_eq!(w.intrinsics_item(), Some(1));
+        let m = peer_measurement(&w, 0, &xy, &p_f, &p_f, 1.0).unwrap();
+        let d = nalgebra::SVector::<f64, 8>::from_column_slice(&delta) * 1e-3;
+        let predicted = m.h_intrinsics * d;
+        assert!(
+            (m.res - predicted).norm() < 1e-3 * predicted.norm(),
+            "residual {:?}, predicted {:?}",
+            m.res,
+            predicted
+        );
     }
 
     #[test]

@@ -111,7 +111,7 @@ pub fn scene(n: usize, n_landmarks: usize, clone_var: f64, peer_var: f64) -> Sce
         key: 1,
         cov: DMatrix::identity(6 * n, 6 * n) * peer_var,
         poses,
-        focal_px: 458.0,
+        camera: calib.camera.clone(),
         landmarks: Vec::new(),
     };
     Scene {

@@ -22,7 +22,7 @@ use super::feature_db::FeatureDb;
 use super::feature_system::{build_at, camera_observations, Columns};
 use super::linalg::{compress_in_place, givens_qr_split, nullspace_project_in_place};
 use super::options::EstimatorOptions;
-use super::peer_window::{project_normalized, PeerWindow};
+use super::peer_window::{peer_measurement, PeerWindow};
 use super::state::{State, Var};
 use super::triangulation::{triangulate, CameraObservation, TriangulationOptions};
 use common::estimator_options::CommonProjection;
@@ -136,39 +136,42 @@ fn our_block(
 }
 
 /// Participant `j`'s block: its measurements of the feature at `p_f`, whitened,
-/// over the poses that saw it (sorted).
+/// over its items: the poses that saw it (sorted), then its intrinsics when its
+/// covariance has them.
 fn peer_block(
     w: &PeerWindow,
     obs: &[&PeerObservation],
     p_f: &nalgebra::Vector3<f64>,
     pixel_sigma: f64,
 ) -> Option<(Vec<usize>, Block)> {
-    let mut poses: Vec<usize> = obs.iter().map(|o| o.pose).collect();
-    poses.sort_unstable();
-    poses.dedup();
+    let mut items: Vec<usize> = obs.iter().map(|o| o.pose).collect();
+    items.sort_unstable();
+    items.dedup();
+    let n_poses = items.len();
+    let intrinsics = w.intrinsics_item();
+    items.extend(intrinsics);
     let rows = 2 * obs.len();
-    let scale = w.focal_px / pixel_sigma;
+    let cols = 6 * n_poses + if intrinsics.is_some() { 8 } else { 0 };
     let mut b = Block {
-        h_x: DMatrix::zeros(rows, 6 * poses.len()),
+        h_x: DMatrix::zeros(rows, cols),
         h_f: DMatrix::zeros(rows, 3),
         res: DVector::zeros(rows),
     };
     for (i, o) in obs.iter().enumerate() {
-        let pose = w.poses.get(o.pose)?;
-        let proj = project_normalized(pose, p_f)?;
-        let col = 6 * poses.binary_search(&o.pose).ok()?;
+        let m = peer_measurement(w, o.pose, &o.xy, p_f, p_f, pixel_sigma)?;
+        let col = 6 * items[..n_poses].binary_search(&o.pose).ok()?;
         let r = 2 * i;
-        b.h_x
-            .fixed_view_mut::<2, 6>(r, col)
-            .copy_from(&(proj.h_pose * scale));
-        b.h_f
-            .fixed_view_mut::<2, 3>(r, 0)
-            .copy_from(&(proj.h_feature * scale));
-        let e = (o.xy - proj.xy) * scale;
-        b.res[r] = e.x;
-        b.res[r + 1] = e.y;
+        b.h_x.fixed_view_mut::<2, 6>(r, col).copy_from(&m.h_pose);
+        if intrinsics.is_some() {
+            b.h_x
+                .fixed_view_mut::<2, 8>(r, 6 * n_poses)
+                .copy_from(&m.h_intrinsics);
+        }
+        b.h_f.fixed_view_mut::<2, 3>(r, 0).copy_from(&m.h_feature);
+        b.res[r] = m.res.x;
+        b.res[r + 1] = m.res.y;
     }
-    Some((poses, b))
+    Some((items, b))
 }
 
 /// Keeps the first `top` rows of a block (after [`givens_qr_split`]); returns the
@@ -285,7 +288,7 @@ fn feature_rows(
     let mut peers = Vec::with_capacity(metas.len());
     let mut c0 = our_cols;
     for (p, poses) in metas {
-        let c = 6 * poses.len();
+        let c: usize = poses.iter().map(|i| participants[p].item_size(*i)).sum();
         peers.push(PeerPart {
             participant: p,
             h: h_all.columns(c0, c).into_owned(),
@@ -609,5 +612,127 @@ mod tests {
         assert_eq!(out.fallback, vec![3]);
         assert_eq!(out.stats.rejected_chi2 + out.stats.failed, 1);
         assert_eq!(out.stats.used, 11);
+    }
+}
+
+#[cfg(test)]
+mod consistency {
+    use super::*;
+    use crate::estimator::chi2::Chi2Table;
+    use crate::estimator::peer_window::project_normalized;
+    use crate::estimator::projection::predict;
+    use crate::estimator::test_scene::scene;
+    use common::so3::exp_so3;
+    use nalgebra::{Vector2, Vector3};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+    /// A standard normal sample (Box-Muller).
+    fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+        let u1: f64 = rng.random_range(f64::EPSILON..1.0);
+        let u2: f64 = rng.random();
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+
+    /// Monte-Carlo NEES of our clone poses after a common-VIO update: truth
+    /// drawn around the estimate from our covariance and the peer's, noisy
+    /// measurements of the true scene. CI must not be overconfident.
+    #[test]
+    fn the_common_update_is_not_overconfident() {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let (mut nees, mut trials) = (0.0, 0);
+        for _ in 0..200 {
+            let mut sc = scene(6, 12, 4e-4, 1e-4);
+            // True clone poses: the estimate moved by a draw of our covariance
+            // (diagonal in the scene).
+            let calib = sc.state.calib.clone();
+            let mut true_clones = std::collections::BTreeMap::new();
+            for (k, c) in &sc.state.clones {
+                let dth = Vector3::from_fn(|_, _| gauss(&mut rng) * 4e-4f64.sqrt());
+                let dp = Vector3::from_fn(|_, _| gauss(&mut rng) * 4e-4f64.sqrt());
+                true_clones.insert(*k, (c.rot * exp_so3(&dth), c.pos + dp));
+            }
+            // True peer poses likewise.
+            let true_peer: Vec<_> = sc
+                .peer
+                .poses
+                .iter()
+                .map(|p| {
+                    let dth = Vector3::from_fn(|_, _| gauss(&mut rng) * 1e-4f64.sqrt());
+                    let dp = Vector3::from_fn(|_, _| gauss(&mut rng) * 1e-4f64.sqrt());
+                    let mut q = *p;
+                    q.rot = p.rot * exp_so3(&dth);
+                    q.pos = p.pos + dp;
+                    q
+                })
+                .collect();
+            // Measurements of the true scene, 1 px noise.
+            let mut db = crate::estimator::feature_db::FeatureDb::new();
+            let mut tracks = Vec::new();
+            for (l, p_f) in sc.landmarks.iter().enumerate() {
+                for (k, (rot, pos)) in &true_clones {
+                    let Some(uv) = predict(rot, pos, p_f, &calib) else {
+                        continue;
+                    };
+                    let uv = uv + Vector2::new(gauss(&mut rng), gauss(&mut rng));
+                    let Ok(uvn) = calib.camera.undistort(&uv) else {
+                        continue;
+                    };
+                    let m = crate::estimator::feature_db::FeatureMeasurement {
+                        clone_key: *k,
+                        t: *k as f64,
+                        uv,
+                        uvn,
+                    };
+                    db.insert(l as u64, m).ok();
+                }
+                let peer_obs = true_peer
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(j, pose)| {
+                        let p = project_normalized(pose, p_f)?;
+                        let noise = Vector2::new(gauss(&mut rng), gauss(&mut rng)) / 458.0;
+                        Some(PeerObservation {
+                            participant: 0,
+                            pose: j,
+                            xy: p.xy + noise,
+                        })
+                    })
+                    .collect();
+                tracks.push(CommonTrack {
+                    id: l as u64,
+                    peer_obs,
+                });
+            }
+            sc.db = db;
+            let out = update(
+                &mut sc.state,
+                &sc.db,
+                &tracks,
+                std::slice::from_ref(&sc.peer),
+                &EstimatorOptions::default(),
+                &Chi2Table::new(0.95, 500),
+                &TriangulationOptions::default(),
+            );
+            if out.stats.used == 0 {
+                continue;
+            }
+            // NEES of the newest clone's pose.
+            let key = *sc.state.clones.keys().next_back().unwrap();
+            let c = &sc.state.clones[&key];
+            let (tr, tp) = true_clones[&key];
+            let mut e = nalgebra::DVector::zeros(6);
+            e.rows_mut(0, 3)
+                .copy_from(&common::so3::log_so3(&(c.rot.transpose() * tr)));
+            e.rows_mut(3, 3).copy_from(&(tp - c.pos));
+            let p = sc.state.block(Var::Clone(key), Var::Clone(key)).unwrap();
+            nees += e.dot(&p.cholesky().unwrap().solve(&e));
+            trials += 1;
+        }
+        let mean = nees / trials as f64;
+        assert!(trials > 150, "{trials} trials used the update");
+        assert!(
+            mean < 6.0 * 1.15,
+            "mean NEES {mean} over {trials} trials (6 dof)"
+        );
     }
 }

@@ -14,7 +14,7 @@ use super::chi2::Chi2Table;
 use super::ci_system::{self, CiRows, Part, PeerRows};
 use super::feature_system::Columns;
 use super::options::EstimatorOptions;
-use super::peer_window::{project_normalized, PeerWindow};
+use super::peer_window::{peer_measurement, PeerWindow};
 use super::slam_feature::global_position;
 use super::state::{State, Var};
 use super::updater_common::{CommonOutcome, CommonTrack};
@@ -93,26 +93,29 @@ fn measurement_rows(
     for p in peers.iter_mut() {
         p.items.sort_unstable();
         p.items.dedup();
-        p.h = DMatrix::zeros(m, 6 * p.items.len());
+        let Part::Poses(w) = p.part else { continue };
+        let w = participants.get(w)?;
+        p.items.extend(w.intrinsics_item());
+        let cols: usize = p.items.iter().map(|i| w.item_size(*i)).sum();
+        p.h = DMatrix::zeros(m, cols);
     }
     for (i, o) in track.peer_obs.iter().enumerate() {
         let w = participants.get(o.participant)?;
-        let pose = w.poses.get(o.pose)?;
-        let lin = project_normalized(pose, &p_lin)?;
-        let cur = project_normalized(pose, &p_cur)?;
-        let scale = w.focal_px / opts.pixel_sigma_px;
+        let pm = peer_measurement(w, o.pose, &o.xy, &p_lin, &p_cur, opts.pixel_sigma_px)?;
         let r = 2 * i;
-        let e = (o.xy - cur.xy) * scale;
-        res[r] = e.x;
-        res[r + 1] = e.y;
-        let h_f = DMatrix::from_iterator(2, 3, lin.h_feature.iter().map(|v| v * scale));
+        res[r] = pm.res.x;
+        res[r + 1] = pm.res.y;
+        let h_f = DMatrix::from_iterator(2, 3, pm.h_feature.iter().copied());
         add_blocks(&mut h_i, r, &h_f, &jac, &cols);
         let p = peers
             .iter_mut()
             .find(|p| p.part == Part::Poses(o.participant))?;
         let c = 6 * p.items.binary_search(&o.pose).ok()?;
-        p.h.fixed_view_mut::<2, 6>(r, c)
-            .copy_from(&(lin.h_pose * scale));
+        p.h.fixed_view_mut::<2, 6>(r, c).copy_from(&pm.h_pose);
+        if let Some(k) = w.intrinsics_item() {
+            let c = 6 * p.items.iter().position(|x| *x == k)?;
+            p.h.fixed_view_mut::<2, 8>(r, c).copy_from(&pm.h_intrinsics);
+        }
     }
     Some(CiRows {
         vars,

@@ -189,7 +189,10 @@ pub struct StateSnapshot {
     /// Camera poses of the clones in the window, oldest first.
     #[serde(deserialize_with = "bounded_vec::deserialize")]
     pub clones: Vec<CameraPose>,
-    /// Joint covariance of the clone poses (`6 · clones.len()` square).
+    /// Joint covariance of the clone poses (`6 · clones.len()` square), or of
+    /// the poses and then the camera intrinsics `[fx, fy, cx, cy, d0..d3]`
+    /// (`6 · clones.len() + 8`) when the sender estimates them: its normalized
+    /// track coordinates are only as good as its intrinsics.
     pub covariance: PackedCovariance,
     /// SLAM landmarks in the global frame with their marginal covariances.
     #[serde(deserialize_with = "bounded_vec::deserialize")]

@@ -14,8 +14,9 @@ use super::validate::{Limits, ValidationError};
 /// The first four bytes of every message.
 pub const MAGIC: [u8; 4] = *b"FVIO";
 
-/// The wire version this build writes.
-pub const WIRE_VERSION: u16 = 1;
+/// The wire version this build writes. Version 2: a snapshot's covariance may
+/// end with the sender's camera intrinsics (version 1 peers would misread it).
+pub const WIRE_VERSION: u16 = 2;
 
 /// The wire versions this build reads.
 pub const SUPPORTED_VERSIONS: &[u16] = &[WIRE_VERSION];

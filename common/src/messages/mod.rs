@@ -60,7 +60,7 @@ pub use codec::{
 pub use envelope::Envelope;
 pub use packed_cov::PackedCovariance;
 pub use validate::{
-    Limits, ValidationError, FLEET_ID_FORBIDDEN_CHARS, MAX_FLEET_ID_BYTES,
+    Limits, ValidationError, FLEET_ID_FORBIDDEN_CHARS, INTRINSICS_DIM, MAX_FLEET_ID_BYTES,
     QUATERNION_NORM_TOLERANCE,
 };
 

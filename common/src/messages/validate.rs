@@ -94,7 +94,10 @@ pub enum ValidationError {
         cols: usize,
     },
     /// The covariance dimension does not match the number of clones.
-    #[error("covariance dim is {dim}, but {clones} clones need 6 x {clones} = {expected}")]
+    #[error(
+        "covariance dim is {dim}, but {clones} clones need 6 x {clones} = {expected} \
+         (or 8 more with the camera intrinsics)"
+    )]
     CovarianceDim {
         /// The declared dimension.
         dim: u32,
@@ -258,12 +261,13 @@ fn validate_clone(i: usize, c: &CameraPose) -> Result<(), ValidationError> {
 }
 
 fn validate_covariance(cov: &PackedCovariance, clones: usize) -> Result<(), ValidationError> {
-    let expected = clones.saturating_mul(6);
-    if cov.dim as usize != expected {
+    let poses = clones.saturating_mul(6);
+    let expected = cov.dim as usize;
+    if expected != poses && expected != poses.saturating_add(INTRINSICS_DIM) {
         return Err(ValidationError::CovarianceDim {
             dim: cov.dim,
             clones,
-            expected,
+            expected: poses,
         });
     }
     let expected_len = PackedCovariance::packed_len(expected);
@@ -287,6 +291,9 @@ fn validate_covariance(cov: &PackedCovariance, clones: usize) -> Result<(), Vali
     }
     Ok(())
 }
+
+/// Size of the intrinsics block a snapshot covariance may end with.
+pub const INTRINSICS_DIM: usize = 8;
 
 fn validate_snapshot(s: &StateSnapshot, limits: &Limits) -> Result<(), ValidationError> {
     finite(s.t_s, || "snapshot.t_s".into())?;
