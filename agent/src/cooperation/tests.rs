@@ -2,12 +2,15 @@
 //! keyframe window is stored in its history, its newest frame is recent), and
 //! our camera now sees the same landmarks from elsewhere.
 
+use super::loop_closure::FrameFeatures;
 use super::*;
 use crate::peer_history::HistoryLimits;
+use common::descriptor::Descriptor;
 use common::messages::{
     CameraModelWire, CameraPose, DescriptorBatch, DescriptorEntry, PackedCovariance, StateSnapshot,
     TrackFrame, TrackPoint,
 };
+use nalgebra::Vector2;
 use nalgebra::{DMatrix, Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -1,0 +1,253 @@
+//! Steps 2 of a frame: the peers' unused measurements behind the links of the
+//! tracks the estimator is about to use, with the peer windows (CI
+//! participants) they belong to, and the peers' SLAM landmarks for constraints.
+
+use super::{Cooperation, Link, LinkSource, Peers, CONSTRAINT_FLAG};
+use crate::estimator::peer_window::PeerWindow;
+use crate::estimator::updater_common::{CommonTrack, PeerObservation};
+use crate::estimator::updater_common_slam::SlamConstraint;
+use crate::peer_history::{time_key, PeerHistory};
+use nalgebra::Vector2;
+use std::collections::{BTreeMap, BTreeSet};
+
+/// The measurements behind one of our tracks in this frame.
+#[derive(Clone, Debug, Default)]
+pub(super) struct Consumed {
+    pub(super) keys: Vec<(u32, u64, u64)>,
+}
+
+/// Everything the cooperative updates of one frame need.
+#[derive(Clone, Debug, Default)]
+pub struct Evidence {
+    /// The CI participants (peer windows) the observations refer to.
+    pub participants: Vec<PeerWindow>,
+    /// Our VIO tracks with peers' measurements (common VIO features).
+    pub vio: Vec<CommonTrack>,
+    /// Our SLAM features with peers' measurements (common SLAM, case i).
+    pub slam: Vec<CommonTrack>,
+    /// Our SLAM features that are peers' SLAM landmarks (constraint update).
+    pub constraints: Vec<SlamConstraint>,
+    /// Whether a participant is a historical keyframe window.
+    pub historical: Vec<bool>,
+    pub(super) consumed: BTreeMap<(u8, u64), Consumed>,
+}
+
+impl Cooperation {
+    /// Step 2: the peers' unused measurements behind the links of our tracks
+    /// `vio_ids` (about to leave the window) and of our SLAM features `slam_ids`.
+    pub fn evidence(&self, vio_ids: &[u64], slam_ids: &[u64], peers: &Peers) -> Evidence {
+        let mut ev = Evidence::default();
+        let mut index: BTreeMap<(u32, LinkSource), Option<usize>> = BTreeMap::new();
+        let mut taken: BTreeSet<(u32, u64, u64)> = BTreeSet::new();
+        let classes: [(&[u64], bool); 2] = [(vio_ids, false), (slam_ids, true)];
+        for (ids, slam) in classes {
+            for &id in ids {
+                let mut obs = Vec::new();
+                let mut consumed = Consumed::default();
+                let mut constraint = None;
+                for link in &self.chosen_links(id, slam, peers) {
+                    let Some(h) = peers.get(&link.peer) else {
+                        continue;
+                    };
+                    let Some(p) = *index
+                        .entry((link.peer, link.source))
+                        .or_insert_with(|| participant(&mut ev, link, h))
+                    else {
+                        continue;
+                    };
+                    let used = self.peers.get(&link.peer).map(|s| &s.used);
+                    let is_used = |k: &(u64, u64)| used.is_some_and(|u| u.contains(k));
+                    if slam && self.opts.slam_constraint && constraint.is_none() {
+                        let w = &ev.participants[p];
+                        if let Some(j) = w.landmarks.iter().position(|l| l.id == link.peer_track) {
+                            let key = (w.key, link.peer_track | CONSTRAINT_FLAG);
+                            if !is_used(&key) && taken.insert((link.peer, key.0, key.1)) {
+                                constraint = Some(SlamConstraint {
+                                    id,
+                                    participant: p,
+                                    landmark: j,
+                                });
+                                consumed.keys.push((link.peer, key.0, key.1));
+                            }
+                            continue;
+                        }
+                    }
+                    for (pose, t_s, xy) in measurements(h, link, &ev.participants[p]) {
+                        let key = (time_key(t_s), link.peer_track);
+                        if is_used(&key) || !taken.insert((link.peer, key.0, key.1)) {
+                            continue;
+                        }
+                        consumed.keys.push((link.peer, key.0, key.1));
+                        obs.push(PeerObservation {
+                            participant: p,
+                            pose,
+                            xy,
+                        });
+                    }
+                }
+                if let Some(c) = constraint {
+                    ev.constraints.push(c);
+                }
+                if !obs.is_empty() {
+                    let track = CommonTrack { id, peer_obs: obs };
+                    if slam {
+                        ev.slam.push(track);
+                    } else {
+                        ev.vio.push(track);
+                    }
+                }
+                if !consumed.keys.is_empty() {
+                    ev.consumed.insert((u8::from(slam), id), consumed);
+                }
+            }
+        }
+        ev
+    }
+
+    /// The links of our track `id` whose measurements this class may use: every
+    /// window link, and per peer the `max_keyframes_per_track` keyframe links
+    /// whose windows the peer was most certain of (smallest position variance;
+    /// at least two measurements of the peer's track). A landmark the peer kept
+    /// in view, or saw on several passes, is in several of its keyframe
+    /// windows; each window is one more CI participant, which inflates our
+    /// covariance once more, so only the most informative are used.
+    fn chosen_links(&self, id: u64, slam: bool, peers: &Peers) -> Vec<Link> {
+        let mut out: Vec<Link> = Vec::new();
+        let mut window: Vec<(usize, Link)> = Vec::new();
+        let mut historical: Vec<(u32, f64, Link)> = Vec::new();
+        for link in self.links_of(id) {
+            if !self.allowed(link, slam) {
+                continue;
+            }
+            // Measurements of the peer's track not used yet.
+            let used = self.peers.get(&link.peer).map(|s| &s.used);
+            let fresh =
+                |t_s: f64| !used.is_some_and(|u| u.contains(&(time_key(t_s), link.peer_track)));
+            match link.source {
+                LinkSource::Window => {
+                    let count = peers.get(&link.peer).map_or(0, |h| {
+                        h.recent
+                            .iter()
+                            .filter(|f| {
+                                fresh(f.t_s) && f.features.iter().any(|p| p.id == link.peer_track)
+                            })
+                            .count()
+                    });
+                    if count > 0 {
+                        window.push((count, *link));
+                    }
+                }
+                LinkSource::Keyframe(k) => {
+                    let Some(kf) = peers.get(&link.peer).and_then(|h| h.keyframes.get(&k)) else {
+                        continue;
+                    };
+                    let count = kf
+                        .frames
+                        .iter()
+                        .filter(|f| {
+                            fresh(f.t_s) && f.observations.iter().any(|o| o.id == link.peer_track)
+                        })
+                        .count();
+                    if count >= 2 {
+                        historical.push((link.peer, position_variance(&kf.snapshot), *link));
+                    }
+                }
+            }
+        }
+        // Most certain window first; ties to the newest keyframe (larger key).
+        historical.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)).then(b.2.cmp(&a.2)));
+        let mut per_peer: BTreeMap<u32, usize> = BTreeMap::new();
+        for (peer, _, link) in historical {
+            let n = per_peer.entry(peer).or_default();
+            if *n < self.opts.max_keyframes_per_track {
+                *n += 1;
+                out.push(link);
+            }
+        }
+        // The peers that saw the feature longest, at most `max_peers_per_track`:
+        // the update's size, and its cost, stay bounded however many robots
+        // share a place.
+        window.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+        let room = self
+            .opts
+            .max_peers_per_track
+            .saturating_sub(out.len().min(1));
+        out.extend(window.into_iter().take(room.max(1)).map(|(_, l)| l));
+        out
+    }
+
+    /// Whether a link may be used for this class under the options.
+    fn allowed(&self, link: &Link, slam: bool) -> bool {
+        let class = if slam {
+            self.opts.common_slam
+        } else {
+            self.opts.common_vio
+        };
+        match link.source {
+            LinkSource::Window => class,
+            LinkSource::Keyframe(_) => self.opts.historical,
+        }
+    }
+}
+
+/// Sum of the position variances of a window's camera poses, m².
+fn position_variance(snap: &common::messages::StateSnapshot) -> f64 {
+    (0..snap.clones.len())
+        .flat_map(|i| (3..6).map(move |j| 6 * i + j))
+        .filter_map(|d| snap.covariance.get(d, d))
+        .sum()
+}
+
+/// The participant behind `link`: its index in `ev.participants` (added now if
+/// new), or `None` when the peer's window is not usable.
+fn participant(ev: &mut Evidence, link: &Link, h: &PeerHistory) -> Option<usize> {
+    let (snap, historical) = match link.source {
+        LinkSource::Window => (h.latest.as_ref()?, false),
+        LinkSource::Keyframe(k) => (&h.keyframes.get(&k)?.snapshot, true),
+    };
+    let key = time_key(snap.clones.last().map_or(snap.t_s, |c| c.t_s));
+    if let Some(i) = ev
+        .participants
+        .iter()
+        .position(|w| w.peer == link.peer && w.key == key)
+    {
+        return Some(i);
+    }
+    let w = PeerWindow::from_snapshot(link.peer, key, snap)?;
+    ev.participants.push(w);
+    ev.historical.push(historical);
+    Some(ev.participants.len() - 1)
+}
+
+/// The linked peer track's measurements at the poses of window `w`:
+/// `(pose index, camera time, normalized coordinates)`.
+fn measurements(h: &PeerHistory, link: &Link, w: &PeerWindow) -> Vec<(usize, f64, Vector2<f64>)> {
+    let mut out = Vec::new();
+    match link.source {
+        LinkSource::Window => {
+            for f in &h.recent {
+                let Some(pose) = w.pose_at(f.t_s) else {
+                    continue;
+                };
+                if let Some(p) = f.features.iter().find(|p| p.id == link.peer_track) {
+                    out.push((pose, f.t_s, p.xy()));
+                }
+            }
+        }
+        LinkSource::Keyframe(k) => {
+            let Some(kf) = h.keyframes.get(&k) else {
+                return out;
+            };
+            for f in &kf.frames {
+                let Some(pose) = w.pose_at(f.t_s) else {
+                    continue;
+                };
+                if let Some(o) = f.observations.iter().find(|o| o.id == link.peer_track) {
+                    let xy = Vector2::new(f64::from(o.xy_norm[0]), f64::from(o.xy_norm[1]));
+                    out.push((pose, f.t_s, xy));
+                }
+            }
+        }
+    }
+    out
+}
