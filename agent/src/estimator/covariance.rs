@@ -482,8 +482,10 @@ pub(crate) fn lower_triangular_inverse(l: &DMatrix<f64>) -> DMatrix<f64> {
             let lk = &ls[k * m..(k + 1) * m];
             let xk = x[k] / lk[k];
             x[k] = xk;
-            for i in (k + 1)..m {
-                x[i] -= lk[i] * xk;
+            // An axpy over the rows below k, written with zipped slices so it
+            // has no bounds checks and vectorizes.
+            for (xi, li) in x[k + 1..].iter_mut().zip(&lk[k + 1..]) {
+                *xi -= li * xk;
             }
         }
     }

@@ -15,6 +15,7 @@ pub mod feature_db;
 pub mod feature_system;
 pub mod filter;
 pub mod frame_output;
+pub mod gated_update;
 pub mod inputs;
 pub mod linalg;
 pub mod options;

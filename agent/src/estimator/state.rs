@@ -368,6 +368,27 @@ impl State {
         Ok(())
     }
 
+    /// EKF update of independently gated blocks of rows from one innovation (see
+    /// [`Covariance::gated_ekf_update`]); the correction is applied to the means.
+    /// Returns which blocks were used.
+    pub fn gated_ekf_update(
+        &mut self,
+        vars: &[Var],
+        h: &DMatrix<f64>,
+        res: &DVector<f64>,
+        r: &DMatrix<f64>,
+        block: usize,
+        threshold: f64,
+    ) -> Result<Vec<bool>, StateError> {
+        let out = self
+            .cov
+            .gated_ekf_update(vars, h, res, r, block, threshold)?;
+        if let Some(dx) = &out.dx {
+            self.apply_correction(dx);
+        }
+        Ok(out.accepted)
+    }
+
     /// CI-EKF update (thesis Eqs. 5.15-5.17, see [`Covariance::ci_update`]); only
     /// this robot's state and covariance change.
     pub fn ci_update(

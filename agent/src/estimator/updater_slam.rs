@@ -41,15 +41,14 @@ impl Row {
         }
     }
 
-    /// The row as a dense `2 x cols.dim` matrix.
-    fn dense(&self, cols: &Columns) -> DMatrix<f64> {
-        let mut h = DMatrix::zeros(2, cols.dim);
+    /// Writes the row's blocks into rows `r0..r0 + 2` of `h`, whose columns
+    /// follow `cols`.
+    fn write(&self, cols: &Columns, h: &mut DMatrix<f64>, r0: usize) {
         for (v, b) in &self.blocks {
             if let Some(o) = cols.col(*v) {
-                h.view_mut((0, o), (2, v.size())).copy_from(b);
+                h.view_mut((r0, o), (2, v.size())).copy_from(b);
             }
         }
-        h
     }
 }
 
@@ -102,7 +101,10 @@ fn measurement_row<F: Filter + ?Sized>(
 }
 
 /// Updates the SLAM features `ids` with their observation in clone `clone_key`,
-/// each gated alone, all in one EKF update.
+/// each gated alone, all in one EKF update. The gate of a feature is its own
+/// 2x2 block of the stack's innovation covariance (see
+/// [`Filter::gated_ekf_update`]), so gating costs no pass over the covariance
+/// of its own.
 pub fn update<F: Filter + ?Sized>(
     state: &mut F,
     db: &FeatureDb,
@@ -112,25 +114,15 @@ pub fn update<F: Filter + ?Sized>(
     chi2: &Chi2Table,
     stats: &mut SlamStats,
 ) {
-    let sigma2 = opts.pixel_sigma_px.powi(2);
-    let noise2 = DMatrix::identity(2, 2) * sigma2;
-    let mut used: Vec<Row> = Vec::new();
-    for &id in ids {
-        let Some(row) = measurement_row(state, db, id, clone_key, opts.use_fej) else {
-            continue;
-        };
-        let cols = Columns::of(row.blocks.iter().map(|(v, _)| *v).collect());
-        let res = DVector::from_row_slice(&row.res);
-        match state.mahalanobis(&cols.vars, &row.dense(&cols), &res, &noise2) {
-            Ok(d2) if d2 <= opts.chi2_multiplier * chi2.get(2) => used.push(row),
-            _ => stats.rejected_chi2 += 1,
-        }
-    }
-    if used.is_empty() {
+    let rows: Vec<Row> = ids
+        .iter()
+        .filter_map(|&id| measurement_row(state, db, id, clone_key, opts.use_fej))
+        .collect();
+    if rows.is_empty() {
         return;
     }
     let mut vars: Vec<Var> = Vec::new();
-    for row in &used {
+    for row in &rows {
         for (v, _) in &row.blocks {
             if !vars.contains(v) {
                 vars.push(*v);
@@ -138,17 +130,23 @@ pub fn update<F: Filter + ?Sized>(
         }
     }
     let cols = Columns::of(vars);
-    let mut h = DMatrix::zeros(2 * used.len(), cols.dim);
-    let mut res = DVector::zeros(2 * used.len());
-    for (i, row) in used.iter().enumerate() {
-        h.view_mut((2 * i, 0), (2, cols.dim))
-            .copy_from(&row.dense(&cols));
+    let m = 2 * rows.len();
+    let mut h = DMatrix::zeros(m, cols.dim);
+    let mut res = DVector::zeros(m);
+    for (i, row) in rows.iter().enumerate() {
+        row.write(&cols, &mut h, 2 * i);
         res[2 * i] = row.res[0];
         res[2 * i + 1] = row.res[1];
     }
-    let r = DMatrix::identity(res.len(), res.len()) * sigma2;
-    if state.ekf_update(&cols.vars, &h, &res, &r).is_ok() {
-        stats.updated += used.len();
+    let r = DMatrix::identity(m, m) * opts.pixel_sigma_px.powi(2);
+    let threshold = opts.chi2_multiplier * chi2.get(2);
+    match state.gated_ekf_update(&cols.vars, &h, &res, &r, 2, threshold) {
+        Ok(accepted) => {
+            let used = accepted.iter().filter(|a| **a).count();
+            stats.updated += used;
+            stats.rejected_chi2 += accepted.len() - used;
+        }
+        Err(_) => stats.rejected_chi2 += rows.len(),
     }
 }
 
