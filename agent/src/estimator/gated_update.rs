@@ -114,7 +114,7 @@ mod tests {
             let hi = h.rows(2 * i, 2).into_owned();
             let ri = res.rows(2 * i, 2).into_owned();
             let d2 = expected
-                .mahalanobis(&vars, &hi, &ri, &DMatrix::identity(2, 2) * 0.01)
+                .mahalanobis(&vars, &hi, &ri, &(DMatrix::identity(2, 2) * 0.01))
                 .unwrap();
             ok.push(d2 <= threshold);
         }
