@@ -150,6 +150,9 @@ pub struct CooperationOptions {
     /// Peers whose current windows a feature takes measurements from (the
     /// ones that saw it longest): bounds the update when many robots share a place.
     pub max_peers_per_track: usize,
+    /// A peer's newest frame older than this (before ours, fleet clock) is no
+    /// longer a current window to match, s: one that stopped publishing.
+    pub max_window_age_s: f64,
 }
 
 impl Default for CooperationOptions {
@@ -175,6 +178,7 @@ impl Default for CooperationOptions {
             loop_candidates: 2,
             max_keyframes_per_track: 1,
             max_peers_per_track: 2,
+            max_window_age_s: 1.0,
         }
     }
 }

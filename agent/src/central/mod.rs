@@ -183,7 +183,11 @@ impl CentralEstimator {
         let threshold = c.epipolar_threshold_px / (k[0] * k[1]).abs().sqrt().max(1.0);
         let mut new_links = Vec::new();
         for (q, other) in self.robots.iter().enumerate() {
-            let Some(theirs) = other.latest.as_ref().filter(|_| q != r) else {
+            let Some(theirs) = other
+                .latest
+                .as_ref()
+                .filter(|f| q != r && ours.t_s - f.t_s <= c.max_window_age_s)
+            else {
                 continue;
             };
             let pairs = match_descriptors(&ours.descriptors, &theirs.descriptors, &rules);

@@ -47,6 +47,11 @@ impl Cooperation {
         let Some(newest) = h.recent.back() else {
             return;
         };
+        // A peer that stopped publishing (landed, left, died) leaves its last
+        // frame behind: that is history, not a window seen at the same time.
+        if frame.t_s - newest.t_s > self.opts.max_window_age_s {
+            return;
+        }
         let latest_kf = h.keyframes.values().next_back();
         let known: HashMap<u64, Descriptor> = latest_kf
             .into_iter()

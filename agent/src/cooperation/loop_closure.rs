@@ -37,6 +37,8 @@ pub struct FrameFeatures {
     pub descriptors: Vec<Descriptor>,
     /// Their undistorted normalized coordinates.
     pub xy: Vec<Vector2<f64>>,
+    /// The frame's time, s (fleet clock).
+    pub t_s: f64,
 }
 
 /// A verified loop closure: our tracks matched to the peer's tracks of one

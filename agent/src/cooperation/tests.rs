@@ -128,7 +128,11 @@ fn peer_history(w: &World, rng: &mut ChaCha8Rng) -> PeerHistory {
 /// numbered 1, 2, ... in that order.
 fn our_frame(w: &World, seen: &[usize], rng: &mut ChaCha8Rng) -> FrameFeatures {
     let pos = Vector3::new(0.8, -0.3, 0.0);
-    let mut f = FrameFeatures::default();
+    // Just after the peer's newest frame (t = 2.0).
+    let mut f = FrameFeatures {
+        t_s: 2.1,
+        ..FrameFeatures::default()
+    };
     for (i, l) in seen.iter().enumerate() {
         f.ids.push(i as u64 + 1);
         f.descriptors.push(noisy(&w.descriptors[*l], rng));
@@ -165,6 +169,20 @@ fn our_tracks_are_linked_to_the_peers_tracks_of_the_same_landmarks() {
         }
     }
     assert!(right >= 25, "{right} of 30 tracks linked");
+}
+
+#[test]
+fn a_peer_that_stopped_publishing_has_no_current_window_only_history() {
+    let mut rng = ChaCha8Rng::seed_from_u64(14);
+    let w = world(40, &mut rng);
+    let peers: Peers = [(7u32, peer_history(&w, &mut rng))].into_iter().collect();
+    let mut frame = our_frame(&w, &(5..35).collect::<Vec<_>>(), &mut rng);
+    // A minute after the peer's last frame: its window is history now.
+    frame.t_s = 62.0;
+    let mut coop = Cooperation::new(options(), builtin_vocabulary(), 460.0);
+    coop.match_frame(&frame, &peers, 1);
+    assert_eq!(coop.stats.window_matches, 0);
+    assert_eq!(coop.stats.loop_closures, 1);
 }
 
 #[test]

@@ -54,7 +54,10 @@ impl CoopFrameStats {
 /// Our frame's features for the matcher: ids, descriptors and the normalized
 /// coordinates recorded for clone `key`.
 pub fn frame_features(frame: &FeatureFrame, db: &FeatureDb, key: u64) -> FrameFeatures {
-    let mut out = FrameFeatures::default();
+    let mut out = FrameFeatures {
+        t_s: frame.t,
+        ..FrameFeatures::default()
+    };
     for f in &frame.features {
         let Some(m) = db.get(f.id).and_then(|t| t.measurement_at(key)) else {
             continue;

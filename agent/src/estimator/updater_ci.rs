@@ -28,11 +28,18 @@ pub struct PeerTerm {
     pub weight: Option<f64>,
 }
 
+/// Our smallest weight with [`CiWeights::FixedPeer`]. Each CI update divides
+/// our covariance by our weight; one update per frame at a small weight would
+/// throw away what we know faster than the peers can give it back (a fixed
+/// peer weight of 0.2 with five participants would leave us none at all).
+pub const MIN_OWN_WEIGHT: f64 = 0.5;
+
 /// How the CI weights are chosen.
 #[derive(Clone, Debug, PartialEq)]
 pub enum CiWeights {
     /// Each participant's weight `ω_o` (thesis simulation: 0.001); this robot's
-    /// is `ω_i = 1 − L ω_o`.
+    /// is `ω_i = 1 − L ω_o`, but never below [`MIN_OWN_WEIGHT`]: with many
+    /// participants the peers then share `1 − MIN_OWN_WEIGHT` in proportion.
     FixedPeer(f64),
     /// This robot's weight `ω_i` (thesis real data: 0.99); the participants
     /// share `1 − ω_i` evenly.
@@ -186,7 +193,7 @@ pub fn update(
         match weights {
             CiWeights::FixedOwn(w) => w.clamp(1e-6, 1.0 - 1e-6),
             CiWeights::FixedPeer(_) => {
-                (1.0 - pieces.nominal.iter().sum::<f64>()).clamp(1e-3, 1.0 - 1e-6)
+                (1.0 - pieces.nominal.iter().sum::<f64>()).clamp(MIN_OWN_WEIGHT, 1.0 - 1e-6)
             }
             CiWeights::MinTrace => golden_min(1e-4, 1.0 - 1e-4, |w| {
                 pieces
