@@ -154,7 +154,8 @@ pub enum InputSource {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EstimatorSection {
-    /// `indp` (MSCKF only) or `indp-slam`.
+    /// `indp` (MSCKF only), `indp-slam`, or a cooperative variant:
+    /// `dc-cmsckf`, `dc-cmsckf-cslam`, `dc-full-window`, `dc-full-history`.
     #[serde(default = "default_variant")]
     pub variant: String,
     /// Sliding-window size (clones).
