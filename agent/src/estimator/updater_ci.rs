@@ -378,4 +378,36 @@ mod tests {
             assert!(best_det <= d * (1.0 + 1e-6), "ω {w}: {best_det} > {d}");
         }
     }
+
+    #[test]
+    fn many_fixed_peer_weights_never_push_our_weight_below_the_floor() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let p_i = random_spd(15, &mut rng);
+        let h_i = DMatrix::from_fn(4, 15, |_, _| rng.random_range(-1.0..1.0));
+        let peers: Vec<PeerTerm> = (0..10)
+            .map(|_| PeerTerm {
+                h: DMatrix::from_fn(4, 6, |_, _| rng.random_range(-1.0..1.0)),
+                cov: random_spd(6, &mut rng),
+                weight: None,
+            })
+            .collect();
+        let r = DMatrix::identity(4, 4) * 0.3;
+        let mut s = state_with(&p_i);
+        let out = update(
+            &mut s,
+            &[Var::Imu],
+            &h_i,
+            &DVector::zeros(4),
+            &r,
+            &peers,
+            &CiWeights::FixedPeer(0.2),
+        )
+        .unwrap();
+        // Ten peers at 0.2 would ask for 2.0: we keep the floor, and the peers
+        // share the rest equally (the weights still sum to one).
+        assert_eq!(out.omega_own, MIN_OWN_WEIGHT);
+        let total: f64 = out.omega_peers.iter().sum();
+        assert!((out.omega_own + total - 1.0).abs() < 1e-12);
+        assert!(out.omega_peers.iter().all(|w| (w - 0.05).abs() < 1e-12));
+    }
 }
