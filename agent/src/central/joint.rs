@@ -90,6 +90,26 @@ impl JointState {
         Ok(())
     }
 
+    /// Gated EKF update of a stack of blocks (see [`Covariance::gated_ekf_update`]);
+    /// the accepted blocks' correction goes to every robot's means.
+    pub fn gated_ekf_update(
+        &mut self,
+        vars: &[JointVar],
+        h: &DMatrix<f64>,
+        res: &DVector<f64>,
+        r: &DMatrix<f64>,
+        block: usize,
+        threshold: f64,
+    ) -> Result<Vec<bool>, StateError<JointVar>> {
+        let out = self
+            .cov
+            .gated_ekf_update(vars, h, res, r, block, threshold)?;
+        if let Some(dx) = &out.dx {
+            self.apply_correction(dx);
+        }
+        Ok(out.accepted)
+    }
+
     /// One robot's view.
     pub fn slot(&mut self, robot: u16) -> Option<RobotSlot<'_>> {
         self.means(robot)?;
@@ -181,6 +201,20 @@ impl Filter for RobotSlot<'_> {
     ) -> Result<(), StateError> {
         let vars = self.map(vars);
         self.joint.ekf_update(&vars, h, res, r).map_err(single)
+    }
+    fn gated_ekf_update(
+        &mut self,
+        vars: &[Var],
+        h: &DMatrix<f64>,
+        res: &DVector<f64>,
+        r: &DMatrix<f64>,
+        block: usize,
+        threshold: f64,
+    ) -> Result<Vec<bool>, StateError> {
+        let vars = self.map(vars);
+        self.joint
+            .gated_ekf_update(&vars, h, res, r, block, threshold)
+            .map_err(single)
     }
     fn initialize_invertible(
         &mut self,

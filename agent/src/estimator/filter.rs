@@ -47,11 +47,8 @@ pub trait Filter: FilterView {
     /// EKF update of a stack of `block`-row blocks with block-diagonal noise,
     /// each block used only if its Mahalanobis distance is at most `threshold`;
     /// the correction is applied to the means. Returns which blocks were used.
-    ///
-    /// The default gates each block against the covariance, then updates with
-    /// the accepted rows; [`State`] forms the stack's innovation once and gates
-    /// on its diagonal blocks (the same distances, see
-    /// [`super::gated_update`]).
+    /// The stack's innovation is formed once and gated on its diagonal blocks
+    /// (see [`super::gated_update`]).
     fn gated_ekf_update(
         &mut self,
         vars: &[Var],
@@ -60,28 +57,7 @@ pub trait Filter: FilterView {
         r: &DMatrix<f64>,
         block: usize,
         threshold: f64,
-    ) -> Result<Vec<bool>, StateError> {
-        let m = h.nrows();
-        if block == 0 || m % block != 0 || res.len() != m || r.shape() != (m, m) {
-            return Err(StateError::Dimension("gated_ekf_update".into()));
-        }
-        let mut accepted = Vec::with_capacity(m / block);
-        for o in (0..m).step_by(block) {
-            let d2 = self.mahalanobis(
-                vars,
-                &h.rows(o, block).into_owned(),
-                &res.rows(o, block).into_owned(),
-                &r.view((o, o), (block, block)).into_owned(),
-            );
-            accepted.push(d2.is_ok_and(|d2| d2 <= threshold));
-        }
-        let rows: Vec<usize> = (0..m).filter(|i| accepted[i / block]).collect();
-        if !rows.is_empty() {
-            let r_acc = r.select_rows(&rows).select_columns(&rows);
-            self.ekf_update(vars, &h.select_rows(&rows), &res.select_rows(&rows), &r_acc)?;
-        }
-        Ok(accepted)
-    }
+    ) -> Result<Vec<bool>, StateError>;
     /// Delayed initialization of `new` from an invertible system; returns the
     /// mean correction for the caller to apply.
     fn initialize_invertible(
