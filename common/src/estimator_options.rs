@@ -153,6 +153,21 @@ pub struct CooperationOptions {
     /// A peer's newest frame older than this (before ours, fleet clock) is no
     /// longer a current window to match, s: one that stopped publishing.
     pub max_window_age_s: f64,
+    /// Peers matched per frame (current frames and keyframe databases), taken
+    /// in turn when there are more: matching, like the update below, must not
+    /// cost more as the fleet grows. A link, once made, lasts as long as our
+    /// track, so a peer matched every few frames loses only its newest tracks'
+    /// first frames.
+    pub max_peers_matched_per_frame: usize,
+    /// CI participants (peer windows) of one frame's CI-EKF update, the ones
+    /// behind the most of our tracks: each adds its window's poses to the
+    /// update and inflates our covariance once more.
+    pub max_ci_participants: usize,
+    /// Common VIO features per frame (our tracks in the order the MSCKF takes
+    /// them, longest first); the rest are independent VIO features. With the
+    /// two caps above, a frame's cooperative work has a bound that does not
+    /// depend on the fleet's size.
+    pub max_common_per_frame: usize,
 }
 
 impl Default for CooperationOptions {
@@ -179,6 +194,9 @@ impl Default for CooperationOptions {
             max_keyframes_per_track: 1,
             max_peers_per_track: 2,
             max_window_age_s: 1.0,
+            max_peers_matched_per_frame: 3,
+            max_ci_participants: 2,
+            max_common_per_frame: 3,
         }
     }
 }

@@ -10,11 +10,11 @@
 //!    (`dc-full-history` with and without the constraint): ms per frame that had
 //!    a common-SLAM update and no common VIO feature;
 //! 3. per-robot cost of `dc-full-window` (each agent its own state) against
-//!    `ce-cmsckf-cslam` (one joint state) for 2, 4 and 8 robots: ms per robot
-//!    frame, the whole frame.
+//!    `ce-cmsckf-cslam` (one joint state) for 2, 4, 8 and 16 robots (the
+//!    centralized one up to 8): ms per robot frame, the whole frame.
 //!
 //! `cargo bench -p sim-fleet --bench cooperative_timing [-- SCENARIO] [--seeds N]
-//! [--robots 2,4,8]` (defaults: `sim-fleet/scenarios/euroc_vicon_room1.yaml`,
+//! [--robots 2,4,8,16]` (defaults: `sim-fleet/scenarios/euroc_vicon_room1.yaml`,
 //! 2 seeds). Agents run as threads over the in-process transport in lockstep;
 //! thread CPU time keeps their costs apart on a busy machine.
 use agent::estimator::FrameOutput;
@@ -175,7 +175,9 @@ fn table_5_4(scenario: &Path, n: usize, seeds: u64) -> Result<()> {
 
 fn scaling(base: &Scenario, robots: &[usize], seed: u64) -> Result<()> {
     println!("\nPer-robot cost, ms per robot frame (thread CPU, whole frame), seed {seed}");
-    println!("  robots | dc-full-window | ce-cmsckf-cslam");
+    println!(
+        "  robots | dc-full-window | ce-cmsckf-cslam | dc: matching ms, common rows ms, CI update ms, common features, CI participants (per frame)"
+    );
     let dir = std::env::temp_dir().join(format!("coop-scaling-{}", std::process::id()));
     std::fs::create_dir_all(&dir)?;
     for &n in robots {
@@ -194,13 +196,29 @@ fn scaling(base: &Scenario, robots: &[usize], seed: u64) -> Result<()> {
             },
         )?;
         let dc_ms = mean_std(&dc.iter().map(|f| f.timing.cpu_ms).collect::<Vec<_>>());
-        let fleet = Fleet::build(&Scenario::load(&path)?, seed)?;
-        let runs = agent::central::run::run_central(&fleet, Variant::CeCmsckfCslam)?;
-        let ce: Vec<f64> = runs
-            .iter()
-            .flat_map(|r| r.frames.iter().map(|f| f.timing.cpu_ms))
-            .collect();
-        println!("  {n:6} | {:14.2} | {:15.2}", dc_ms.0, mean_std(&ce).0);
+        // The joint state of more than 8 robots takes minutes per run; its
+        // growth is plain by then.
+        let ce: Vec<f64> = if n <= 8 {
+            let fleet = Fleet::build(&Scenario::load(&path)?, seed)?;
+            let runs = agent::central::run::run_central(&fleet, Variant::CeCmsckfCslam)?;
+            runs.iter()
+                .flat_map(|r| r.frames.iter().map(|f| f.timing.cpu_ms))
+                .collect()
+        } else {
+            vec![f64::NAN]
+        };
+        let avg =
+            |g: &dyn Fn(&FrameOutput) -> f64| mean_std(&dc.iter().map(g).collect::<Vec<_>>()).0;
+        println!(
+            "  {n:6} | {:14.2} | {:15.2} | {:.3}, {:.3}, {:.3}, {:.2}, {:.2}",
+            dc_ms.0,
+            mean_std(&ce).0,
+            avg(&|f| f.coop.matching_ms),
+            avg(&|f| f.coop.common_vio_ms + f.coop.common_slam_ms + f.coop.constraint_ms),
+            avg(&|f| f.coop.ci_update_ms),
+            avg(&|f| f.coop.updates() as f64),
+            avg(&|f| f.coop.ci_participants as f64),
+        );
     }
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
@@ -211,7 +229,7 @@ fn main() -> Result<()> {
     let mut scenario =
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("scenarios/euroc_vicon_room1.yaml");
     let mut seeds = 2u64;
-    let mut robots = vec![2, 4, 8];
+    let mut robots = vec![2, 4, 8, 16];
     let mut it = args.iter().filter(|a| *a != "--bench");
     while let Some(a) = it.next() {
         match a.as_str() {
@@ -219,7 +237,7 @@ fn main() -> Result<()> {
             "--robots" => {
                 robots = it
                     .next()
-                    .context("--robots 2,4,8")?
+                    .context("--robots 2,4,8,16")?
                     .split(',')
                     .map(str::parse)
                     .collect::<Result<_, _>>()?

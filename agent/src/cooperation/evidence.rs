@@ -40,65 +40,83 @@ impl Cooperation {
         let mut index: BTreeMap<(u32, LinkSource), Option<usize>> = BTreeMap::new();
         let mut taken: BTreeSet<(u32, u64, u64)> = BTreeSet::new();
         let classes: [(&[u64], bool); 2] = [(vio_ids, false), (slam_ids, true)];
-        for (ids, slam) in classes {
-            for &id in ids {
-                let mut obs = Vec::new();
-                let mut consumed = Consumed::default();
-                let mut constraint = None;
-                for link in &self.chosen_links(id, slam, peers) {
-                    let Some(h) = peers.get(&link.peer) else {
-                        continue;
-                    };
-                    let Some(p) = *index
-                        .entry((link.peer, link.source))
-                        .or_insert_with(|| participant(&mut ev, link, h))
-                    else {
-                        continue;
-                    };
-                    let used = self.peers.get(&link.peer).map(|s| &s.used);
-                    let is_used = |k: &(u64, u64)| used.is_some_and(|u| u.contains(k));
-                    if slam && self.opts.slam_constraint && constraint.is_none() {
-                        let w = &ev.participants[p];
-                        if let Some(j) = w.landmarks.iter().position(|l| l.id == link.peer_track) {
-                            let key = (w.key, link.peer_track | CONSTRAINT_FLAG);
-                            if !is_used(&key) && taken.insert((link.peer, key.0, key.1)) {
-                                constraint = Some(SlamConstraint {
-                                    id,
-                                    participant: p,
-                                    landmark: j,
-                                });
-                                consumed.keys.push((link.peer, key.0, key.1));
-                            }
-                            continue;
+        let mut chosen: Vec<(u64, bool, Vec<Link>)> = classes
+            .iter()
+            .flat_map(|(ids, slam)| {
+                ids.iter()
+                    .map(move |&id| (id, *slam, self.chosen_links(id, *slam, peers)))
+            })
+            .collect();
+        let mut common = 0;
+        for (_, slam, links) in chosen.iter_mut() {
+            if !*slam && !links.is_empty() {
+                common += 1;
+                if common > self.opts.max_common_per_frame {
+                    links.clear();
+                }
+            }
+        }
+        let windows = busiest_windows(&chosen, self.opts.max_ci_participants);
+        for (id, slam, links) in chosen {
+            let mut obs = Vec::new();
+            let mut consumed = Consumed::default();
+            let mut constraint = None;
+            for link in &links {
+                if !windows.contains(&(link.peer, link.source)) {
+                    continue;
+                }
+                let Some(h) = peers.get(&link.peer) else {
+                    continue;
+                };
+                let Some(p) = *index
+                    .entry((link.peer, link.source))
+                    .or_insert_with(|| participant(&mut ev, link, h))
+                else {
+                    continue;
+                };
+                let used = self.peers.get(&link.peer).map(|s| &s.used);
+                let is_used = |k: &(u64, u64)| used.is_some_and(|u| u.contains(k));
+                if slam && self.opts.slam_constraint && constraint.is_none() {
+                    let w = &ev.participants[p];
+                    if let Some(j) = w.landmarks.iter().position(|l| l.id == link.peer_track) {
+                        let key = (w.key, link.peer_track | CONSTRAINT_FLAG);
+                        if !is_used(&key) && taken.insert((link.peer, key.0, key.1)) {
+                            constraint = Some(SlamConstraint {
+                                id,
+                                participant: p,
+                                landmark: j,
+                            });
+                            consumed.keys.push((link.peer, key.0, key.1));
                         }
-                    }
-                    for (pose, t_s, xy) in measurements(h, link, &ev.participants[p]) {
-                        let key = (time_key(t_s), link.peer_track);
-                        if is_used(&key) || !taken.insert((link.peer, key.0, key.1)) {
-                            continue;
-                        }
-                        consumed.keys.push((link.peer, key.0, key.1));
-                        obs.push(PeerObservation {
-                            participant: p,
-                            pose,
-                            xy,
-                        });
+                        continue;
                     }
                 }
-                if let Some(c) = constraint {
-                    ev.constraints.push(c);
-                }
-                if !obs.is_empty() {
-                    let track = CommonTrack { id, peer_obs: obs };
-                    if slam {
-                        ev.slam.push(track);
-                    } else {
-                        ev.vio.push(track);
+                for (pose, t_s, xy) in measurements(h, link, &ev.participants[p]) {
+                    let key = (time_key(t_s), link.peer_track);
+                    if is_used(&key) || !taken.insert((link.peer, key.0, key.1)) {
+                        continue;
                     }
+                    consumed.keys.push((link.peer, key.0, key.1));
+                    obs.push(PeerObservation {
+                        participant: p,
+                        pose,
+                        xy,
+                    });
                 }
-                if !consumed.keys.is_empty() {
-                    ev.consumed.insert((u8::from(slam), id), consumed);
+            }
+            if let Some(c) = constraint {
+                ev.constraints.push(c);
+            }
+            if !obs.is_empty() {
+                let track = CommonTrack { id, peer_obs: obs };
+                if slam {
+                    ev.slam.push(track);
+                } else {
+                    ev.vio.push(track);
                 }
+            }
+            if !consumed.keys.is_empty() {
+                ev.consumed.insert((u8::from(slam), id), consumed);
             }
         }
         ev
@@ -188,6 +206,27 @@ impl Cooperation {
             LinkSource::Keyframe(_) => self.opts.historical,
         }
     }
+}
+
+/// The peer windows behind the most of our tracks' links, at most `cap`
+/// (ties to the lower peer id and the older window): the frame's CI
+/// participants.
+fn busiest_windows(chosen: &[(u64, bool, Vec<Link>)], cap: usize) -> BTreeSet<(u32, LinkSource)> {
+    let mut count: BTreeMap<(u32, LinkSource), usize> = BTreeMap::new();
+    for (_, _, links) in chosen {
+        let distinct: BTreeSet<(u32, LinkSource)> =
+            links.iter().map(|l| (l.peer, l.source)).collect();
+        for w in distinct {
+            *count.entry(w).or_default() += 1;
+        }
+    }
+    let mut ranked: Vec<((u32, LinkSource), usize)> = count.into_iter().collect();
+    ranked.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+    ranked
+        .into_iter()
+        .take(cap.max(1))
+        .map(|(w, _)| w)
+        .collect()
 }
 
 /// Sum of the position variances of a window's camera poses, m².

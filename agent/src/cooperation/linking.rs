@@ -25,13 +25,38 @@ impl Cooperation {
             ratio: self.opts.match_ratio,
         };
         if self.opts.common_vio || self.opts.common_slam {
-            for (&peer, h) in peers {
-                self.match_window(peer, h, frame, &rules, threshold, frame_seq);
+            // A peer that stopped publishing (landed, left, died) leaves its
+            // last frame behind: that is history, not a window seen now.
+            let live: Vec<u32> = peers
+                .iter()
+                .filter(|(_, h)| {
+                    h.recent
+                        .back()
+                        .is_some_and(|f| frame.t_s - f.t_s <= self.opts.max_window_age_s)
+                })
+                .map(|(p, _)| *p)
+                .collect();
+            for peer in self.in_turn(&live, frame_seq) {
+                if let Some(h) = peers.get(&peer) {
+                    self.match_window(peer, h, frame, &rules, threshold, frame_seq);
+                }
             }
         }
         if self.opts.historical {
             self.match_history(frame, peers, threshold, frame_seq);
         }
+    }
+
+    /// The peers of `eligible` (sorted ids) matched in frame `seq`: all of them,
+    /// or `max_peers_matched_per_frame` taken in turn.
+    fn in_turn(&self, eligible: &[u32], seq: u64) -> Vec<u32> {
+        let k = self.opts.max_peers_matched_per_frame.max(1);
+        let n = eligible.len();
+        if n <= k {
+            return eligible.to_vec();
+        }
+        let start = (seq as usize).wrapping_mul(k) % n;
+        (0..k).map(|i| eligible[(start + i) % n]).collect()
     }
 
     /// Matches our frame to the peer's newest frame.
@@ -47,11 +72,6 @@ impl Cooperation {
         let Some(newest) = h.recent.back() else {
             return;
         };
-        // A peer that stopped publishing (landed, left, died) leaves its last
-        // frame behind: that is history, not a window seen at the same time.
-        if frame.t_s - newest.t_s > self.opts.max_window_age_s {
-            return;
-        }
         let latest_kf = h.keyframes.values().next_back();
         let known: HashMap<u64, Descriptor> = latest_kf
             .into_iter()
@@ -158,12 +178,19 @@ impl Cooperation {
             min_inliers: self.opts.min_loop_inliers,
             seed: seq,
         };
+        let ids: Vec<u32> = peers.keys().copied().collect();
+        let queried = self.in_turn(&ids, seq);
         for (&peer, h) in peers {
             let state = self.peers.entry(peer).or_default();
             let db = state
                 .keyframes
                 .get_or_insert_with(|| KeyframeDb::new(Arc::clone(&voc)));
+            // Every peer's new keyframes are indexed (a loop closure may
+            // find them later); only this frame's turn is queried.
             db.index_new(h);
+            if !queried.contains(&peer) {
+                continue;
+            }
             let found = detect(db, h, frame, &bow, &index, &params);
             let candidates = params.candidates.min(db.len());
             let verified = found.len();

@@ -233,3 +233,53 @@ fn a_frame_of_another_place_makes_no_link() {
     assert_eq!(coop.stats.links, 0);
     assert_eq!(coop.stats.loop_closures, 0);
 }
+
+#[test]
+fn many_peers_are_matched_in_turn_and_all_within_a_few_frames() {
+    let mut rng = ChaCha8Rng::seed_from_u64(15);
+    let w = world(40, &mut rng);
+    // Seven peers flew the same window; a frame matches three of them.
+    let peers: Peers = (1..=7u32)
+        .map(|p| (p, peer_history(&w, &mut rng)))
+        .collect();
+    let frame = our_frame(&w, &(5..35).collect::<Vec<_>>(), &mut rng);
+    let mut coop = Cooperation::new(options(), None, 460.0);
+    coop.match_frame(&frame, &peers, 1);
+    assert_eq!(coop.stats.window_matches, 3);
+    for seq in 2..=3 {
+        coop.match_frame(&frame, &peers, seq);
+    }
+    let linked: BTreeSet<u32> = (1..=30u64)
+        .flat_map(|id| coop.links_of(id).iter().map(|l| l.peer).collect::<Vec<_>>())
+        .collect();
+    assert_eq!(
+        linked.len(),
+        7,
+        "peers linked after three frames: {linked:?}"
+    );
+}
+
+#[test]
+fn a_frames_update_takes_at_most_the_busiest_participants() {
+    let mut rng = ChaCha8Rng::seed_from_u64(16);
+    let w = world(40, &mut rng);
+    let peers: Peers = (1..=5u32)
+        .map(|p| (p, peer_history(&w, &mut rng)))
+        .collect();
+    let frame = our_frame(&w, &(5..35).collect::<Vec<_>>(), &mut rng);
+    let opts = CooperationOptions {
+        max_peers_matched_per_frame: 5,
+        max_peers_per_track: 5,
+        max_ci_participants: 2,
+        ..options()
+    };
+    let mut coop = Cooperation::new(opts, None, 460.0);
+    coop.match_frame(&frame, &peers, 1);
+    let ids: Vec<u64> = (1..=30).collect();
+    let ev = coop.evidence(&ids, &[], &peers);
+    assert_eq!(ev.participants.len(), 2);
+    assert!(!ev.vio.is_empty());
+    for t in &ev.vio {
+        assert!(t.peer_obs.iter().all(|o| o.participant < 2));
+    }
+}
