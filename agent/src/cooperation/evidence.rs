@@ -47,8 +47,12 @@ impl Cooperation {
                     .map(move |&id| (id, *slam, self.chosen_links(id, *slam, peers)))
             })
             .collect();
+        // The frame's participants first, then our tracks linked to them, the
+        // VIO ones up to the bound (in the MSCKF's order, longest first).
+        let windows = busiest_windows(&chosen, self.opts.max_ci_participants);
         let mut common = 0;
         for (_, slam, links) in chosen.iter_mut() {
+            links.retain(|l| windows.contains(&(l.peer, l.source)));
             if !*slam && !links.is_empty() {
                 common += 1;
                 if common > self.opts.max_common_per_frame {
@@ -56,15 +60,11 @@ impl Cooperation {
                 }
             }
         }
-        let windows = busiest_windows(&chosen, self.opts.max_ci_participants);
         for (id, slam, links) in chosen {
             let mut obs = Vec::new();
             let mut consumed = Consumed::default();
             let mut constraint = None;
             for link in &links {
-                if !windows.contains(&(link.peer, link.source)) {
-                    continue;
-                }
                 let Some(h) = peers.get(&link.peer) else {
                     continue;
                 };
