@@ -157,16 +157,16 @@ pub struct CooperationOptions {
     /// in turn when there are more: matching, like the update below, must not
     /// cost more as the fleet grows. A link, once made, lasts as long as our
     /// track, so a peer matched every few frames loses only its newest tracks'
-    /// first frames.
+    /// first frames. At least 1.
     pub max_peers_matched_per_frame: usize,
     /// CI participants (peer windows) of one frame's CI-EKF update, the ones
     /// behind the most of our tracks: each adds its window's poses to the
-    /// update and inflates our covariance once more.
+    /// update and inflates our covariance once more. At least 1.
     pub max_ci_participants: usize,
     /// Common VIO features per frame (our tracks in the order the MSCKF takes
     /// them, longest first); the rest are independent VIO features. With the
     /// two caps above, a frame's cooperative work has a bound that does not
-    /// depend on the fleet's size.
+    /// depend on the fleet's size. 0 turns common VIO features off.
     pub max_common_per_frame: usize,
 }
 
