@@ -2,11 +2,14 @@
 //! clones and a peer's window looking at the same landmarks, with exact
 //! measurements (the means are the truth).
 
+use super::chi2::Chi2Table;
 use super::feature_db::{FeatureDb, FeatureMeasurement};
+use super::options::EstimatorOptions;
 use super::peer_window::{project_normalized, PeerPose, PeerWindow};
 use super::projection::predict;
 use super::state::{ClonePose, ImuState, State, Var};
-use super::updater_common::PeerObservation;
+use super::triangulation::TriangulationOptions;
+use super::updater_common::{self, CommonOutcome, CommonTrack, PeerObservation};
 use common::calibration::CameraCalibration;
 use nalgebra::{DMatrix, Matrix3, Vector2, Vector3};
 
@@ -123,6 +126,24 @@ pub fn scene(n: usize, n_landmarks: usize, clone_var: f64, peer_var: f64) -> Sce
 }
 
 impl Scene {
+    /// The common-feature update of `tracks` against the peer's window, with
+    /// `opts`, the 95 % gate and the default triangulation.
+    pub fn common_update(
+        &mut self,
+        tracks: &[CommonTrack],
+        opts: &EstimatorOptions,
+    ) -> CommonOutcome {
+        updater_common::update(
+            &mut self.state,
+            &self.db,
+            tracks,
+            std::slice::from_ref(&self.peer),
+            opts,
+            &Chi2Table::new(0.95, 500),
+            &TriangulationOptions::default(),
+        )
+    }
+
     /// The peer's exact observations of landmark `l` from every pose.
     pub fn peer_obs(&self, l: usize) -> Vec<PeerObservation> {
         self.peer

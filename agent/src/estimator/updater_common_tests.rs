@@ -3,7 +3,6 @@
 
 mod cases {
     use super::super::*;
-    use crate::estimator::chi2::Chi2Table;
     use crate::estimator::test_scene::scene;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
@@ -73,15 +72,7 @@ mod cases {
         let mut opts = EstimatorOptions::default();
         opts.cooperation.projection = projection;
         let trace_before = sc.state.cov().trace();
-        let out = update(
-            &mut sc.state,
-            &sc.db,
-            &tracks,
-            std::slice::from_ref(&sc.peer),
-            &opts,
-            &Chi2Table::new(0.95, 500),
-            &TriangulationOptions::default(),
-        );
+        let out = sc.common_update(&tracks, &opts);
         (out, sc, trace_before)
     }
 
@@ -138,15 +129,7 @@ mod cases {
             })
             .collect();
         let before = sc.state.clone();
-        let out = update(
-            &mut sc.state,
-            &sc.db,
-            &tracks,
-            std::slice::from_ref(&sc.peer),
-            &EstimatorOptions::default(),
-            &Chi2Table::new(0.95, 500),
-            &TriangulationOptions::default(),
-        );
+        let out = sc.common_update(&tracks, &EstimatorOptions::default());
         assert_eq!(out.stats.used, 0, "{:?}", out.stats);
         assert_eq!(out.fallback.len(), 12);
         assert_eq!(sc.state.cov(), before.cov());
@@ -163,7 +146,6 @@ mod cases {
 
 mod consistency {
     use super::super::*;
-    use crate::estimator::chi2::Chi2Table;
     use crate::estimator::peer_window::project_normalized;
     use crate::estimator::projection::predict;
     use crate::estimator::test_scene::scene;
@@ -249,15 +231,7 @@ mod consistency {
                 });
             }
             sc.db = db;
-            let out = update(
-                &mut sc.state,
-                &sc.db,
-                &tracks,
-                std::slice::from_ref(&sc.peer),
-                &EstimatorOptions::default(),
-                &Chi2Table::new(0.95, 500),
-                &TriangulationOptions::default(),
-            );
+            let out = sc.common_update(&tracks, &EstimatorOptions::default());
             if out.stats.used == 0 {
                 continue;
             }
