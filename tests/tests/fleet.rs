@@ -139,20 +139,30 @@ fn deterministic_part(summary: &Value) -> Vec<Value> {
 fn lockstep_runs_are_identical_across_runs_and_transports() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path(), 12.0);
+    // Every envelope carries the fleet id, so the byte counts compare only
+    // between fleet ids of one length (the default, `fleet-<pid>`, changes
+    // length when process ids wrap).
     let a = fleet_run(
         &sc,
         &dir.path().join("a"),
-        &["--transport", "zenoh", "--seed", "5"],
+        &["--transport", "zenoh", "--seed", "5", "--fleet-id", "det-a"],
     );
     let b = fleet_run(
         &sc,
         &dir.path().join("b"),
-        &["--transport", "zenoh", "--seed", "5"],
+        &["--transport", "zenoh", "--seed", "5", "--fleet-id", "det-b"],
     );
     let c = fleet_run(
         &sc,
         &dir.path().join("c"),
-        &["--transport", "inproc", "--seed", "5"],
+        &[
+            "--transport",
+            "inproc",
+            "--seed",
+            "5",
+            "--fleet-id",
+            "det-c",
+        ],
     );
     assert_eq!(deterministic_part(&a), deterministic_part(&b));
     assert_eq!(deterministic_part(&a), deterministic_part(&c));
