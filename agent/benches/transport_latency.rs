@@ -8,7 +8,6 @@ use agent::transport::{
     open, Iceoryx2Settings, InprocHub, Transport, TransportKind, TransportSettings, ZenohSettings,
 };
 use common::messages::MessageKind;
-use std::net::TcpListener;
 use std::time::{Duration, Instant};
 
 const PAYLOAD: usize = 10_000;
@@ -48,7 +47,7 @@ fn main() -> anyhow::Result<()> {
 /// Latencies in microseconds after the warm-up.
 fn measure(kind: TransportKind, messages: usize, rate_hz: f64) -> anyhow::Result<Vec<f64>> {
     let hub = InprocHub::new();
-    let ports = free_ports(2)?;
+    let ports = common::loopback_ports::free_loopback_ports(2)?;
     let fleet_id = format!("latency-{}-{}", std::process::id(), kind as u8);
     let settings = |i: usize| TransportSettings {
         fleet_id: fleet_id.clone(),
@@ -110,14 +109,4 @@ fn wait_for_peer(t: &mut dyn Transport) -> anyhow::Result<()> {
         std::thread::sleep(Duration::from_millis(10));
     }
     Ok(())
-}
-
-fn free_ports(n: usize) -> std::io::Result<Vec<u16>> {
-    let listeners = (0..n)
-        .map(|_| TcpListener::bind("127.0.0.1:0"))
-        .collect::<std::io::Result<Vec<_>>>()?;
-    listeners
-        .iter()
-        .map(|l| Ok(l.local_addr()?.port()))
-        .collect()
 }

@@ -10,7 +10,6 @@ use agent::transport::{
 };
 use common::messages::MessageKind;
 use std::collections::{BTreeMap, BTreeSet};
-use std::net::TcpListener;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
@@ -45,16 +44,13 @@ impl Net {
             std::process::id(),
             NEXT.fetch_add(1, Ordering::Relaxed)
         );
-        let mut ports = Vec::new();
-        if backend == Backend::Zenoh {
-            // Bound together so that they differ, released before the sessions bind.
-            let listeners = (0..endpoints)
-                .map(|_| TcpListener::bind("127.0.0.1:0"))
-                .collect::<Result<Vec<_>, _>>()?;
-            for l in &listeners {
-                ports.push(l.local_addr()?.port());
-            }
-        }
+        // Outside the ephemeral range: a parallel test's outgoing connection
+        // cannot take one of them before our sessions bind.
+        let ports = if backend == Backend::Zenoh {
+            common::loopback_ports::free_loopback_ports(endpoints)?
+        } else {
+            Vec::new()
+        };
         Ok(Self {
             backend,
             fleet_id,

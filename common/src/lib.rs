@@ -9,6 +9,7 @@
 //! * [`descriptor`]: 256-bit binary descriptors.
 //! * [`epipolar`]: fundamental matrix (eight-point, Sampson error, RANSAC).
 //! * [`image`]: 8-bit grayscale images and their PNG encoding.
+//! * [`loopback_ports`]: free loopback ports for Zenoh peers started together.
 //! * [`estimator_options`]: the estimator's options and their defaults.
 //! * [`measurement`]: IMU samples and camera feature frames.
 //! * [`trajectory`]: TUM / EuRoC ground-truth readers and a TUM writer.
@@ -25,6 +26,7 @@ pub mod descriptor;
 pub mod epipolar;
 pub mod estimator_options;
 pub mod image;
+pub mod loopback_ports;
 pub mod measurement;
 pub mod messages;
 pub mod metrics;

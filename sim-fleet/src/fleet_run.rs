@@ -106,16 +106,9 @@ pub fn derive_scenario(base: &Scenario, n: usize, delay_s: f64) -> Scenario {
     sc
 }
 
-/// Free TCP ports on 127.0.0.1 (bound, then released).
+/// Free TCP ports on 127.0.0.1, outside the range outgoing connections take.
 fn free_ports(n: usize) -> Result<Vec<u16>> {
-    let listeners: Vec<std::net::TcpListener> = (0..n)
-        .map(|_| std::net::TcpListener::bind("127.0.0.1:0"))
-        .collect::<std::io::Result<_>>()
-        .context("finding free loopback ports")?;
-    listeners
-        .iter()
-        .map(|l| Ok(l.local_addr()?.port()))
-        .collect()
+    common::loopback_ports::free_loopback_ports(n).context("finding free loopback ports")
 }
 
 /// Every agent's configuration for a run.
