@@ -5,8 +5,8 @@
 //! source ports of outgoing connections from the same ephemeral range, so between
 //! our release and the session's bind another connection (a Zenoh peer dialing out
 //! in a parallel test, say) can take the port, and the bind fails with "address
-//! already in use". Ports below the ephemeral range are never chosen by the kernel;
-//! we take them there, check each by binding it, and never hand the same port out
+//! already in use". Ports outside the ephemeral range (from 20000 up) are never
+//! chosen by the kernel; we take them there, check each by binding it, and never hand the same port out
 //! twice in one process.
 
 use std::collections::BTreeSet;
