@@ -50,21 +50,68 @@ impl RobotTruth {
         self.spline.state(t)
     }
 
-    /// The first time, stepping 0.1 s from the start, at which the robot is at least
-    /// `min_distance_m` from where it started (OpenVINS starts its filter there).
+    /// The first time, stepping 0.1 s from the start, at which the path the robot
+    /// has travelled (the sum of the 0.1 s steps) exceeds `min_distance_m`:
+    /// OpenVINS's simulator starts its filter there. The path, not the distance
+    /// from the start: a robot that wanders near its start (a corridor walk that
+    /// turns around) starts where OpenVINS starts, not tens of seconds later.
     pub fn motion_start_time(&self, min_distance_m: f64) -> f64 {
         let t0 = self.start_time();
-        let Some(p0) = self.spline.pose(t0).map(|p| p.trans) else {
+        let Some(mut prev) = self.spline.pose(t0).map(|p| p.trans) else {
             return t0;
         };
+        let mut travelled = 0.0;
         let mut t = t0;
         while t + 0.1 <= self.end_time() {
-            let p: Vector3<f64> = self.spline.pose(t).map(|p| p.trans).unwrap_or(p0);
-            if (p - p0).norm() >= min_distance_m {
+            let p: Vector3<f64> = self.spline.pose(t).map(|p| p.trans).unwrap_or(prev);
+            travelled += (p - prev).norm();
+            prev = p;
+            if travelled > min_distance_m {
                 return t;
             }
             t += 0.1;
         }
         t0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Matrix3;
+
+    /// Swings back and forth along x, `amplitude_m` either side of the start, with
+    /// a period of 4 s, for 20 s (100 Hz poses).
+    fn swinging(amplitude_m: f64) -> RobotTruth {
+        let poses: Vec<StampedPose> = (0..=2000)
+            .map(|k| {
+                let t = k as f64 * 0.01;
+                let x = amplitude_m * (std::f64::consts::TAU * t / 4.0).sin();
+                StampedPose {
+                    t,
+                    rot: Matrix3::identity(),
+                    pos: Vector3::new(x, 0.0, 1.0),
+                }
+            })
+            .collect();
+        RobotTruth::new(&poses, 0.0).expect("spline")
+    }
+
+    #[test]
+    fn the_start_follows_the_travelled_path_not_the_distance_from_the_start() {
+        // 0.3 m either side: never 1.1 m from the start, but 1.2 m of path per
+        // period, so the path passes 1.1 m a little before 4 s.
+        let truth = swinging(0.3);
+        let t = truth.motion_start_time(1.1);
+        assert!(t > 3.0 && t < 4.0, "start at {t}");
+        // On the 0.1 s grid from the spline's start.
+        let steps = (t - truth.start_time()) / 0.1;
+        assert!((steps - steps.round()).abs() < 1e-9, "{steps}");
+    }
+
+    #[test]
+    fn a_robot_that_never_travels_far_enough_starts_at_the_beginning() {
+        let truth = swinging(0.0);
+        assert_eq!(truth.motion_start_time(1.1), truth.start_time());
     }
 }
