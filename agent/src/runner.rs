@@ -137,6 +137,7 @@ pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> Est
         max_slam_features: spec.max_slam_features,
         max_slam_in_update: spec.max_slam_in_update,
         slam_delay_s: spec.slam_delay_s,
+        min_clones_to_update: spec.min_clones_to_update,
         feature_representation: spec.feature_representation,
         max_msckf_in_update: spec.max_msckf_in_update,
         use_fej: spec.use_fej,

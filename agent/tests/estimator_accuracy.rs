@@ -226,3 +226,26 @@ fn a_run_without_first_estimates_jacobians_completes() {
     assert!(m.frames.unwrap_or(0) > 350, "{m:?}");
     assert!(m.ate_pos_m.is_some_and(f64::is_finite), "{m:?}");
 }
+
+#[test]
+fn no_feature_update_before_five_clones_and_no_track_is_lost_meanwhile() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let sc = scenario(dir.path(), "{}");
+    assert_eq!(sc.estimator.min_clones_to_update, 5);
+    let r = run(&sc, 1, Variant::Indp);
+    let updated = |f: &agent::estimator::FrameOutput| f.msckf.used + f.msckf.rejected_chi2;
+    // Frames 1-4 hold 1-4 clones: nothing is updated, nothing is thrown away.
+    assert!(
+        r.frames[..4].iter().all(|f| updated(f) == 0),
+        "{:?}",
+        &r.frames[..4]
+    );
+    // The fifth frame takes the tracks lost meanwhile (the scene changes at 1.2 m/s).
+    assert!(updated(&r.frames[4]) > 0, "{:?}", r.frames[4].msckf);
+
+    // With the gate at one clone, tracks are used as soon as they are lost.
+    let eager = scenario(dir.path(), "{ min_clones_to_update: 1 }");
+    let r = run(&eager, 1, Variant::Indp);
+    let early: usize = r.frames[..4].iter().map(updated).sum();
+    assert!(early > 0);
+}

@@ -221,6 +221,11 @@ pub struct EstimatorOptions {
     /// calibration converges first, so features are not frozen (FEJ) at positions
     /// biased by a wrong initial calibration (OpenVINS's `dt_slam_delay`).
     pub slam_delay_s: f64,
+    /// No feature update before the window holds this many clones (or is full):
+    /// tracks seen by fewer cameras triangulate poorly and their updates push the
+    /// orientation, whose yaw part nothing corrects later (OpenVINS waits for
+    /// `min(max_clones, 5)`). Measurements of those frames are kept and used later.
+    pub min_clones_to_update: usize,
     /// Global or anchored 3-D SLAM features.
     pub feature_representation: FeatureRepresentation,
     /// Maximum MSCKF features used per frame (the longest tracks first).
@@ -256,6 +261,7 @@ impl Default for EstimatorOptions {
             max_slam_features: 50,
             max_slam_in_update: 25,
             slam_delay_s: 2.0,
+            min_clones_to_update: 5,
             feature_representation: Default::default(),
             max_msckf_in_update: 40,
             use_fej: true,

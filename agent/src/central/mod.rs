@@ -279,6 +279,19 @@ impl CentralEstimator {
         let Some(means) = self.joint.means(rid) else {
             return Err(FrameError::NotInitialized(frame.t));
         };
+        if means.clones.len() < opts.min_clones_to_update.min(opts.max_clones) {
+            // Too few views to triangulate: as in the single-robot estimator.
+            timing.total_ms = ms(t_start);
+            timing.cpu_ms = cpu_ms(cpu_start);
+            return Ok(self.output(
+                rid,
+                timing,
+                Default::default(),
+                Default::default(),
+                coop,
+                false,
+            ));
+        }
         let slam_allowed = means.t - robot.start_t >= opts.slam_delay_s;
         let classes = classify(&robot.features, means, key, &opts, slam_allowed);
 

@@ -312,6 +312,19 @@ impl Estimator {
             c.match_frame(&frame_features(frame, &self.features, key), peers, key);
         }
         coop.matching_ms = ms(t);
+        if state.clones.len() < opts.min_clones_to_update.min(opts.max_clones) {
+            // Too few views to triangulate: keep every track for the first update.
+            timing.total_ms = ms(t_start);
+            timing.cpu_ms = cpu_ms(cpu_start);
+            return Ok(output(
+                state,
+                timing,
+                Default::default(),
+                Default::default(),
+                coop,
+                false,
+            ));
+        }
 
         // 4. Sort the features into classes, with the peers' evidence for ours.
         let slam_allowed = state.t - self.start_t >= opts.slam_delay_s;

@@ -307,6 +307,8 @@ pub struct EstimatorSpec {
     pub max_slam_in_update: usize,
     /// Seconds after the start before SLAM features are initialized.
     pub slam_delay_s: f64,
+    /// Clones the window must hold before the first feature update.
+    pub min_clones_to_update: usize,
     /// SLAM feature parameterization: `global` (p_FinG) or `anchored` (in the
     /// camera of the clone that initialized it).
     pub feature_representation: FeatureRepresentation,
@@ -347,6 +349,7 @@ impl Default for EstimatorSpec {
             max_slam_features: o.max_slam_features,
             max_slam_in_update: o.max_slam_in_update,
             slam_delay_s: o.slam_delay_s,
+            min_clones_to_update: o.min_clones_to_update,
             feature_representation: o.feature_representation,
             max_msckf_in_update: o.max_msckf_in_update,
             use_fej: o.use_fej,
