@@ -332,7 +332,8 @@ pub struct EstimatorSpec {
     pub init_sigma_vel_mps: f64,
     /// Initial standard deviation of each bias axis (rad/s and m/s²).
     pub init_sigma_bias: f64,
-    /// Distance the robot must have moved before the filter starts, metres.
+    /// Path the robot must have travelled (summed over 0.1 s steps) before the
+    /// filter starts, metres.
     pub start_after_motion_m: f64,
     /// What the cooperative variants take from peers and how (weights,
     /// matching); the variant decides which classes are on.
