@@ -254,6 +254,14 @@ pub struct EstimatorOptions {
     pub cooperation: CooperationOptions,
 }
 
+impl EstimatorOptions {
+    /// Whether a window of `clones` clones may be updated
+    /// ([`Self::min_clones_to_update`], or a full window when that is smaller).
+    pub fn window_ready(&self, clones: usize) -> bool {
+        clones >= self.min_clones_to_update.min(self.max_clones)
+    }
+}
+
 impl Default for EstimatorOptions {
     fn default() -> Self {
         Self {
@@ -278,5 +286,20 @@ impl Default for EstimatorOptions {
             max_imu_gap_s: 0.1,
             cooperation: CooperationOptions::default(),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_window_is_ready_at_five_clones_or_when_full() {
+        let o = EstimatorOptions::default();
+        assert!(!o.window_ready(4));
+        assert!(o.window_ready(5));
+        let small = EstimatorOptions { max_clones: 3, ..o };
+        assert!(!small.window_ready(2));
+        assert!(small.window_ready(3));
     }
 }

@@ -250,14 +250,7 @@ impl CentralEstimator {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
                 timing.cpu_ms = cpu_ms(cpu_start);
-                return Ok(self.output(
-                    rid,
-                    timing,
-                    Default::default(),
-                    Default::default(),
-                    coop,
-                    true,
-                ));
+                return Ok(self.output_without_updates(rid, timing, coop, true));
             }
         }
         robot.seq += 1;
@@ -279,18 +272,11 @@ impl CentralEstimator {
         let Some(means) = self.joint.means(rid) else {
             return Err(FrameError::NotInitialized(frame.t));
         };
-        if means.clones.len() < opts.min_clones_to_update.min(opts.max_clones) {
+        if !opts.window_ready(means.clones.len()) {
             // Too few views to triangulate: as in the single-robot estimator.
             timing.total_ms = ms(t_start);
             timing.cpu_ms = cpu_ms(cpu_start);
-            return Ok(self.output(
-                rid,
-                timing,
-                Default::default(),
-                Default::default(),
-                coop,
-                false,
-            ));
+            return Ok(self.output_without_updates(rid, timing, coop, false));
         }
         let slam_allowed = means.t - robot.start_t >= opts.slam_delay_s;
         let classes = classify(&robot.features, means, key, &opts, slam_allowed);
@@ -414,6 +400,24 @@ impl CentralEstimator {
             set.retain(|o| alive(robots, joint, *o));
             alive(robots, joint, *k) && !set.is_empty()
         });
+    }
+
+    /// [`Self::output`] of a frame that updated nothing.
+    fn output_without_updates(
+        &self,
+        r: u16,
+        timing: crate::estimator::vio::FrameTiming,
+        coop: CoopFrameStats,
+        zero_velocity: bool,
+    ) -> FrameOutput {
+        self.output(
+            r,
+            timing,
+            Default::default(),
+            Default::default(),
+            coop,
+            zero_velocity,
+        )
     }
 
     fn output(

@@ -289,11 +289,9 @@ impl Estimator {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
                 timing.cpu_ms = cpu_ms(cpu_start);
-                return Ok(output(
+                return Ok(output_without_updates(
                     state,
                     timing,
-                    Default::default(),
-                    Default::default(),
                     Default::default(),
                     true,
                 ));
@@ -312,18 +310,11 @@ impl Estimator {
             c.match_frame(&frame_features(frame, &self.features, key), peers, key);
         }
         coop.matching_ms = ms(t);
-        if state.clones.len() < opts.min_clones_to_update.min(opts.max_clones) {
+        if !opts.window_ready(state.clones.len()) {
             // Too few views to triangulate: keep every track for the first update.
             timing.total_ms = ms(t_start);
             timing.cpu_ms = cpu_ms(cpu_start);
-            return Ok(output(
-                state,
-                timing,
-                Default::default(),
-                Default::default(),
-                coop,
-                false,
-            ));
+            return Ok(output_without_updates(state, timing, coop, false));
         }
 
         // 4. Sort the features into classes, with the peers' evidence for ours.
@@ -491,6 +482,24 @@ pub(crate) fn initial_blocks(
         blocks.push((Var::Intrinsics, c));
     }
     blocks
+}
+
+/// [`output`] of a frame that updated nothing (a standstill, or a window still
+/// filling).
+fn output_without_updates(
+    state: &State,
+    timing: FrameTiming,
+    coop: CoopFrameStats,
+    zero_velocity: bool,
+) -> FrameOutput {
+    output(
+        state,
+        timing,
+        Default::default(),
+        Default::default(),
+        coop,
+        zero_velocity,
+    )
 }
 
 /// The estimate and its marginal covariances after a frame.
