@@ -279,7 +279,7 @@ impl CentralEstimator {
             return Ok(self.output_without_updates(rid, timing, coop, false));
         }
         let slam_allowed = means.t - robot.start_t >= opts.slam_delay_s;
-        let classes = classify(&robot.features, means, key, &opts, slam_allowed);
+        let mut classes = classify(&robot.features, means, key, &opts, slam_allowed);
 
         // 5. Common VIO features: one joint update with every robot's measurements.
         let t = Instant::now();
@@ -373,6 +373,8 @@ impl CentralEstimator {
 
         // 10. Clean up, and forget the links of ended tracks.
         let t = Instant::now();
+        // Every common track was used (jointly or in the MSCKF), even beyond the cap.
+        classes.mark_used(&common_ids);
         clean_up(&mut robot.features, &mut slot, &classes, opts.max_clones);
         let state_t = slot.means().t;
         while robot.imu.len() > 2 && robot.imu[1].t < state_t {

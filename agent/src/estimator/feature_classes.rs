@@ -21,6 +21,19 @@ pub struct FeatureClasses {
     pub msckf_ids: Vec<u64>,
     /// The part of `msckf_ids` used in this frame's MSCKF update.
     pub msckf_used: Vec<u64>,
+    /// The part of `msckf_ids` beyond the per-update cap: their tracks go on (the
+    /// measurement at the leaving clone leaves with it) and come back as candidates
+    /// in a later frame, as OpenVINS keeps them. Dropping them instead emptied the
+    /// whole window at once after the first full update on slow starts.
+    pub deferred: Vec<u64>,
+}
+
+impl FeatureClasses {
+    /// Takes `ids` out of [`Self::deferred`]: another update (e.g. a cooperative
+    /// one) has used their measurements, which must not be used again.
+    pub fn mark_used(&mut self, ids: &[u64]) {
+        self.deferred.retain(|id| !ids.contains(id));
+    }
 }
 
 /// Adds the frame's observations (undistorted with the current intrinsics) to the
@@ -96,16 +109,14 @@ pub fn classify(
     c.msckf_ids.sort_by_key(|id| {
         std::cmp::Reverse(db.get(*id).map(|f| f.measurements.len()).unwrap_or(0))
     });
-    c.msckf_used = c
-        .msckf_ids
-        .iter()
-        .copied()
-        .take(opts.max_msckf_in_update)
-        .collect();
+    let cap = opts.max_msckf_in_update.min(c.msckf_ids.len());
+    c.msckf_used = c.msckf_ids[..cap].to_vec();
+    c.deferred = c.msckf_ids[cap..].to_vec();
     c
 }
 
-/// After the updates: forgets used tracks, keeps SLAM features' tracks empty
+/// After the updates: forgets used tracks (all but the deferred candidates), keeps
+/// SLAM features' tracks empty
 /// (each measurement is used once), marginalizes lost SLAM features, and slides
 /// the window (re-anchoring anchored features first).
 pub fn clean_up<F: Filter + ?Sized>(
@@ -114,7 +125,8 @@ pub fn clean_up<F: Filter + ?Sized>(
     c: &FeatureClasses,
     max_clones: usize,
 ) {
-    for id in c.msckf_ids.iter().chain(c.slam_candidates.iter()) {
+    let done = c.msckf_ids.iter().filter(|id| !c.deferred.contains(id));
+    for id in done.chain(c.slam_candidates.iter()) {
         if !state.means().features.contains_key(id) {
             db.remove(*id);
         }
@@ -145,6 +157,44 @@ pub fn clean_up<F: Filter + ?Sized>(
         let _ = state.marginalize(Var::Clone(old));
         if let Some(&next) = state.means().clones.keys().next() {
             db.remove_measurements_before(next);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimator::test_scene::scene;
+
+    #[test]
+    fn candidates_beyond_the_cap_keep_their_tracks_for_a_later_frame() {
+        // 12 clones, one more than the window: every track is seen by the leaving
+        // clone, so all 6 are MSCKF candidates; the cap takes the 2 longest.
+        let mut s = scene(12, 6, 1e-4, 1e-4);
+        let opts = EstimatorOptions {
+            max_clones: 11,
+            max_msckf_in_update: 2,
+            ..EstimatorOptions::default()
+        };
+        let key = 12;
+        let mut c = classify(&s.db, &s.state.means, key, &opts, false);
+        assert_eq!(c.msckf_ids.len(), 6);
+        assert_eq!(c.msckf_used.len(), 2);
+        assert_eq!(c.deferred.len(), 4);
+        // A cooperative update took one of the deferred tracks.
+        let taken = c.deferred[0];
+        c.mark_used(&[taken]);
+
+        clean_up(&mut s.db, &mut s.state, &c, opts.max_clones);
+        assert_eq!(s.state.means.clones.len(), 11);
+        for id in c.msckf_used.iter().chain([&taken]) {
+            assert!(!s.db.contains(*id), "used track {id} kept");
+        }
+        for id in &c.deferred {
+            let f = s.db.get(*id).expect("deferred track dropped");
+            // Only the measurement of the marginalized clone went away.
+            assert_eq!(f.measurements.len(), 11, "track {id}");
+            assert!(f.measurements.iter().all(|m| m.clone_key >= 2));
         }
     }
 }

@@ -319,12 +319,13 @@ impl Estimator {
 
         // 4. Sort the features into classes, with the peers' evidence for ours.
         let slam_allowed = state.t - self.start_t >= opts.slam_delay_s;
-        let classes = classify(&self.features, state, key, &opts, slam_allowed);
+        let mut classes = classify(&self.features, state, key, &opts, slam_allowed);
         let FeatureClasses {
             slam_seen,
             slam_candidates,
             msckf_ids,
             msckf_used,
+            ..
         } = &classes;
         let slam_ids: Vec<u64> = state.features.keys().copied().collect();
         let ev = self
@@ -415,6 +416,9 @@ impl Estimator {
         // 9. Clean up: used and lost features, lost SLAM features, oldest clone,
         //    the links of ended tracks; the peers' measurements used are marked.
         let t = Instant::now();
+        // The common tracks went to the cooperative update (or its MSCKF fallback)
+        // even when beyond the cap: none is kept for later.
+        classes.mark_used(&common);
         clean_up(&mut self.features, state, &classes, opts.max_clones);
         if let Some(c) = self.coop.as_mut() {
             cooperative::finish(c, &ev, &used, &mut coop);
