@@ -5,7 +5,9 @@
 use crate::frontend::FrontendOptions;
 use crate::runner::Variant;
 use crate::transport::{Iceoryx2Settings, TransportKind, TransportSettings, ZenohSettings};
-use common::estimator_options::{CommonProjection, EstimatorOptions, FeatureRepresentation};
+use common::estimator_options::{
+    CommonProjection, EstimatorOptions, FeatureRepresentation, TriangulationLimits,
+};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -188,6 +190,18 @@ pub struct EstimatorSection {
     /// SLAM feature representation: `global` or `anchored`.
     #[serde(default)]
     pub feat_rep_slam: Option<FeatureRepresentation>,
+    /// Largest condition number of a triangulation (`fi_max_cond_number`).
+    #[serde(default)]
+    pub fi_max_cond_number: Option<f64>,
+    /// Nearest accepted feature depth, metres (`fi_min_dist`).
+    #[serde(default)]
+    pub fi_min_dist: Option<f64>,
+    /// Farthest accepted feature depth, metres (`fi_max_dist`).
+    #[serde(default)]
+    pub fi_max_dist: Option<f64>,
+    /// Largest feature depth / baseline ratio (`fi_max_baseline`).
+    #[serde(default)]
+    pub fi_max_baseline: Option<f64>,
     /// Override of the variant: common VIO features.
     #[serde(default)]
     pub common_vio: Option<bool>,
@@ -243,6 +257,7 @@ impl EstimatorSection {
         if let Some(v) = self.feat_rep_slam {
             o.feature_representation = v;
         }
+        self.apply_triangulation(&mut o.triangulation);
         let c = &mut o.cooperation;
         for (flag, value) in [
             (&mut c.common_vio, self.common_vio),
@@ -256,6 +271,22 @@ impl EstimatorSection {
         }
         if let Some(p) = self.projection {
             c.projection = p;
+        }
+    }
+}
+
+impl EstimatorSection {
+    /// Applies the `fi_*` overrides that are set to `l`.
+    pub fn apply_triangulation(&self, l: &mut TriangulationLimits) {
+        for (field, value) in [
+            (&mut l.max_condition_number, self.fi_max_cond_number),
+            (&mut l.min_depth_m, self.fi_min_dist),
+            (&mut l.max_depth_m, self.fi_max_dist),
+            (&mut l.max_baseline_ratio, self.fi_max_baseline),
+        ] {
+            if let Some(v) = value {
+                *field = v;
+            }
         }
     }
 }
@@ -278,6 +309,10 @@ impl Default for EstimatorSection {
             calib_cam_timeoffset: None,
             try_zupt: None,
             feat_rep_slam: None,
+            fi_max_cond_number: None,
+            fi_min_dist: None,
+            fi_max_dist: None,
+            fi_max_baseline: None,
             common_vio: None,
             common_slam: None,
             slam_constraint: None,
@@ -462,6 +497,11 @@ impl AgentConfig {
             .variant
             .parse::<Variant>()
             .map_err(|e| e.to_string())?;
+        let mut limits = TriangulationLimits::default();
+        self.estimator.apply_triangulation(&mut limits);
+        limits
+            .validate()
+            .map_err(|e| format!("estimator: {e} (the fi_* keys)"))?;
         if self.input.source == InputSource::Mcap && self.input.mcap.is_none() {
             return Err("input.source is mcap but input.mcap is not set".into());
         }
@@ -536,6 +576,27 @@ mod tests {
         assert_eq!(c.publish.snapshot_every_frames, 6);
         assert_eq!(c.input.scenario, dir.path().join("s.yaml"));
         assert_eq!(c.robot_index(), 1);
+    }
+
+    #[test]
+    fn triangulation_overrides_apply_and_bad_ones_are_reported() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.yaml");
+        let with = |extra: &str| format!("{MINIMAL}estimator:\n  variant: indp\n{extra}");
+        std::fs::write(
+            &p,
+            with("  fi_max_cond_number: 5.0e4\n  fi_max_dist: 30.0\n"),
+        )
+        .unwrap();
+        let c = AgentConfig::load(&p).unwrap();
+        let mut o = EstimatorOptions::default();
+        c.estimator.apply(&mut o);
+        assert_eq!(o.triangulation.max_condition_number, 5.0e4);
+        assert_eq!(o.triangulation.max_depth_m, 30.0);
+        assert_eq!(o.triangulation.min_depth_m, 0.1);
+        std::fs::write(&p, with("  fi_min_dist: -1.0\n")).unwrap();
+        let e = AgentConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("min_depth_m") && e.contains("fi_"), "{e}");
     }
 
     #[test]

@@ -146,6 +146,7 @@ pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> Est
         calib_time_offset: spec.calib_time_offset,
         zero_velocity_update: spec.zero_velocity_update,
         pixel_sigma_px: cam.pixel_noise_px,
+        triangulation: spec.triangulation,
         ..EstimatorOptions::default()
     };
     o.imu.gyro_noise_density = imu.gyro_noise_density;

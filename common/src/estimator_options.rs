@@ -101,6 +101,68 @@ pub enum CiWeighting {
     MinDeterminant,
 }
 
+/// Which triangulated features the estimator accepts (OpenVINS's `fi_*`
+/// settings, with its defaults).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TriangulationLimits {
+    /// Largest ratio of the largest to the smallest singular value of the 3x3
+    /// linear triangulation system (`fi_max_cond_number`): rays closer than about
+    /// 1 deg give a depth too uncertain to linearize at.
+    pub max_condition_number: f64,
+    /// Nearest accepted depth in the anchor camera, metres (`fi_min_dist`).
+    pub min_depth_m: f64,
+    /// Farthest accepted depth in the anchor camera, metres (`fi_max_dist`).
+    pub max_depth_m: f64,
+    /// Largest ratio of the anchor depth to the largest distance between two of
+    /// the observing cameras (`fi_max_baseline`).
+    pub max_baseline_ratio: f64,
+}
+
+impl Default for TriangulationLimits {
+    fn default() -> Self {
+        Self {
+            max_condition_number: 1e4,
+            min_depth_m: 0.1,
+            max_depth_m: 60.0,
+            max_baseline_ratio: 40.0,
+        }
+    }
+}
+
+impl TriangulationLimits {
+    /// Range checks: finite, positive, a condition number above 1 and
+    /// `min_depth_m < max_depth_m`.
+    pub fn validate(&self) -> Result<(), String> {
+        let named = [
+            ("max_condition_number", self.max_condition_number),
+            ("min_depth_m", self.min_depth_m),
+            ("max_depth_m", self.max_depth_m),
+            ("max_baseline_ratio", self.max_baseline_ratio),
+        ];
+        for (name, v) in named {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!(
+                    "triangulation.{name} must be finite and positive, not {v}"
+                ));
+            }
+        }
+        if self.max_condition_number <= 1.0 {
+            return Err(format!(
+                "triangulation.max_condition_number must exceed 1 (it is a ratio of singular values), not {}",
+                self.max_condition_number
+            ));
+        }
+        if self.min_depth_m >= self.max_depth_m {
+            return Err(format!(
+                "triangulation.min_depth_m ({}) must be below max_depth_m ({})",
+                self.min_depth_m, self.max_depth_m
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// What a robot takes from its peers (thesis Section 5.3) and how.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -250,6 +312,8 @@ pub struct EstimatorOptions {
     pub calib_prior: CalibrationPrior,
     /// Largest IMU gap accepted, s.
     pub max_imu_gap_s: f64,
+    /// Which triangulated features are accepted.
+    pub triangulation: TriangulationLimits,
     /// What is taken from peers.
     pub cooperation: CooperationOptions,
 }
@@ -284,6 +348,7 @@ impl Default for EstimatorOptions {
             imu: ImuNoise::default(),
             calib_prior: CalibrationPrior::default(),
             max_imu_gap_s: 0.1,
+            triangulation: TriangulationLimits::default(),
             cooperation: CooperationOptions::default(),
         }
     }
@@ -292,6 +357,21 @@ impl Default for EstimatorOptions {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn triangulation_limits_reject_nonsense_with_the_key() {
+        assert!(TriangulationLimits::default().validate().is_ok());
+        let bad = |f: fn(&mut TriangulationLimits)| {
+            let mut l = TriangulationLimits::default();
+            f(&mut l);
+            l.validate().expect_err("accepted")
+        };
+        assert!(bad(|l| l.max_condition_number = f64::NAN).contains("max_condition_number"));
+        assert!(bad(|l| l.max_condition_number = 0.5).contains("exceed 1"));
+        assert!(bad(|l| l.min_depth_m = -1.0).contains("min_depth_m"));
+        assert!(bad(|l| l.max_depth_m = 0.05).contains("below max_depth_m"));
+        assert!(bad(|l| l.max_baseline_ratio = f64::INFINITY).contains("max_baseline_ratio"));
+    }
 
     #[test]
     fn the_window_is_ready_at_five_clones_or_when_full() {

@@ -71,6 +71,7 @@ fn ms(t: Instant) -> f64 {
 impl CentralEstimator {
     /// A fleet of robots with options `opts` and each robot's initial calibration.
     pub fn new(opts: EstimatorOptions, calibs: Vec<CameraCalibration>) -> Self {
+        let tri = TriangulationOptions::with_limits(&opts.triangulation);
         Self {
             robots: calibs
                 .into_iter()
@@ -89,7 +90,7 @@ impl CentralEstimator {
             joint: JointState::default(),
             links: BTreeMap::new(),
             chi2: Chi2Table::new(0.95, 1000),
-            tri: TriangulationOptions::default(),
+            tri,
         }
     }
 

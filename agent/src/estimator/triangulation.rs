@@ -20,6 +20,7 @@
 //!
 //! Everything runs on fixed-size nalgebra types: nothing is allocated.
 
+use common::estimator_options::TriangulationLimits;
 use nalgebra::{Matrix2x3, Matrix3, SymmetricEigen, Vector2, Vector3};
 use std::cmp::Ordering;
 
@@ -95,20 +96,29 @@ pub struct TriangulationOptions {
 }
 
 impl Default for TriangulationOptions {
-    /// OpenVINS's thresholds: 2 observations, condition number 10⁴, depth in
-    /// `[0.1, 60]` m, depth/baseline at most 40, 10 iterations, mean residual 0.02.
+    /// OpenVINS's thresholds ([`TriangulationLimits::default`]: condition number
+    /// 10⁴, depth in `[0.1, 60]` m, depth/baseline at most 40), 2 observations,
+    /// 10 iterations, mean residual 0.02.
     fn default() -> Self {
+        Self::with_limits(&TriangulationLimits::default())
+    }
+}
+
+impl TriangulationOptions {
+    /// The configurable limits, with the fixed refinement settings.
+    ///
+    /// On the condition number: 10⁵ let in rays 0.6-2 deg apart (5-7 m deep points
+    /// seen over 0.2 m on V1_01's slow start), whose depth is too uncertain to
+    /// linearize at; the first updates left roll 4-8 sigma off (V1_01, 40 seeds:
+    /// 0.68 deg with 10⁵, 0.40 with 10⁴ once the candidates beyond the cap are
+    /// kept; README).
+    pub fn with_limits(l: &TriangulationLimits) -> Self {
         Self {
             min_observations: 2,
-            // OpenVINS's value on the same matrix. 10⁵ let in rays 0.6-2 deg apart
-            // (5-7 m deep points seen over 0.2 m on V1_01's slow start), whose
-            // depth is too uncertain to linearize at: with them the first updates
-            // left roll 4-8 sigma off (V1_01, 40 seeds: 0.68 deg with 10⁵, 0.40
-            // with 10⁴ once the candidates beyond the cap are kept; README).
-            max_condition_number: 1e4,
-            min_depth_m: 0.1,
-            max_depth_m: 60.0,
-            max_baseline_ratio: 40.0,
+            max_condition_number: l.max_condition_number,
+            min_depth_m: l.min_depth_m,
+            max_depth_m: l.max_depth_m,
+            max_baseline_ratio: l.max_baseline_ratio,
             gn_iterations: 10,
             max_reprojection_error_normalized: 0.02,
         }

@@ -91,6 +91,7 @@ fn ms(since: Instant) -> f64 {
 impl Estimator {
     /// A filter with options and the initial calibration guess.
     pub fn new(opts: EstimatorOptions, calib: CameraCalibration) -> Self {
+        let tri = TriangulationOptions::with_limits(&opts.triangulation);
         Self {
             opts,
             calib,
@@ -102,7 +103,7 @@ impl Estimator {
             last_frame_t: None,
             start_t: 0.0,
             chi2: Chi2Table::new(0.95, 1000),
-            tri: TriangulationOptions::default(),
+            tri,
             coop: None,
             vocabulary: None,
         }

@@ -8,7 +8,9 @@
 use crate::render::RenderSpec;
 use common::calibration::CameraCalibration;
 use common::camera::{CameraModel, Distortion};
-use common::estimator_options::{CooperationOptions, EstimatorOptions, FeatureRepresentation};
+use common::estimator_options::{
+    CooperationOptions, EstimatorOptions, FeatureRepresentation, TriangulationLimits,
+};
 use nalgebra::{Matrix3, Vector3, Vector4};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -335,6 +337,9 @@ pub struct EstimatorSpec {
     /// Path the robot must have travelled (summed over 0.1 s steps) before the
     /// filter starts, metres.
     pub start_after_motion_m: f64,
+    /// Which triangulated features are accepted (condition number, depth range in
+    /// metres, depth/baseline ratio).
+    pub triangulation: TriangulationLimits,
     /// What the cooperative variants take from peers and how (weights,
     /// matching); the variant decides which classes are on.
     pub cooperation: CooperationOptions,
@@ -363,6 +368,7 @@ impl Default for EstimatorSpec {
             init_sigma_vel_mps: 0.01,
             init_sigma_bias: 0.02,
             start_after_motion_m: 1.1,
+            triangulation: o.triangulation,
             cooperation: o.cooperation,
         }
     }
@@ -478,6 +484,10 @@ impl Scenario {
             .validate()
             .map_err(|e| invalid(format!("sensors.camera: {e}")))?;
         self.render.validate().map_err(|e| invalid(e.to_string()))?;
+        self.estimator
+            .triangulation
+            .validate()
+            .map_err(|e| invalid(format!("estimator.{e}")))?;
         Ok(())
     }
 }
