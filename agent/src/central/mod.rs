@@ -315,14 +315,18 @@ impl CentralEstimator {
         let Some(mut slot) = self.joint.slot(rid) else {
             return Err(FrameError::NotInitialized(frame.t));
         };
-        let msckf = updater_msckf::update(
+        let mut untriangulated = Vec::new();
+        let msckf = updater_msckf::update_noting_failures(
             &mut slot,
             &robot.features,
             &independent,
             &opts,
             &self.chi2,
             &self.tri,
+            &mut untriangulated,
         );
+        // Common tracks are used once, jointly or here, whatever the outcome.
+        untriangulated.retain(|id| !common_ids.contains(id));
         timing.msckf_ms = ms(t);
         let t = Instant::now();
         let mut slam = updater_slam::SlamStats::default();
@@ -376,6 +380,7 @@ impl CentralEstimator {
         let t = Instant::now();
         // Every common track was used (jointly or in the MSCKF), even beyond the cap.
         classes.mark_used(&common_ids);
+        classes.retry_untriangulated(&robot.features, key, &untriangulated);
         clean_up(&mut robot.features, &mut slot, &classes, opts.max_clones);
         let state_t = slot.means().t;
         while robot.imu.len() > 2 && robot.imu[1].t < state_t {

@@ -33,6 +33,20 @@ pub fn update<F: Filter + ?Sized>(
     chi2: &Chi2Table,
     tri: &TriangulationOptions,
 ) -> MsckfStats {
+    update_noting_failures(state, db, ids, opts, chi2, tri, &mut Vec::new())
+}
+
+/// [`update`], also listing in `untriangulated` the features that could not be
+/// triangulated (too little parallax yet): the caller may keep their tracks.
+pub fn update_noting_failures<F: Filter + ?Sized>(
+    state: &mut F,
+    db: &FeatureDb,
+    ids: &[u64],
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+    tri: &TriangulationOptions,
+    untriangulated: &mut Vec<u64>,
+) -> MsckfStats {
     let mut stats = MsckfStats::default();
     let cols = Columns::window(state);
     let calib_vars: Vec<Var> = cols
@@ -58,6 +72,7 @@ pub fn update<F: Filter + ?Sized>(
         );
         let fcols = Columns::of(vars);
         let Some(mut sys) = build(state.means(), feature, &fcols, opts.use_fej, tri) else {
+            untriangulated.push(*id);
             stats.failed += 1;
             continue;
         };

@@ -343,14 +343,17 @@ impl Estimator {
             .copied()
             .filter(|id| !common.contains(id))
             .collect();
-        let mut msckf = updater_msckf::update(
+        let mut untriangulated = Vec::new();
+        let mut msckf = updater_msckf::update_noting_failures(
             state,
             &self.features,
             &independent,
             &opts,
             &self.chi2,
             &self.tri,
+            &mut untriangulated,
         );
+
         timing.msckf_ms = ms(t);
 
         // 6. SLAM update with the features seen now.
@@ -420,6 +423,7 @@ impl Estimator {
         // The common tracks went to the cooperative update (or its MSCKF fallback)
         // even when beyond the cap: none is kept for later.
         classes.mark_used(&common);
+        classes.retry_untriangulated(&self.features, key, &untriangulated);
         clean_up(&mut self.features, state, &classes, opts.max_clones);
         if let Some(c) = self.coop.as_mut() {
             cooperative::finish(c, &ev, &used, &mut coop);
