@@ -36,8 +36,9 @@ pub fn update<F: Filter + ?Sized>(
     update_noting_failures(state, db, ids, opts, chi2, tri, &mut Vec::new())
 }
 
-/// [`update`], also listing in `untriangulated` the features that could not be
-/// triangulated (too little parallax yet): the caller may keep their tracks.
+/// [`update`], also listing in `untriangulated` the features whose system could not
+/// be built (nearly always too little parallax to triangulate yet, at times a point
+/// that does not project): the caller may keep their tracks for another try.
 pub fn update_noting_failures<F: Filter + ?Sized>(
     state: &mut F,
     db: &FeatureDb,
