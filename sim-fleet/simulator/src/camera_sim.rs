@@ -103,9 +103,7 @@ impl CameraGenerator {
         let t_c_to_g = camera_pose(truth, &self.calib, t_imu)?;
         self.k += 1;
         let mut visible = world.visible(&t_c_to_g, &self.calib, &self.bounds);
-        // Lowest ids first (the oldest landmarks), as OpenVINS keeps its map order:
-        // long tracks survive the cap.
-        visible.truncate(self.spec.max_features);
+        world.select(&mut visible, self.spec.max_features);
 
         let mut tracks = HashMap::with_capacity(visible.len());
         let mut features = Vec::with_capacity(visible.len());

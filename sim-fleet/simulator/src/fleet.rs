@@ -103,6 +103,7 @@ impl Fleet {
             scenario.world.aliased_place_radius_m,
             &mut rng,
         );
+        world.set_selection_order(scenario.world.selection_order);
         let renderer = if scenario.render.enabled {
             let mut rng = stream_rng(seed, Stream::Texture);
             let r = Renderer::new(

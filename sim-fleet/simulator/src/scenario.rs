@@ -279,6 +279,23 @@ pub struct WorldSpec {
     pub aliased_places: usize,
     /// Radius of an aliased place, metres.
     pub aliased_place_radius_m: f64,
+    /// Which of the visible landmarks an image keeps when more than
+    /// `camera.max_features` project into it.
+    pub selection_order: SelectionOrder,
+}
+
+/// The order in which an image keeps its visible landmarks, up to
+/// `camera.max_features`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SelectionOrder {
+    /// The oldest landmarks (lowest ids) first: the same landmarks stay selected
+    /// for as long as they are in view.
+    #[default]
+    LowestId,
+    /// The iteration order of OpenVINS's map (a GCC `std::unordered_map` keyed
+    /// by id, filled in id order): see [`crate::world::World::set_selection_order`].
+    OpenvinsMap,
 }
 
 impl Default for WorldSpec {
@@ -292,6 +309,7 @@ impl Default for WorldSpec {
             outlier_descriptor_prob: 0.0,
             aliased_places: 0,
             aliased_place_radius_m: 1.5,
+            selection_order: SelectionOrder::LowestId,
         }
     }
 }

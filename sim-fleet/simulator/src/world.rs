@@ -6,7 +6,7 @@
 //! uniformly random depth. Robots flying through the same room therefore see the
 //! same landmarks. Each landmark carries a random 256-bit descriptor.
 
-use crate::scenario::WorldSpec;
+use crate::scenario::{SelectionOrder, WorldSpec};
 use crate::truth::RobotTruth;
 use common::calibration::CameraCalibration;
 use common::descriptor::Descriptor;
@@ -40,6 +40,8 @@ pub struct Visible {
 pub struct World {
     /// The landmarks in id order.
     pub landmarks: Vec<Landmark>,
+    /// Selection rank of each landmark (lower is kept first); empty: id order.
+    rank: Vec<u32>,
 }
 
 /// Fast rejection bounds of a camera: the normalized coordinates of the image lie
@@ -91,6 +93,23 @@ pub fn camera_pose(truth: &RobotTruth, calib: &CameraCalibration, t: f64) -> Opt
 }
 
 impl World {
+    /// Sets the order in which an image keeps its visible landmarks (call once the
+    /// world is complete).
+    pub fn set_selection_order(&mut self, order: SelectionOrder) {
+        self.rank = match order {
+            SelectionOrder::LowestId => Vec::new(),
+            SelectionOrder::OpenvinsMap => gcc_unordered_map_rank(self.landmarks.len()),
+        };
+    }
+
+    /// Keeps the first `max` of `visible` (in id order) in the selection order.
+    pub fn select(&self, visible: &mut Vec<Visible>, max: usize) {
+        if !self.rank.is_empty() {
+            visible.sort_by_key(|v| self.rank.get(v.id as usize).copied().unwrap_or(u32::MAX));
+        }
+        visible.truncate(max);
+    }
+
     /// Landmarks visible from camera pose `t_c_to_g`, with their true raw pixels, in
     /// increasing id order.
     pub fn visible(
@@ -193,5 +212,131 @@ impl World {
             }
             t += spec.check_interval_s;
         }
+    }
+}
+
+/// libstdc++'s bucket-count primes (`__prime_list`) from 13 up to about 10⁵: the
+/// sizes its rehash policy can pick.
+const GCC_BUCKET_PRIMES: [usize; 114] = [
+    13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71, 73, 79, 83, 89, 97, 103, 109, 113,
+    127, 137, 139, 149, 157, 167, 179, 193, 199, 211, 227, 241, 257, 277, 293, 313, 337, 359, 383,
+    409, 439, 467, 503, 541, 577, 619, 661, 709, 761, 823, 887, 953, 1031, 1109, 1193, 1289, 1381,
+    1493, 1613, 1741, 1879, 2029, 2179, 2357, 2549, 2753, 2971, 3209, 3469, 3739, 4027, 4349, 4703,
+    5087, 5503, 5953, 6427, 6949, 7517, 8123, 8783, 9497, 10273, 11113, 12011, 12983, 14033, 15173,
+    16411, 17749, 19183, 20753, 22447, 24281, 26267, 28411, 30727, 33223, 35933, 38873, 42043,
+    45481, 49201, 53201, 57557, 62233, 67307, 72817, 78779, 85229, 92203,
+];
+
+/// Element counts at which a GCC `std::unordered_map`, filled one key at a time,
+/// rehashes (before inserting that element): it starts with 13 buckets (room for
+/// 11 is asked for), and when the count would exceed the bucket count it moves
+/// to the first listed prime at or above twice the bucket count.
+fn gcc_rehash_points(n: usize) -> Vec<usize> {
+    let mut points = Vec::new();
+    let mut buckets = 13;
+    while buckets < n {
+        points.push(buckets);
+        let want = buckets * 2;
+        match GCC_BUCKET_PRIMES.iter().find(|&&p| p >= want) {
+            Some(&p) => buckets = p,
+            // Beyond the table: keep doubling (only the shape of the order matters).
+            None => buckets = want + 1,
+        }
+    }
+    points
+}
+
+/// The position of each key `0..n` in the iteration order of a GCC
+/// `std::unordered_map<size_t, _>` filled with the keys in increasing order, as
+/// OpenVINS's simulator fills its map. With the identity hash and at least as many
+/// buckets as keys, every key lands in an empty bucket and is linked at the front
+/// of the node list; a rehash relinks the nodes in list order, each at the front,
+/// which reverses the list. So the final order is built segment by segment:
+/// `L ← (keys since the last rehash, newest first) + reverse(L)`.
+fn gcc_unordered_map_rank(n: usize) -> Vec<u32> {
+    let mut list: std::collections::VecDeque<usize> = std::collections::VecDeque::with_capacity(n);
+    // `reversed`: the logical list is `list` read back to front.
+    let mut reversed = false;
+    let mut rehash = gcc_rehash_points(n).into_iter().peekable();
+    for key in 0..n {
+        if rehash.next_if_eq(&key).is_some() {
+            reversed = !reversed;
+        }
+        if reversed {
+            list.push_back(key);
+        } else {
+            list.push_front(key);
+        }
+    }
+    let mut rank = vec![0_u32; n];
+    let order: Box<dyn Iterator<Item = &usize>> = if reversed {
+        Box::new(list.iter().rev())
+    } else {
+        Box::new(list.iter())
+    };
+    for (pos, &key) in order.enumerate() {
+        rank[key] = pos as u32;
+    }
+    rank
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gcc_map_order_reverses_the_list_at_each_rehash() {
+        // 13 buckets until the 14th key, 29 until the 30th: keys 0-12 newest
+        // first, reversed when 13 arrives, 13-28 in front of them, reversed again
+        // when 29 arrives, then 29-39 in front.
+        assert_eq!(gcc_rehash_points(40), vec![13, 29]);
+        let rank = gcc_unordered_map_rank(40);
+        let mut order = vec![0; 40];
+        for (key, &r) in rank.iter().enumerate() {
+            order[r as usize] = key;
+        }
+        let expected: Vec<usize> = (29..40).rev().chain((0..13).rev()).chain(13..29).collect();
+        assert_eq!(order, expected);
+    }
+
+    #[test]
+    fn selection_keeps_the_first_visible_landmarks_in_the_chosen_order() {
+        let mut world = World::default();
+        for id in 0..40 {
+            world.landmarks.push(Landmark {
+                id,
+                p_in_g: Vector3::zeros(),
+                descriptor: Descriptor::default(),
+            });
+        }
+        let visible = |ids: &[u64]| -> Vec<Visible> {
+            ids.iter()
+                .map(|&id| Visible {
+                    id,
+                    uv: Vector2::zeros(),
+                })
+                .collect()
+        };
+        let ids = |v: &[Visible]| v.iter().map(|v| v.id).collect::<Vec<_>>();
+        let mut v = visible(&[2, 5, 14, 30, 35]);
+        world.select(&mut v, 3);
+        assert_eq!(ids(&v), vec![2, 5, 14]);
+        world.set_selection_order(SelectionOrder::OpenvinsMap);
+        let mut v = visible(&[2, 5, 14, 30, 35]);
+        world.select(&mut v, 3);
+        // 29-39 newest first, then 12-0, then 13-28.
+        assert_eq!(ids(&v), vec![35, 30, 5]);
+    }
+
+    #[test]
+    fn gcc_map_grows_through_libstdcxx_primes() {
+        assert_eq!(
+            gcc_rehash_points(6000),
+            vec![13, 29, 59, 127, 257, 541, 1109, 2357, 5087]
+        );
+        let rank = gcc_unordered_map_rank(6000);
+        let mut seen = rank.clone();
+        seen.sort_unstable();
+        assert!(seen.iter().enumerate().all(|(i, &r)| r as usize == i));
     }
 }
