@@ -269,12 +269,10 @@ fn gcc_unordered_map_rank(n: usize) -> Vec<u32> {
         }
     }
     let mut rank = vec![0_u32; n];
-    let order: Box<dyn Iterator<Item = &usize>> = if reversed {
-        Box::new(list.iter().rev())
-    } else {
-        Box::new(list.iter())
-    };
-    for (pos, &key) in order.enumerate() {
+    if reversed {
+        list.make_contiguous().reverse();
+    }
+    for (pos, &key) in list.iter().enumerate() {
         rank[key] = pos as u32;
     }
     rank
