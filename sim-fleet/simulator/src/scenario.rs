@@ -327,7 +327,8 @@ pub struct EstimatorSpec {
     pub max_slam_in_update: usize,
     /// Seconds after the start before SLAM features are initialized.
     pub slam_delay_s: f64,
-    /// Clones the window must hold before the first feature update.
+    /// Clones, the frame's own included, before the first feature update (at most
+    /// `max_clones + 1`: the oldest clone of a full window leaves; the default).
     pub min_clones_to_update: usize,
     /// SLAM feature parameterization: `global` (p_FinG) or `anchored` (in the
     /// camera of the clone that initialized it).
