@@ -292,14 +292,15 @@ pub struct EstimatorOptions {
     /// 5)`: an early update moves the state by what it learns (the gyro bias by
     /// 0.7 deg/s in one V1_02 run), and every clone taken after it keeps that
     /// estimate as its first estimate (FEJ) for a whole window; gyro bias and
-    /// velocity NEES sat at 5-7 (ideal 3) from 1 to 3 s (V1_02, 60 seeds: 0.365 ->
-    /// 0.292 deg with a full window). Why one frame more than a full window: at
-    /// `max_clones` only the tracks lost meanwhile are candidates, short ones that
-    /// barely triangulate on a slow start; on V1_01 it was often one feature, whose
-    /// update turned pitch by 1.1 deg and left velocity 10 cm/s off (seed 54). When
-    /// the oldest clone leaves, the tracks spanning the window join them (30-40
-    /// features; V1_01, seeds 21-60: 0.324 -> 0.299 deg with SLAM features, largest
-    /// MSCKF-only run 1.93 -> 1.22 deg; README).
+    /// velocity NEES sat at 5-7 (ideal 3) from 1 to 3 s (V1_02, 60 seeds, measured
+    /// at stop 17: 0.365 -> 0.292 deg with a full window). Why one frame more than
+    /// a full window: at `max_clones` only the tracks lost meanwhile are
+    /// candidates, short ones that barely triangulate on a slow start; on V1_01 it
+    /// was often one to three features, and in seed 54 one feature turned pitch by
+    /// 1.1 deg and left velocity 10 cm/s off. When the oldest clone leaves, the
+    /// tracks spanning the window join them (30-40 features in most seeds; V1_01,
+    /// seeds 21-60: 0.324 -> 0.299 deg with SLAM features, largest MSCKF-only run
+    /// 1.93 -> 1.22 deg; README).
     pub min_clones_to_update: usize,
     /// Global or anchored 3-D SLAM features.
     pub feature_representation: FeatureRepresentation,
