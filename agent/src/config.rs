@@ -229,6 +229,9 @@ impl EstimatorSection {
     pub fn apply(&self, o: &mut EstimatorOptions) {
         if let Some(v) = self.max_clones {
             o.max_clones = v;
+            // The first update waits for the oldest clone of the full window
+            // to leave, whatever the window's size.
+            o.min_clones_to_update = v.saturating_add(1);
         }
         if let Some(v) = self.max_slam {
             o.max_slam_features = v;
@@ -594,6 +597,10 @@ mod tests {
         assert_eq!(o.triangulation.max_condition_number, 5.0e4);
         assert_eq!(o.triangulation.max_depth_m, 30.0);
         assert_eq!(o.triangulation.min_depth_m, 0.1);
+        std::fs::write(&p, with("  max_clones: 15\n")).unwrap();
+        let mut o = EstimatorOptions::default();
+        AgentConfig::load(&p).unwrap().estimator.apply(&mut o);
+        assert!(!o.window_ready(15) && o.window_ready(16), "{o:?}");
         std::fs::write(&p, with("  fi_min_dist: -1.0\n")).unwrap();
         let e = AgentConfig::load(&p).unwrap_err().to_string();
         assert!(e.contains("min_depth_m") && e.contains("fi_"), "{e}");

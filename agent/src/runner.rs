@@ -137,7 +137,7 @@ pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> Est
         max_slam_features: spec.max_slam_features,
         max_slam_in_update: spec.max_slam_in_update,
         slam_delay_s: spec.slam_delay_s,
-        min_clones_to_update: spec.min_clones_to_update,
+        min_clones_to_update: spec.first_update_clones(),
         feature_representation: spec.feature_representation,
         max_msckf_in_update: spec.max_msckf_in_update,
         use_fej: spec.use_fej,
@@ -145,7 +145,7 @@ pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> Est
         calib_intrinsics: spec.calib_intrinsics,
         calib_time_offset: spec.calib_time_offset,
         zero_velocity_update: spec.zero_velocity_update,
-        pixel_sigma_px: cam.pixel_noise_px,
+        pixel_sigma_px: spec.filter_pixel_sigma_px(cam.pixel_noise_px),
         triangulation: spec.triangulation,
         ..EstimatorOptions::default()
     };

@@ -232,7 +232,7 @@ fn no_feature_update_before_the_oldest_clone_leaves_and_no_track_is_lost_meanwhi
     let dir = tempfile::tempdir().expect("tempdir");
     let sc = scenario(dir.path(), "{}");
     assert_eq!(
-        sc.estimator.min_clones_to_update,
+        sc.estimator.first_update_clones(),
         sc.estimator.max_clones + 1
     );
     let r = run(&sc, 1, Variant::Indp);
@@ -253,4 +253,10 @@ fn no_feature_update_before_the_oldest_clone_leaves_and_no_track_is_lost_meanwhi
     let r = run(&eager, 1, Variant::Indp);
     let early: usize = r.frames[..4].iter().map(updated).sum();
     assert!(early > 0);
+
+    // A longer window moves the first update with it, unless it is set.
+    let long = scenario(dir.path(), "{ max_clones: 15 }");
+    assert_eq!(long.estimator.first_update_clones(), 16);
+    let set = scenario(dir.path(), "{ max_clones: 15, min_clones_to_update: 8 }");
+    assert_eq!(set.estimator.first_update_clones(), 8);
 }

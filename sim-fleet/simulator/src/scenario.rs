@@ -328,13 +328,18 @@ pub struct EstimatorSpec {
     /// Seconds after the start before SLAM features are initialized.
     pub slam_delay_s: f64,
     /// Clones, the frame's own included, before the first feature update (at most
-    /// `max_clones + 1`: the oldest clone of a full window leaves; the default).
-    pub min_clones_to_update: usize,
+    /// `max_clones + 1`, when the oldest clone of a full window leaves; unset: that
+    /// count, whatever `max_clones` is).
+    pub min_clones_to_update: Option<usize>,
     /// SLAM feature parameterization: `global` (p_FinG) or `anchored` (in the
     /// camera of the clone that initialized it).
     pub feature_representation: FeatureRepresentation,
     /// Maximum MSCKF features per update.
     pub max_msckf_in_update: usize,
+    /// The pixel noise the filter assumes, px; unset: the simulated
+    /// `sensors.camera.pixel_noise_px`. Set it to run noise-free measurements
+    /// (pixel noise 0) through a filter that still weighs them.
+    pub pixel_sigma_px: Option<f64>,
     /// First-Estimates Jacobians on.
     pub use_fej: bool,
     /// Online calibration of the camera-IMU extrinsics.
@@ -364,6 +369,21 @@ pub struct EstimatorSpec {
     pub cooperation: CooperationOptions,
 }
 
+impl EstimatorSpec {
+    /// The pixel noise the filter assumes, px: `pixel_sigma_px`, or the
+    /// simulated `pixel_noise_px` when unset.
+    pub fn filter_pixel_sigma_px(&self, pixel_noise_px: f64) -> f64 {
+        self.pixel_sigma_px.unwrap_or(pixel_noise_px)
+    }
+
+    /// Clones before the first feature update: `min_clones_to_update`, or
+    /// `max_clones + 1` (the oldest clone of a full window leaves) when unset.
+    pub fn first_update_clones(&self) -> usize {
+        self.min_clones_to_update
+            .unwrap_or(self.max_clones.saturating_add(1))
+    }
+}
+
 impl Default for EstimatorSpec {
     /// The estimator's own defaults (`common::estimator_options`), plus OpenVINS's
     /// simulation start: 1 deg / 5 cm / 1 cm/s / 0.02 prior sigmas, after 1.1 m.
@@ -374,9 +394,10 @@ impl Default for EstimatorSpec {
             max_slam_features: o.max_slam_features,
             max_slam_in_update: o.max_slam_in_update,
             slam_delay_s: o.slam_delay_s,
-            min_clones_to_update: o.min_clones_to_update,
+            min_clones_to_update: None,
             feature_representation: o.feature_representation,
             max_msckf_in_update: o.max_msckf_in_update,
+            pixel_sigma_px: None,
             use_fej: o.use_fej,
             calib_extrinsics: o.calib_extrinsics,
             calib_intrinsics: o.calib_intrinsics,
@@ -471,6 +492,21 @@ impl Scenario {
             if !(v.is_finite() && v > 0.0) {
                 return Err(invalid(format!("{k} must be positive, got {v}")));
             }
+        }
+        let noise = s.camera.pixel_noise_px;
+        if !(noise.is_finite() && noise >= 0.0) {
+            return Err(invalid(format!(
+                "sensors.camera.pixel_noise_px must be at least 0, got {noise}"
+            )));
+        }
+        let sigma = self
+            .estimator
+            .filter_pixel_sigma_px(s.camera.pixel_noise_px);
+        if !(sigma.is_finite() && sigma > 0.0) {
+            return Err(invalid(format!(
+                "the filter's pixel sigma must be positive, got {sigma} px (with \
+                 sensors.camera.pixel_noise_px 0, set estimator.pixel_sigma_px)"
+            )));
         }
         if s.camera.rate_hz > s.imu.rate_hz {
             return Err(invalid("camera rate above IMU rate".into()));

@@ -296,3 +296,24 @@ fn every_example_scenario_loads() {
         Scenario::load(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
     }
 }
+
+#[test]
+fn a_noise_free_camera_needs_the_filter_pixel_sigma_set_explicitly() {
+    let dir = tempfile::tempdir().unwrap();
+    let _ = scenario(dir.path(), "");
+    let bad = dir.path().join("noise_free.yaml");
+    let base = "name: x\nrobots:\n  - trajectory: loop.txt\nsensors:\n  camera:\n    pixel_noise_px: 0.0\n";
+    std::fs::write(&bad, base).unwrap();
+    let e = Scenario::load(&bad).unwrap_err();
+    assert!(matches!(e, ScenarioError::Invalid { .. }), "{e}");
+    assert!(e.to_string().contains("estimator.pixel_sigma_px"), "{e}");
+    std::fs::write(&bad, format!("{base}estimator:\n  pixel_sigma_px: 1.0\n")).unwrap();
+    let s = Scenario::load(&bad).unwrap();
+    assert_eq!(s.estimator.filter_pixel_sigma_px(0.0), 1.0);
+    std::fs::write(&bad, base.replace("0.0", "-1.0")).unwrap();
+    let e = Scenario::load(&bad).unwrap_err();
+    assert!(
+        e.to_string().contains("pixel_noise_px must be at least 0"),
+        "{e}"
+    );
+}
