@@ -505,6 +505,9 @@ impl AgentConfig {
         limits
             .validate()
             .map_err(|e| format!("estimator: {e} (the fi_* keys)"))?;
+        let mut options = EstimatorOptions::default();
+        self.estimator.apply(&mut options);
+        options.validate().map_err(|e| format!("estimator: {e}"))?;
         if self.input.source == InputSource::Mcap && self.input.mcap.is_none() {
             return Err("input.source is mcap but input.mcap is not set".into());
         }

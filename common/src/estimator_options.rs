@@ -333,6 +333,58 @@ pub struct EstimatorOptions {
 }
 
 impl EstimatorOptions {
+    /// Range checks, each error naming its key: a window of at least 2 clones (a
+    /// feature needs two views), a positive pixel sigma and chi-square multiplier,
+    /// non-negative noise densities and delays, positive calibration priors, and
+    /// the triangulation limits. A zero pixel sigma divides by zero in every
+    /// update; a window of 0 clones never triangulates and drifts unbounded.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.max_clones < 2 {
+            return Err(format!(
+                "max_clones must be at least 2 (a feature needs two views), not {}",
+                self.max_clones
+            ));
+        }
+        if self.min_clones_to_update == 0 {
+            return Err("min_clones_to_update must be at least 1".into());
+        }
+        let positive = [
+            ("pixel_sigma_px", self.pixel_sigma_px),
+            ("chi2_multiplier", self.chi2_multiplier),
+            ("max_imu_gap_s", self.max_imu_gap_s),
+            ("imu.gravity_mps2", self.imu.gravity_mps2),
+            ("calib_prior.time_offset_s", self.calib_prior.time_offset_s),
+            (
+                "calib_prior.extrinsic_rot_rad",
+                self.calib_prior.extrinsic_rot_rad,
+            ),
+            (
+                "calib_prior.extrinsic_pos_m",
+                self.calib_prior.extrinsic_pos_m,
+            ),
+            ("calib_prior.intrinsics_px", self.calib_prior.intrinsics_px),
+            ("calib_prior.distortion", self.calib_prior.distortion),
+        ];
+        for (name, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{name} must be finite and positive, not {v}"));
+            }
+        }
+        let non_negative = [
+            ("slam_delay_s", self.slam_delay_s),
+            ("imu.gyro_noise_density", self.imu.gyro_noise_density),
+            ("imu.gyro_random_walk", self.imu.gyro_random_walk),
+            ("imu.accel_noise_density", self.imu.accel_noise_density),
+            ("imu.accel_random_walk", self.imu.accel_random_walk),
+        ];
+        for (name, v) in non_negative {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{name} must be finite and at least 0, not {v}"));
+            }
+        }
+        self.triangulation.validate()
+    }
+
     /// Whether a window of `clones` clones (the newest included) may be updated:
     /// [`Self::min_clones_to_update`], or `max_clones + 1` when that is smaller.
     pub fn window_ready(&self, clones: usize) -> bool {
@@ -385,6 +437,32 @@ mod tests {
         assert!(bad(|l| l.min_depth_m = -1.0).contains("min_depth_m"));
         assert!(bad(|l| l.max_depth_m = 0.05).contains("below max_depth_m"));
         assert!(bad(|l| l.max_baseline_ratio = f64::INFINITY).contains("max_baseline_ratio"));
+    }
+
+    #[test]
+    fn options_that_cannot_run_are_named() {
+        assert!(EstimatorOptions::default().validate().is_ok());
+        let bad = |f: fn(&mut EstimatorOptions)| {
+            let mut o = EstimatorOptions::default();
+            f(&mut o);
+            o.validate().unwrap_err()
+        };
+        assert!(bad(|o| o.max_clones = 0).contains("max_clones"));
+        assert!(bad(|o| o.max_clones = 1).contains("two views"));
+        assert!(bad(|o| o.pixel_sigma_px = 0.0).contains("pixel_sigma_px"));
+        assert!(bad(|o| o.chi2_multiplier = f64::NAN).contains("chi2_multiplier"));
+        assert!(bad(|o| o.slam_delay_s = -1.0).contains("slam_delay_s"));
+        assert!(bad(|o| o.imu.gyro_noise_density = -1e-4).contains("gyro_noise_density"));
+        assert!(bad(|o| o.calib_prior.intrinsics_px = 0.0).contains("intrinsics_px"));
+        assert!(bad(|o| o.triangulation.min_depth_m = -1.0).contains("min_depth_m"));
+        let noise_free_imu = EstimatorOptions {
+            imu: ImuNoise {
+                gyro_noise_density: 0.0,
+                ..ImuNoise::default()
+            },
+            ..EstimatorOptions::default()
+        };
+        assert!(noise_free_imu.validate().is_ok());
     }
 
     #[test]

@@ -9,7 +9,7 @@ use crate::render::RenderSpec;
 use common::calibration::CameraCalibration;
 use common::camera::{CameraModel, Distortion};
 use common::estimator_options::{
-    CooperationOptions, EstimatorOptions, FeatureRepresentation, TriangulationLimits,
+    CooperationOptions, EstimatorOptions, FeatureRepresentation, ImuNoise, TriangulationLimits,
 };
 use nalgebra::{Matrix3, Vector3, Vector4};
 use serde::{Deserialize, Serialize};
@@ -539,10 +539,39 @@ impl Scenario {
             .validate()
             .map_err(|e| invalid(format!("sensors.camera: {e}")))?;
         self.render.validate().map_err(|e| invalid(e.to_string()))?;
-        self.estimator
-            .triangulation
+        let e = &self.estimator;
+        let imu = &s.imu;
+        let options = EstimatorOptions {
+            max_clones: e.max_clones,
+            min_clones_to_update: e.first_update_clones(),
+            slam_delay_s: e.slam_delay_s,
+            pixel_sigma_px: sigma,
+            triangulation: e.triangulation,
+            imu: ImuNoise {
+                gyro_noise_density: imu.gyro_noise_density,
+                gyro_random_walk: imu.gyro_random_walk,
+                accel_noise_density: imu.accel_noise_density,
+                accel_random_walk: imu.accel_random_walk,
+                gravity_mps2: imu.gravity_mps2,
+            },
+            ..EstimatorOptions::default()
+        };
+        options
             .validate()
-            .map_err(|e| invalid(format!("estimator.{e}")))?;
+            .map_err(|what| invalid(format!("estimator.{what}")))?;
+        for (k, v) in [
+            ("init_sigma_ori_rad", e.init_sigma_ori_rad),
+            ("init_sigma_pos_m", e.init_sigma_pos_m),
+            ("init_sigma_vel_mps", e.init_sigma_vel_mps),
+            ("init_sigma_bias", e.init_sigma_bias),
+            ("start_after_motion_m", e.start_after_motion_m),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(invalid(format!(
+                    "estimator.{k} must be finite and at least 0, got {v}"
+                )));
+            }
+        }
         Ok(())
     }
 }

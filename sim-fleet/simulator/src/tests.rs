@@ -317,3 +317,28 @@ fn a_noise_free_camera_needs_the_filter_pixel_sigma_set_explicitly() {
         "{e}"
     );
 }
+
+#[test]
+fn estimator_settings_that_cannot_run_are_named_at_load() {
+    let dir = tempfile::tempdir().unwrap();
+    let _ = scenario(dir.path(), "");
+    let bad = dir.path().join("bad_estimator.yaml");
+    let load = |estimator: &str| {
+        std::fs::write(
+            &bad,
+            format!("name: x\nrobots:\n  - trajectory: loop.txt\nestimator: {estimator}\n"),
+        )
+        .unwrap();
+        Scenario::load(&bad).map(|_| ()).map_err(|e| e.to_string())
+    };
+    assert!(load("{}").is_ok());
+    assert!(load("{ init_sigma_ori_rad: 0.0 }").is_ok());
+    let e = load("{ max_clones: 0 }").unwrap_err();
+    assert!(e.contains("estimator.max_clones"), "{e}");
+    let e = load("{ init_sigma_pos_m: -0.05 }").unwrap_err();
+    assert!(e.contains("estimator.init_sigma_pos_m"), "{e}");
+    let e = load("{ slam_delay_s: .nan }").unwrap_err();
+    assert!(e.contains("estimator.slam_delay_s"), "{e}");
+    let e = load("{ min_clones_to_update: 0 }").unwrap_err();
+    assert!(e.contains("min_clones_to_update"), "{e}");
+}
