@@ -414,19 +414,9 @@ impl<K: StateVar> Covariance<K> {
         Ok(dx)
     }
 
-    /// `P ← P − Wᵀ W` on the lower triangle only (the result is symmetric), in
-    /// column blocks so each block is one dense product: about half the work.
+    /// `P ← P − Wᵀ W` on the lower triangle ([`subtract_gram_lower`]).
     fn subtract_gram_lower(&mut self, w: &DMatrix<f64>) {
-        const BLOCK: usize = 32;
-        let n = self.dim();
-        let w_t = w.transpose();
-        let mut j0 = 0;
-        while j0 < n {
-            let bw = BLOCK.min(n - j0);
-            let mut blk = self.cov.view_mut((j0, j0), (n - j0, bw));
-            blk.gemm(-1.0, &w_t.rows(j0, n - j0), &w.columns(j0, bw), 1.0);
-            j0 += bw;
-        }
+        subtract_gram_lower(&mut self.cov, w);
     }
 
     /// Keeps the diagonal positive.
@@ -471,6 +461,23 @@ impl<K: StateVar> Covariance<K> {
 
 /// Inverse of a lower-triangular matrix with a positive diagonal, by forward
 /// substitution on its columns (`m³/6` multiply-adds, contiguous accesses).
+/// `P ← P − Wᵀ W` (`P` n x n, `W` m x n) on the lower triangle only (the result
+/// is symmetric; the caller mirrors it), in column blocks of 32 so each block is
+/// one dense product: about half the work of the full product. The covariance
+/// update's dense kernel, timed against faer's in `benches/covariance_kernel.rs`.
+pub fn subtract_gram_lower(p: &mut DMatrix<f64>, w: &DMatrix<f64>) {
+    const BLOCK: usize = 32;
+    let n = p.nrows();
+    let w_t = w.transpose();
+    let mut j0 = 0;
+    while j0 < n {
+        let bw = BLOCK.min(n - j0);
+        let mut blk = p.view_mut((j0, j0), (n - j0, bw));
+        blk.gemm(-1.0, &w_t.rows(j0, n - j0), &w.columns(j0, bw), 1.0);
+        j0 += bw;
+    }
+}
+
 pub(crate) fn lower_triangular_inverse(l: &DMatrix<f64>) -> DMatrix<f64> {
     let m = l.nrows();
     let mut inv = DMatrix::<f64>::zeros(m, m);
