@@ -299,32 +299,41 @@ impl CentralEstimator {
 
         // 6. MSCKF with the rest; 7. SLAM update; 8. common SLAM; 9. SLAM init.
         let t = Instant::now();
-        let independent: Vec<u64> = classes
-            .msckf_used
+        // The common tracks the joint update did not use go first, whatever the
+        // cap; then our own, longest first, until the cap is full.
+        let common_left: Vec<u64> = common_ids
             .iter()
-            .chain(common_ids.iter())
             .copied()
             .filter(|id| !common_used.contains(id))
-            .fold(Vec::new(), |mut v, id| {
-                if !v.contains(&id) {
-                    v.push(id);
-                }
-                v
-            });
+            .collect();
+        let independent: Vec<u64> = common_left
+            .iter()
+            .copied()
+            .chain(
+                classes
+                    .msckf_ids
+                    .iter()
+                    .copied()
+                    .filter(|id| !common_ids.contains(id)),
+            )
+            .collect();
+        let cap = opts.max_msckf_in_update.saturating_add(common_left.len());
         let robot = &mut self.robots[r];
         let Some(mut slot) = self.joint.slot(rid) else {
             return Err(FrameError::NotInitialized(frame.t));
         };
         let mut untriangulated = Vec::new();
-        let msckf = updater_msckf::update_noting_failures(
+        let (msckf, tried) = updater_msckf::update_up_to(
             &mut slot,
             &robot.features,
             &independent,
+            cap,
             &opts,
             &self.chi2,
             &self.tri,
             &mut untriangulated,
         );
+        let unreached = independent.get(tried..).unwrap_or_default().to_vec();
         // Common tracks are used once, jointly or here, whatever the outcome.
         untriangulated.retain(|id| !common_ids.contains(id));
         timing.msckf_ms = ms(t);
@@ -380,6 +389,7 @@ impl CentralEstimator {
         let t = Instant::now();
         // Every common track was used (jointly or in the MSCKF), even beyond the cap.
         classes.mark_used(&common_ids);
+        classes.defer(&unreached);
         classes.retry_untriangulated(&robot.features, key, &untriangulated);
         clean_up(&mut robot.features, &mut slot, &classes, opts.max_clones);
         let state_t = slot.means().t;

@@ -17,18 +17,28 @@ pub struct FeatureClasses {
     pub slam_seen: Vec<u64>,
     /// Tracks spanning the window that become SLAM features (if there is room).
     pub slam_candidates: Vec<u64>,
-    /// Lost tracks and tracks leaving the window, longest first.
+    /// Lost tracks and tracks leaving the window, longest first: the MSCKF's
+    /// candidates, taken in this order up to its per-update cap.
     pub msckf_ids: Vec<u64>,
-    /// The part of `msckf_ids` used in this frame's MSCKF update.
-    pub msckf_used: Vec<u64>,
-    /// The part of `msckf_ids` beyond the per-update cap: their tracks go on (the
-    /// measurement at the leaving clone leaves with it) and come back as candidates
-    /// in a later frame, as OpenVINS keeps them. Dropping them instead emptied the
-    /// whole window at once after the first full update on slow starts.
+    /// The candidates the MSCKF did not reach once its cap was full ([`Self::defer`])
+    /// and the untriangulated ones still seen ([`Self::retry_untriangulated`]): their
+    /// tracks go on (the measurement at the leaving clone leaves with it) and come
+    /// back as candidates in a later frame, as OpenVINS keeps them. Dropping them
+    /// instead emptied the whole window at once after the first full update on
+    /// slow starts.
     pub deferred: Vec<u64>,
 }
 
 impl FeatureClasses {
+    /// Keeps the tracks of `ids`, candidates the MSCKF did not reach this frame.
+    pub fn defer(&mut self, ids: &[u64]) {
+        for id in ids {
+            if !self.deferred.contains(id) {
+                self.deferred.push(*id);
+            }
+        }
+    }
+
     /// Takes `ids` out of [`Self::deferred`]: another update (e.g. a cooperative
     /// one) has used their measurements, which must not be used again.
     pub fn mark_used(&mut self, ids: &[u64]) {
@@ -120,13 +130,10 @@ pub fn classify(
             c.msckf_ids.push(*id);
         }
     }
-    // The longest tracks first, up to the limit.
+    // The longest tracks first: the MSCKF takes them in this order up to its cap.
     c.msckf_ids.sort_by_key(|id| {
         std::cmp::Reverse(db.get(*id).map(|f| f.measurements.len()).unwrap_or(0))
     });
-    let cap = opts.max_msckf_in_update.min(c.msckf_ids.len());
-    c.msckf_used = c.msckf_ids[..cap].to_vec();
-    c.deferred = c.msckf_ids[cap..].to_vec();
     c
 }
 
@@ -184,7 +191,7 @@ mod tests {
     #[test]
     fn candidates_beyond_the_cap_keep_their_tracks_for_a_later_frame() {
         // 12 clones, one more than the window: every track is seen by the leaving
-        // clone, so all 6 are MSCKF candidates; the cap takes the 2 longest.
+        // clone, so all 6 are MSCKF candidates; an update capped at 2 reaches 2.
         let mut s = scene(12, 6, 1e-4, 1e-4);
         let opts = EstimatorOptions {
             max_clones: 11,
@@ -194,7 +201,10 @@ mod tests {
         let key = 12;
         let mut c = classify(&s.db, &s.state.means, key, &opts, false);
         assert_eq!(c.msckf_ids.len(), 6);
-        assert_eq!(c.msckf_used.len(), 2);
+        assert!(c.deferred.is_empty());
+        let (used, unreached) = c.msckf_ids.split_at(2);
+        let used = used.to_vec();
+        c.defer(&unreached.to_vec());
         assert_eq!(c.deferred.len(), 4);
         // A cooperative update took one of the deferred tracks.
         let taken = c.deferred[0];
@@ -202,7 +212,7 @@ mod tests {
 
         clean_up(&mut s.db, &mut s.state, &c, opts.max_clones);
         assert_eq!(s.state.means.clones.len(), 11);
-        for id in c.msckf_used.iter().chain([&taken]) {
+        for id in used.iter().chain([&taken]) {
             assert!(!s.db.contains(*id), "used track {id} kept");
         }
         for id in &c.deferred {
@@ -222,7 +232,7 @@ mod tests {
         };
         let key = 12;
         let mut c = classify(&s.db, &s.state.means, key, &opts, false);
-        let (seen, lost) = (c.msckf_used[0], c.msckf_used[1]);
+        let (seen, lost) = (c.msckf_ids[0], c.msckf_ids[1]);
         // `lost` was not seen by the newest image.
         if let Some(f) = s.db.get_mut(lost) {
             f.measurements.retain(|m| m.clone_key != key);

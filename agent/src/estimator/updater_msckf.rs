@@ -48,7 +48,26 @@ pub fn update_noting_failures<F: Filter + ?Sized>(
     tri: &TriangulationOptions,
     untriangulated: &mut Vec<u64>,
 ) -> MsckfStats {
+    update_up_to(state, db, ids, usize::MAX, opts, chi2, tri, untriangulated).0
+}
+
+/// [`update_noting_failures`] on the candidates `ids` in order until `cap`
+/// features have a system (used or gated out): a candidate that cannot be
+/// triangulated does not take a place. Returns the stats and how many candidates
+/// were tried; the caller keeps the rest for a later frame.
+#[allow(clippy::too_many_arguments)]
+pub fn update_up_to<F: Filter + ?Sized>(
+    state: &mut F,
+    db: &FeatureDb,
+    ids: &[u64],
+    cap: usize,
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+    tri: &TriangulationOptions,
+    untriangulated: &mut Vec<u64>,
+) -> (MsckfStats, usize) {
     let mut stats = MsckfStats::default();
+    let mut tried = 0;
     let cols = Columns::window(state);
     let calib_vars: Vec<Var> = cols
         .vars
@@ -62,6 +81,10 @@ pub fn update_noting_failures<F: Filter + ?Sized>(
     let mut blocks: Vec<(Columns, DMatrix<f64>, DVector<f64>)> = Vec::with_capacity(ids.len());
     let mut rows = 0;
     for id in ids {
+        if stats.used + stats.rejected_chi2 >= cap {
+            break;
+        }
+        tried += 1;
         let Some(feature) = db.get(*id) else { continue };
         let mut vars = calib_vars.clone();
         vars.extend(
@@ -96,7 +119,7 @@ pub fn update_noting_failures<F: Filter + ?Sized>(
         stats.used += 1;
     }
     if rows == 0 {
-        return stats;
+        return (stats, tried);
     }
     let mut h = DMatrix::zeros(rows, cols.dim);
     let mut res = DVector::zeros(rows);
@@ -119,5 +142,54 @@ pub fn update_noting_failures<F: Filter + ?Sized>(
         stats.failed += stats.used;
         stats.used = 0;
     }
-    stats
+    (stats, tried)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimator::test_scene::scene;
+
+    #[test]
+    fn a_candidate_that_cannot_be_triangulated_takes_no_place_in_the_cap() {
+        let mut s = scene(8, 6, 1e-4, 1e-4);
+        // Tracks 0 and 1 keep one view each: nothing to triangulate.
+        for id in [0, 1] {
+            if let Some(f) = s.db.get_mut(id) {
+                f.measurements.truncate(1);
+            }
+        }
+        let opts = EstimatorOptions::default();
+        let (chi2, tri) = (Chi2Table::new(0.95, 500), TriangulationOptions::default());
+        let ids: Vec<u64> = (0..6).collect();
+        let mut failed = Vec::new();
+        let (stats, tried) = update_up_to(
+            &mut s.state,
+            &s.db,
+            &ids,
+            2,
+            &opts,
+            &chi2,
+            &tri,
+            &mut failed,
+        );
+        // 0 and 1 fail, 2 and 3 fill the cap, 4 and 5 are left for a later frame.
+        assert_eq!(failed, vec![0, 1]);
+        assert_eq!(stats.used + stats.rejected_chi2, 2, "{stats:?}");
+        assert_eq!(stats.failed, 2);
+        assert_eq!(tried, 4);
+        // Without a cap every candidate is tried.
+        let mut s = scene(8, 6, 1e-4, 1e-4);
+        let (stats, tried) = update_up_to(
+            &mut s.state,
+            &s.db,
+            &ids,
+            usize::MAX,
+            &opts,
+            &chi2,
+            &tri,
+            &mut Vec::new(),
+        );
+        assert_eq!((stats.used, tried), (6, 6), "{stats:?}");
+    }
 }

@@ -325,7 +325,6 @@ impl Estimator {
             slam_seen,
             slam_candidates,
             msckf_ids,
-            msckf_used,
             ..
         } = &classes;
         let slam_ids: Vec<u64> = state.features.keys().copied().collect();
@@ -338,21 +337,23 @@ impl Estimator {
         // 5. MSCKF update with the independent VIO features.
         let t = Instant::now();
         let common: Vec<u64> = ev.vio.iter().map(|c| c.id).collect();
-        let independent: Vec<u64> = msckf_used
+        let independent: Vec<u64> = msckf_ids
             .iter()
             .copied()
             .filter(|id| !common.contains(id))
             .collect();
         let mut untriangulated = Vec::new();
-        let mut msckf = updater_msckf::update_noting_failures(
+        let (mut msckf, tried) = updater_msckf::update_up_to(
             state,
             &self.features,
             &independent,
+            opts.max_msckf_in_update,
             &opts,
             &self.chi2,
             &self.tri,
             &mut untriangulated,
         );
+        let unreached = independent.get(tried..).unwrap_or_default().to_vec();
 
         timing.msckf_ms = ms(t);
 
@@ -423,6 +424,7 @@ impl Estimator {
         // The common tracks went to the cooperative update (or its MSCKF fallback)
         // even when beyond the cap: none is kept for later.
         classes.mark_used(&common);
+        classes.defer(&unreached);
         classes.retry_untriangulated(&self.features, key, &untriangulated);
         clean_up(&mut self.features, state, &classes, opts.max_clones);
         if let Some(c) = self.coop.as_mut() {
