@@ -202,9 +202,9 @@ mod tests {
         let mut c = classify(&s.db, &s.state.means, key, &opts, false);
         assert_eq!(c.msckf_ids.len(), 6);
         assert!(c.deferred.is_empty());
-        let (used, unreached) = c.msckf_ids.split_at(2);
-        let used = used.to_vec();
-        c.defer(&unreached.to_vec());
+        let ids = c.msckf_ids.clone();
+        let (used, unreached) = ids.split_at(2);
+        c.defer(unreached);
         assert_eq!(c.deferred.len(), 4);
         // A cooperative update took one of the deferred tracks.
         let taken = c.deferred[0];
