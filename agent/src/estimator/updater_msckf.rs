@@ -24,7 +24,7 @@ pub struct MsckfStats {
     pub failed: usize,
 }
 
-/// Updates `state` with the features `ids` of `db`.
+/// Updates `state` with the features `ids` of `db`, all of them.
 pub fn update<F: Filter + ?Sized>(
     state: &mut F,
     db: &FeatureDb,
@@ -33,28 +33,16 @@ pub fn update<F: Filter + ?Sized>(
     chi2: &Chi2Table,
     tri: &TriangulationOptions,
 ) -> MsckfStats {
-    update_noting_failures(state, db, ids, opts, chi2, tri, &mut Vec::new())
+    update_up_to(state, db, ids, usize::MAX, opts, chi2, tri, &mut Vec::new()).0
 }
 
-/// [`update`], also listing in `untriangulated` the features whose system could not
-/// be built (nearly always too little parallax to triangulate yet, at times a point
-/// that does not project): the caller may keep their tracks for another try.
-pub fn update_noting_failures<F: Filter + ?Sized>(
-    state: &mut F,
-    db: &FeatureDb,
-    ids: &[u64],
-    opts: &EstimatorOptions,
-    chi2: &Chi2Table,
-    tri: &TriangulationOptions,
-    untriangulated: &mut Vec<u64>,
-) -> MsckfStats {
-    update_up_to(state, db, ids, usize::MAX, opts, chi2, tri, untriangulated).0
-}
-
-/// [`update_noting_failures`] on the candidates `ids` in order until `cap`
-/// features have a system (used or gated out): a candidate that cannot be
-/// triangulated does not take a place. Returns the stats and how many candidates
-/// were tried; the caller keeps the rest for a later frame.
+/// Updates `state` with the candidates `ids` of `db`, taken in order until `cap`
+/// of them have a system (used or gated out): a candidate that cannot be
+/// triangulated takes no place. Lists in `untriangulated` the candidates whose
+/// system could not be built (nearly always too little parallax to triangulate
+/// yet, at times a point that does not project): the caller may keep their tracks
+/// for another try. Returns the stats and how many candidates were tried; the
+/// caller keeps the rest for a later frame.
 #[allow(clippy::too_many_arguments)]
 pub fn update_up_to<F: Filter + ?Sized>(
     state: &mut F,
