@@ -130,31 +130,7 @@ pub enum RunError {
 
 /// The estimator options a scenario asks for, for one variant.
 pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> EstimatorOptions {
-    let imu = &fleet.scenario.sensors.imu;
-    let cam = &fleet.scenario.sensors.camera;
-    let mut o = EstimatorOptions {
-        max_clones: spec.max_clones,
-        max_slam_features: spec.max_slam_features,
-        max_slam_in_update: spec.max_slam_in_update,
-        slam_delay_s: spec.slam_delay_s,
-        min_clones_to_update: spec.first_update_clones(),
-        feature_representation: spec.feature_representation,
-        max_msckf_in_update: spec.max_msckf_in_update,
-        use_fej: spec.use_fej,
-        calib_extrinsics: spec.calib_extrinsics,
-        calib_intrinsics: spec.calib_intrinsics,
-        calib_time_offset: spec.calib_time_offset,
-        zero_velocity_update: spec.zero_velocity_update,
-        pixel_sigma_px: spec.filter_pixel_sigma_px(cam.pixel_noise_px),
-        triangulation: spec.triangulation,
-        ..EstimatorOptions::default()
-    };
-    o.imu.gyro_noise_density = imu.gyro_noise_density;
-    o.imu.gyro_random_walk = imu.gyro_random_walk;
-    o.imu.accel_noise_density = imu.accel_noise_density;
-    o.imu.accel_random_walk = imu.accel_random_walk;
-    o.imu.gravity_mps2 = imu.gravity_mps2;
-    o.cooperation = spec.cooperation.clone();
+    let mut o = spec.options(&fleet.scenario.sensors);
     variant.apply(&mut o);
     o
 }

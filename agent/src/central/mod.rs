@@ -333,7 +333,7 @@ impl CentralEstimator {
             &self.tri,
             &mut untriangulated,
         );
-        let unreached = independent.get(tried..).unwrap_or_default().to_vec();
+
         // Common tracks are used once, jointly or here, whatever the outcome.
         untriangulated.retain(|id| !common_ids.contains(id));
         timing.msckf_ms = ms(t);
@@ -389,7 +389,7 @@ impl CentralEstimator {
         let t = Instant::now();
         // Every common track was used (jointly or in the MSCKF), even beyond the cap.
         classes.mark_used(&common_ids);
-        classes.defer(&unreached);
+        classes.defer(independent.get(tried..).unwrap_or_default());
         classes.retry_untriangulated(&robot.features, key, &untriangulated);
         clean_up(&mut robot.features, &mut slot, &classes, opts.max_clones);
         let state_t = slot.means().t;

@@ -353,7 +353,6 @@ impl Estimator {
             &self.tri,
             &mut untriangulated,
         );
-        let unreached = independent.get(tried..).unwrap_or_default().to_vec();
 
         timing.msckf_ms = ms(t);
 
@@ -424,7 +423,7 @@ impl Estimator {
         // The common tracks went to the cooperative update (or its MSCKF fallback)
         // even when beyond the cap: none is kept for later.
         classes.mark_used(&common);
-        classes.defer(&unreached);
+        classes.defer(independent.get(tried..).unwrap_or_default());
         classes.retry_untriangulated(&self.features, key, &untriangulated);
         clean_up(&mut self.features, state, &classes, opts.max_clones);
         if let Some(c) = self.coop.as_mut() {

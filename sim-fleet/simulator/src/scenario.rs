@@ -376,6 +376,39 @@ impl EstimatorSpec {
         self.pixel_sigma_px.unwrap_or(pixel_noise_px)
     }
 
+    /// The estimator options these settings and the `sensors` ask for (noise
+    /// models from the simulated sensors), before a variant picks what is taken
+    /// from peers. A zero filter pixel sigma (pixel noise 0 with
+    /// `pixel_sigma_px` unset) fails [`EstimatorOptions::validate`].
+    pub fn options(&self, sensors: &SensorSpec) -> EstimatorOptions {
+        let imu = &sensors.imu;
+        EstimatorOptions {
+            max_clones: self.max_clones,
+            max_slam_features: self.max_slam_features,
+            max_slam_in_update: self.max_slam_in_update,
+            slam_delay_s: self.slam_delay_s,
+            min_clones_to_update: self.first_update_clones(),
+            feature_representation: self.feature_representation,
+            max_msckf_in_update: self.max_msckf_in_update,
+            use_fej: self.use_fej,
+            calib_extrinsics: self.calib_extrinsics,
+            calib_intrinsics: self.calib_intrinsics,
+            calib_time_offset: self.calib_time_offset,
+            zero_velocity_update: self.zero_velocity_update,
+            pixel_sigma_px: self.filter_pixel_sigma_px(sensors.camera.pixel_noise_px),
+            imu: ImuNoise {
+                gyro_noise_density: imu.gyro_noise_density,
+                gyro_random_walk: imu.gyro_random_walk,
+                accel_noise_density: imu.accel_noise_density,
+                accel_random_walk: imu.accel_random_walk,
+                gravity_mps2: imu.gravity_mps2,
+            },
+            triangulation: self.triangulation,
+            cooperation: self.cooperation.clone(),
+            ..EstimatorOptions::default()
+        }
+    }
+
     /// Clones before the first feature update: `min_clones_to_update`, or
     /// `max_clones + 1` (the oldest clone of a full window leaves) when unset.
     pub fn first_update_clones(&self) -> usize {
@@ -499,15 +532,6 @@ impl Scenario {
                 "sensors.camera.pixel_noise_px must be at least 0, got {noise}"
             )));
         }
-        let sigma = self
-            .estimator
-            .filter_pixel_sigma_px(s.camera.pixel_noise_px);
-        if !(sigma.is_finite() && sigma > 0.0) {
-            return Err(invalid(format!(
-                "the filter's pixel sigma must be positive, got {sigma} px (with \
-                 sensors.camera.pixel_noise_px 0, set estimator.pixel_sigma_px)"
-            )));
-        }
         if s.camera.rate_hz > s.imu.rate_hz {
             return Err(invalid("camera rate above IMU rate".into()));
         }
@@ -540,23 +564,7 @@ impl Scenario {
             .map_err(|e| invalid(format!("sensors.camera: {e}")))?;
         self.render.validate().map_err(|e| invalid(e.to_string()))?;
         let e = &self.estimator;
-        let imu = &s.imu;
-        let options = EstimatorOptions {
-            max_clones: e.max_clones,
-            min_clones_to_update: e.first_update_clones(),
-            slam_delay_s: e.slam_delay_s,
-            pixel_sigma_px: sigma,
-            triangulation: e.triangulation,
-            imu: ImuNoise {
-                gyro_noise_density: imu.gyro_noise_density,
-                gyro_random_walk: imu.gyro_random_walk,
-                accel_noise_density: imu.accel_noise_density,
-                accel_random_walk: imu.accel_random_walk,
-                gravity_mps2: imu.gravity_mps2,
-            },
-            ..EstimatorOptions::default()
-        };
-        options
+        e.options(s)
             .validate()
             .map_err(|what| invalid(format!("estimator.{what}")))?;
         for (k, v) in [
