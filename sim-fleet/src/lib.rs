@@ -7,5 +7,6 @@ pub mod convert;
 pub mod eval;
 pub mod fleet_run;
 pub mod montecarlo;
+pub mod paired;
 pub mod plots;
 pub mod simulate;

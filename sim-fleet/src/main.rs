@@ -7,6 +7,7 @@ use sim_fleet::convert::{run_convert, ConvertArgs};
 use sim_fleet::eval::{run_eval, EvalArgs};
 use sim_fleet::fleet_run::{run_fleet, RunArgs};
 use sim_fleet::montecarlo::{run_montecarlo, MontecarloArgs};
+use sim_fleet::paired::{run_paired, PairedArgs};
 use sim_fleet::simulate::{run_simulate, SimulateArgs};
 
 /// Fleet tools of the distributed multi-robot VIO system.
@@ -27,6 +28,9 @@ enum Command {
     /// Run every robot of a scenario standalone over many seeds and estimator
     /// variants, in parallel, and aggregate the metrics (means, spreads, divergences).
     Montecarlo(MontecarloArgs),
+    /// Compare two variants of Monte-Carlo studies seed by seed: means, the
+    /// mean difference and the ratio of the means with 95 % intervals.
+    Paired(PairedArgs),
     /// Launch one agent process per robot (Zenoh or iceoryx2; threads for
     /// inproc), supervise them and collect their outputs into DIR/summary.json.
     Run(RunArgs),
@@ -58,6 +62,7 @@ fn main() -> Result<()> {
         Command::Simulate(args) => run_simulate(&args),
         Command::Eval(args) => run_eval(&args),
         Command::Montecarlo(args) => run_montecarlo(&args),
+        Command::Paired(args) => run_paired(&args),
         Command::Run(args) => run_fleet(&args),
         Command::Compare(args) => run_compare(&args),
         Command::ConvertEuroc(args) => run_convert(&args),

@@ -16,6 +16,7 @@
 
 pub mod aggregate;
 mod fleet_job;
+pub mod stats;
 pub mod table;
 
 use agent::runner::{options_for, run_robot, Variant};

@@ -88,6 +88,39 @@ fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_
     assert!(slam_robot["metrics"]["ate_ori_deg"].is_number());
     assert!(slam_robot["spread"]["nees_pos"]["min"].is_number());
     assert!(out1.join("table.md").is_file());
+    // Per-seed values (for paired comparisons) and the 95 % intervals of the means.
+    assert_eq!(indp["run_means"].as_array().map(Vec::len), Some(2));
+    assert_eq!(slam_robot["per_run"].as_array().map(Vec::len), Some(2));
+    assert!(indp["mean_ci95"]["ate_pos_m"]
+        .as_f64()
+        .is_some_and(|h| h >= 0.0));
+    assert!(slam_robot["ci95"]["ate_ori_deg"].is_number());
+
+    // `paired` compares the two variants of the study seed by seed.
+    let side = |v: &str| format!("{v}={}", out1.display());
+    let output = Command::new(bin("sim-fleet"))
+        .args(["paired", "--a", &side("indp"), "--b", &side("indp-slam")])
+        .output()
+        .unwrap();
+    let table = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "paired failed: {output:?}");
+    assert!(
+        table.contains("| mean | ATE pos m | 2 |") && table.contains("| 0 loop | NEES ori | 2 |"),
+        "{table}"
+    );
+    let output = Command::new(bin("sim-fleet"))
+        .args([
+            "paired",
+            "--a",
+            &side("indp"),
+            "--b",
+            &side("dc-full-history"),
+        ])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let err = String::from_utf8_lossy(&output.stderr);
+    assert!(err.contains("no variant `dc-full-history`"), "{err}");
 
     for variant in ["indp", "indp-slam"] {
         for seed in ["seed1", "seed2"] {

@@ -6,6 +6,7 @@
 //! caller sorts the runs (by variant, seed, robot) so that the aggregate does
 //! not depend on the order in which the runs finished.
 
+use super::stats::mean_ci95;
 use common::summary::{MetricSet, RpeEntry};
 use serde::{Deserialize, Serialize};
 
@@ -82,6 +83,56 @@ fn range(values: impl Iterator<Item = f64>) -> Option<Range> {
     })
 }
 
+/// The scalar accuracy and consistency keys of one run (`null` where the run
+/// has none): what paired comparisons of studies match seed by seed.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Scalars {
+    /// ATE orientation RMSE (degrees).
+    pub ate_ori_deg: Option<f64>,
+    /// ATE position RMSE (m).
+    pub ate_pos_m: Option<f64>,
+    /// Mean orientation NEES.
+    pub nees_ori: Option<f64>,
+    /// Mean position NEES.
+    pub nees_pos: Option<f64>,
+}
+
+impl Scalars {
+    /// The scalar keys of `m`.
+    pub fn of(m: &MetricSet) -> Scalars {
+        Scalars {
+            ate_ori_deg: m.ate_ori_deg,
+            ate_pos_m: m.ate_pos_m,
+            nees_ori: m.nees_ori,
+            nees_pos: m.nees_pos,
+        }
+    }
+
+    /// Each key with its name, in table order.
+    pub fn named(&self) -> [(&'static str, Option<f64>); 4] {
+        [
+            ("ATE ori deg", self.ate_ori_deg),
+            ("ATE pos m", self.ate_pos_m),
+            ("NEES ori", self.nees_ori),
+            ("NEES pos", self.nees_pos),
+        ]
+    }
+
+    /// Half-widths of the 95 % intervals of the means of each key over `runs`
+    /// (Student t; `null` for fewer than two runs with the key).
+    pub fn ci95_of(runs: &[Scalars]) -> Scalars {
+        let ci = |get: fn(&Scalars) -> Option<f64>| {
+            mean_ci95(runs.iter().filter_map(get)).and_then(|c| c.half_width)
+        };
+        Scalars {
+            ate_ori_deg: ci(|s| s.ate_ori_deg),
+            ate_pos_m: ci(|s| s.ate_pos_m),
+            nees_ori: ci(|s| s.nees_ori),
+            nees_pos: ci(|s| s.nees_pos),
+        }
+    }
+}
+
 /// One robot of a variant, aggregated over the runs.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct RobotAggregate {
@@ -94,6 +145,13 @@ pub struct RobotAggregate {
     pub metrics: MetricSet,
     /// Smallest and largest run of each scalar key.
     pub spread: Spread,
+    /// Half-width of the 95 % interval of each scalar mean ([`Scalars::ci95_of`]).
+    #[serde(default)]
+    pub ci95: Scalars,
+    /// Each run's scalar keys, in seed order (`StudySummary::seeds`; all `null`
+    /// for a run without this robot).
+    #[serde(default)]
+    pub per_run: Vec<Scalars>,
     /// Runs of this robot.
     pub runs: usize,
     /// Runs that diverged (see [`diverged`]), failed runs included.
@@ -109,6 +167,13 @@ pub struct VariantAggregate {
     pub mean: MetricSet,
     /// Smallest and largest robot mean of a run, per scalar key.
     pub mean_spread: Spread,
+    /// Half-width of the 95 % interval of each scalar of `mean`, over the runs'
+    /// robot means ([`Scalars::ci95_of`]).
+    #[serde(default)]
+    pub mean_ci95: Scalars,
+    /// Each run's robot mean, in seed order (`StudySummary::seeds`).
+    #[serde(default)]
+    pub run_means: Vec<Scalars>,
     /// Each robot, aggregated over the runs.
     pub robots: Vec<RobotAggregate>,
     /// Runs (seeds) of the variant.
@@ -167,11 +232,22 @@ pub fn aggregate_variant(robots: &[(u32, String)], runs: &[Vec<RobotOutcome>]) -
         .map(|(r, (id, name))| {
             let outcomes: Vec<&RobotOutcome> = runs.iter().filter_map(|run| run.get(r)).collect();
             let sets: Vec<MetricSet> = outcomes.iter().map(|o| finite_only(&o.metrics)).collect();
+            // Aligned with the seeds: a run without this robot gives nulls.
+            let per_run: Vec<Scalars> = runs
+                .iter()
+                .map(|run| {
+                    run.get(r)
+                        .map(|o| Scalars::of(&finite_only(&o.metrics)))
+                        .unwrap_or_default()
+                })
+                .collect();
             RobotAggregate {
                 id: *id,
                 trajectory: name.clone(),
                 metrics: MetricSet::mean_of(&sets),
                 spread: Spread::of(&sets),
+                ci95: Scalars::ci95_of(&per_run),
+                per_run,
                 runs: outcomes.len(),
                 diverged: outcomes.iter().filter(|o| diverged(&o.metrics)).count(),
                 failed: outcomes.iter().filter(|o| o.error.is_some()).count(),
@@ -185,9 +261,12 @@ pub fn aggregate_variant(robots: &[(u32, String)], runs: &[Vec<RobotOutcome>]) -
             MetricSet::mean_of(&sets)
         })
         .collect();
+    let scalars: Vec<Scalars> = run_means.iter().map(Scalars::of).collect();
     VariantAggregate {
         mean: MetricSet::mean_of(&run_means),
         mean_spread: Spread::of(&run_means),
+        mean_ci95: Scalars::ci95_of(&scalars),
+        run_means: scalars,
         runs: runs.len(),
         diverged: robot_aggregates.iter().map(|r| r.diverged).sum(),
         failed: robot_aggregates.iter().map(|r| r.failed).sum(),
@@ -343,6 +422,33 @@ mod tests {
         assert!((s.min - 0.2).abs() < 1e-12 && (s.max - 0.6).abs() < 1e-12);
         assert!((v.robots[1].metrics.ate_pos_m.unwrap() - 0.5).abs() < 1e-12);
         assert_eq!(v.robots.len(), 2);
+    }
+
+    #[test]
+    fn each_runs_scalars_stay_in_seed_order_with_the_interval_of_the_mean() {
+        // Run 2 lacks robot 1: its slot stays, empty, so seeds still line up.
+        let runs = vec![
+            vec![
+                ok(set(Some(0.1), Some(1.0), None)),
+                ok(set(Some(0.3), None, None)),
+            ],
+            vec![ok(set(Some(0.5), Some(2.0), None))],
+            vec![
+                ok(set(Some(0.3), Some(3.0), None)),
+                ok(set(Some(0.7), None, None)),
+            ],
+        ];
+        let v = aggregate_variant(&robots(2), &runs);
+        let pos: Vec<Option<f64>> = v.robots[1].per_run.iter().map(|s| s.ate_pos_m).collect();
+        assert_eq!(pos, vec![Some(0.3), None, Some(0.7)]);
+        assert_eq!(v.run_means.len(), 3);
+        assert!((v.run_means[1].ate_pos_m.unwrap() - 0.5).abs() < 1e-12);
+        // Robot 0's orientation: 1, 2, 3 -> s = 1, t(2) = 4.303.
+        let h = v.robots[0].ci95.ate_ori_deg.unwrap();
+        assert!((h - 4.303 / 3f64.sqrt()).abs() < 1e-12, "{h}");
+        assert!(v.robots[1].ci95.ate_pos_m.is_some());
+        assert_eq!(v.robots[1].ci95.ate_ori_deg, None);
+        assert!(v.mean_ci95.ate_pos_m.is_some());
     }
 
     #[test]

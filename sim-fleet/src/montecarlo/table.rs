@@ -1,12 +1,13 @@
 //! The Markdown table of a Monte-Carlo study (`table.md`, also printed).
 
-use super::aggregate::{Range, StudySummary};
+use super::aggregate::{Range, Scalars, StudySummary};
 use common::summary::MetricSet;
 use std::fmt::Write as _;
 
 /// Renders the study as a Markdown table: one row per (variant, robot) and a
 /// `mean` row per variant (the average over runs of each run's robot mean).
-/// ATE columns show `mean [min-max]` over the runs; `runs` counts the robot
+/// ATE columns show `mean ± h [min-max]` over the runs, `h` the half-width of
+/// the mean's 95 % interval (Student t); `runs` counts the robot
 /// runs of the row and `diverged` those that diverged (failed ones included,
 /// also shown in brackets). Unknown values are `-`.
 pub fn render_table(study: &StudySummary) -> String {
@@ -31,6 +32,7 @@ pub fn render_table(study: &StudySummary) -> String {
                 name,
                 &format!("{} {}", r.id, r.trajectory),
                 &r.metrics,
+                &r.ci95,
                 (r.spread.ate_ori_deg, r.spread.ate_pos_m),
                 (r.runs, r.diverged, r.failed),
             );
@@ -40,6 +42,7 @@ pub fn render_table(study: &StudySummary) -> String {
             name,
             "mean",
             &v.mean,
+            &v.mean_ci95,
             (v.mean_spread.ate_ori_deg, v.mean_spread.ate_pos_m),
             (v.robots.iter().map(|r| r.runs).sum(), v.diverged, v.failed),
         );
@@ -52,6 +55,7 @@ fn row(
     variant: &str,
     robot: &str,
     m: &MetricSet,
+    ci: &Scalars,
     (ori_spread, pos_spread): (Option<Range>, Option<Range>),
     (runs, diverged, failed): (usize, usize, usize),
 ) {
@@ -63,8 +67,8 @@ fn row(
     let _ = writeln!(
         out,
         "| {variant} | {robot} | {} | {} | {} | {} | {} | {} | {runs} | {diverged} |",
-        with_range(m.ate_ori_deg, ori_spread, 3),
-        with_range(m.ate_pos_m, pos_spread, 3),
+        with_range(m.ate_ori_deg, ci.ate_ori_deg, ori_spread, 3),
+        with_range(m.ate_pos_m, ci.ate_pos_m, pos_spread, 3),
         num(m.nees_ori, 2),
         num(m.nees_pos, 2),
         num(m.ms_per_frame_mean, 2),
@@ -76,16 +80,20 @@ fn num(v: Option<f64>, decimals: usize) -> String {
     v.map_or_else(|| "-".to_string(), |v| format!("{v:.decimals$}"))
 }
 
-fn with_range(mean: Option<f64>, spread: Option<Range>, decimals: usize) -> String {
-    match spread {
-        Some(r) => format!(
-            "{} [{:.decimals$}-{:.decimals$}]",
-            num(mean, decimals),
-            r.min,
-            r.max
-        ),
-        None => num(mean, decimals),
+fn with_range(
+    mean: Option<f64>,
+    ci95: Option<f64>,
+    spread: Option<Range>,
+    decimals: usize,
+) -> String {
+    let mut s = num(mean, decimals);
+    if let (Some(_), Some(h)) = (mean, ci95) {
+        let _ = write!(s, " ± {h:.decimals$}");
     }
+    if let Some(r) = spread {
+        let _ = write!(s, " [{:.decimals$}-{:.decimals$}]", r.min, r.max);
+    }
+    s
 }
 
 #[cfg(test)]
@@ -136,7 +144,7 @@ mod tests {
         assert_eq!(lines.len(), 2 + 3 + 2, "{table}");
         assert!(
             lines[2].starts_with(
-                "| indp | 0 a | 1.000 [1.000-1.000] | 0.200 [0.100-0.300] | - | 3.14 |"
+                "| indp | 0 a | 1.000 ± 0.000 [1.000-1.000] | 0.200 ± 1.271 [0.100-0.300] | - | 3.14 |"
             ),
             "{table}"
         );
@@ -146,7 +154,7 @@ mod tests {
         assert!(
             lines[6]
                 .starts_with("| indp-slam | mean | 1.000 [1.000-1.000] | 0.500 [0.500-0.500] |"),
-            "{table}"
+            "one run: no interval; {table}"
         );
         assert!(lines[6].ends_with("| 2 | 1 (1 failed) |"), "{table}");
         assert!(table.contains("seeds 1-2"));
