@@ -55,6 +55,10 @@ pub struct MontecarloArgs {
     /// Output folder.
     #[arg(long)]
     pub out: PathBuf,
+    /// A variant of the study to set the others against, seed by seed: the
+    /// ratios of their means with 95 % intervals follow the table.
+    #[arg(long)]
+    pub baseline: Option<Variant>,
 }
 
 /// Why a Monte-Carlo study could not run or write its results.
@@ -381,6 +385,12 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<StudySummary, MontecarloError
             )));
         }
     }
+    if let Some(b) = args.baseline.filter(|b| !variants.contains(b)) {
+        return Err(MontecarloError::Args(format!(
+            "the baseline {} is not one of the study's variants",
+            b.name()
+        )));
+    }
     let robots = scenario.robots.len();
     let jobs: Vec<Job> = (0..seeds.len())
         .flat_map(|seed| {
@@ -560,15 +570,26 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<StudySummary, MontecarloError
     let text = serde_json::to_string_pretty(&study)?;
     std::fs::write(&path, text + "\n").map_err(|source| MontecarloError::Io { path, source })?;
     let path = args.out.join("table.md");
-    std::fs::write(&path, table::render_table(&study))
+    std::fs::write(&path, render(&study, args)?)
         .map_err(|source| MontecarloError::Io { path, source })?;
     Ok(study)
+}
+
+/// The table, and the ratios to the baseline variant when one is asked for.
+fn render(study: &StudySummary, args: &MontecarloArgs) -> Result<String, MontecarloError> {
+    let mut text = table::render_table(study);
+    if let Some(b) = &args.baseline {
+        let ratios = crate::paired::render_against_baseline(study, b.name())
+            .map_err(|e| MontecarloError::Args(e.to_string()))?;
+        text.push_str(&ratios);
+    }
+    Ok(text)
 }
 
 /// Runs `sim-fleet montecarlo`: the study, then the table on stdout.
 pub fn run_montecarlo(args: &MontecarloArgs) -> anyhow::Result<()> {
     let study = montecarlo(args)?;
-    print!("{}", table::render_table(&study));
+    print!("{}", render(&study, args)?);
     if !study.failures.is_empty() {
         tracing::warn!(
             "{} robot runs failed (listed under `failures` in {})",

@@ -196,6 +196,38 @@ pub fn render(report: &PairedReport) -> String {
     out
 }
 
+/// Every other variant of `study` against `baseline`, seed by seed: the ratio
+/// of the robot means (`variant / baseline`) of each scalar key with its 95 %
+/// bootstrap interval, one row per variant (`sim-fleet montecarlo --baseline`).
+pub fn render_against_baseline(study: &StudySummary, baseline: &str) -> Result<String> {
+    let here = Path::new("this study");
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "\nRatio of each variant's mean to `{baseline}`'s, seed by seed (95 % bootstrap \
+         interval; below 1: smaller than {baseline}'s):\n"
+    );
+    out.push_str("| variant | ATE ori deg | ATE pos m | NEES ori | NEES pos |\n");
+    out.push_str("| --- | ---: | ---: | ---: | ---: |\n");
+    for (name, _) in study.variants.iter().filter(|(n, _)| n != baseline) {
+        let report = compare((baseline, study), (name, study), (here, here))?;
+        let cells: Vec<String> = report
+            .rows
+            .iter()
+            .filter(|r| r.robot == "mean")
+            .map(
+                |r| match r.stats.and_then(|p| p.ratio.map(|x| (x, p.ratio_ci95))) {
+                    Some((x, Some((lo, hi)))) => format!("{x:.3} [{lo:.3}-{hi:.3}]"),
+                    Some((x, None)) => format!("{x:.3}"),
+                    None => "-".to_string(),
+                },
+            )
+            .collect();
+        let _ = writeln!(out, "| {name} | {} |", cells.join(" | "));
+    }
+    Ok(out)
+}
+
 /// `sim-fleet paired`: prints the table (and writes the JSON with `--out`).
 pub fn run_paired(args: &PairedArgs) -> Result<()> {
     let (a, pa) = (&args.a.0, args.a.1.as_path());
@@ -289,6 +321,25 @@ mod tests {
         );
         assert!(table.contains("| 1 y | ATE pos m | 3 |"), "{table}");
         assert!(table.contains("| mean | ATE ori deg | 0 | - |"), "{table}");
+    }
+
+    #[test]
+    fn every_variant_is_set_against_the_baseline_in_one_row() {
+        let s = study(
+            vec![1, 2],
+            vec![
+                ("indp", vec![vec![0.2, 0.2], vec![0.4, 0.4]]),
+                ("half", vec![vec![0.1, 0.1], vec![0.2, 0.2]]),
+                ("same", vec![vec![0.2, 0.2], vec![0.4, 0.4]]),
+            ],
+        );
+        let t = render_against_baseline(&s, "indp").unwrap();
+        assert!(
+            t.contains("| half | - | 0.500 [0.500-0.500] | - | - |"),
+            "{t}"
+        );
+        assert!(t.contains("| same | - | 1.000 [1.000-1.000] |"), "{t}");
+        assert!(!t.contains("| indp |"), "{t}");
     }
 
     #[test]

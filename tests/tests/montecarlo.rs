@@ -30,6 +30,8 @@ fn montecarlo(scenario: &Path, jobs: &str, out: &Path) -> Result<Value> {
             "indp,indp-slam",
             "--jobs",
             jobs,
+            "--baseline",
+            "indp",
             "--out",
         ])
         .arg(out)
@@ -43,6 +45,14 @@ fn montecarlo(scenario: &Path, jobs: &str, out: &Path) -> Result<Value> {
     assert!(
         stdout.contains("| indp-slam | mean |"),
         "the table is printed: {stdout}"
+    );
+    let ratios = stdout
+        .split_once("Ratio of each variant's mean to `indp`'s")
+        .map(|(_, r)| r)
+        .unwrap_or_default();
+    assert!(
+        ratios.contains("| indp-slam | ") && !ratios.contains("| indp | "),
+        "the ratios to the baseline follow the table: {stdout}"
     );
     Ok(serde_json::from_str(&std::fs::read_to_string(
         out.join("summary.json"),
@@ -167,6 +177,21 @@ fn montecarlo_rejects_an_unknown_variant_before_running_anything() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
         stderr.contains("unknown variant `collaborative`"),
+        "{stderr}"
+    );
+    assert!(!out.join("summary.json").exists());
+
+    // A baseline the study does not run is an error before anything runs too.
+    let output = Command::new(bin("sim-fleet"))
+        .args(["montecarlo", scenario.to_str().unwrap(), "--runs", "1"])
+        .args(["--variants", "indp", "--baseline", "indp-slam", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("the baseline indp-slam is not one of the study's variants"),
         "{stderr}"
     );
     assert!(!out.join("summary.json").exists());
