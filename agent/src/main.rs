@@ -93,7 +93,11 @@ struct RunArgs {
     render: bool,
 }
 
-fn main() -> Result<()> {
+fn main() -> std::process::ExitCode {
+    common::exit_report::exit_code(run_main())
+}
+
+fn run_main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()

@@ -8,6 +8,7 @@
 //! * [`calibration`]: a camera's intrinsics, camera-IMU extrinsics and time offset.
 //! * [`descriptor`]: 256-bit binary descriptors.
 //! * [`epipolar`]: fundamental matrix (eight-point, Sampson error, RANSAC).
+//! * [`exit_report`]: how the binaries print the error that ends them.
 //! * [`image`]: 8-bit grayscale images and their PNG encoding.
 //! * [`loopback_ports`]: free loopback ports for Zenoh peers started together.
 //! * [`estimator_options`]: the estimator's options and their defaults.
@@ -25,6 +26,7 @@ pub mod conventions;
 pub mod descriptor;
 pub mod epipolar;
 pub mod estimator_options;
+pub mod exit_report;
 pub mod image;
 pub mod loopback_ports;
 pub mod measurement;

@@ -42,7 +42,11 @@ enum Command {
     ConvertEuroc(ConvertArgs),
 }
 
-fn main() -> Result<()> {
+fn main() -> std::process::ExitCode {
+    common::exit_report::exit_code(run_main())
+}
+
+fn run_main() -> Result<()> {
     let cli = Cli::parse();
     // Monte-Carlo studies run whole fleets in this process: their agents' peer
     // events would drown the table, so agents log warnings only there.

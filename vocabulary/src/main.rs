@@ -155,7 +155,11 @@ fn query(vocab_path: &Path, descriptors: &Path) -> Result<()> {
     Ok(())
 }
 
-fn main() -> Result<()> {
+fn main() -> std::process::ExitCode {
+    common::exit_report::exit_code(run_main())
+}
+
+fn run_main() -> Result<()> {
     match run() {
         // A closed pipe (`vocab query ... | head`) is not an error.
         Err(e)
