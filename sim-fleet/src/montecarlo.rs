@@ -368,8 +368,9 @@ fn progress_bar(len: usize) -> ProgressBar {
 }
 
 /// Runs the study of `args`; returns its summary (also written to
-/// `DIR/summary.json`, with the table in `DIR/table.md`).
-pub fn montecarlo(args: &MontecarloArgs) -> Result<StudySummary, MontecarloError> {
+/// `DIR/summary.json`) and its table (`DIR/table.md`, followed by the ratios
+/// to the baseline with `--baseline`, which also writes `DIR/baseline.json`).
+pub fn montecarlo(args: &MontecarloArgs) -> Result<(StudySummary, String), MontecarloError> {
     let wall = Instant::now();
     let scenario = Scenario::load(&args.scenario)?;
     let seeds = seed_range(args.seed_start, args.runs)?;
@@ -569,27 +570,25 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<StudySummary, MontecarloError
     let path = args.out.join("summary.json");
     let text = serde_json::to_string_pretty(&study)?;
     std::fs::write(&path, text + "\n").map_err(|source| MontecarloError::Io { path, source })?;
-    let path = args.out.join("table.md");
-    std::fs::write(&path, render(&study, args)?)
-        .map_err(|source| MontecarloError::Io { path, source })?;
-    Ok(study)
-}
-
-/// The table, and the ratios to the baseline variant when one is asked for.
-fn render(study: &StudySummary, args: &MontecarloArgs) -> Result<String, MontecarloError> {
-    let mut text = table::render_table(study);
+    let mut table = table::render_table(&study);
     if let Some(b) = &args.baseline {
-        let ratios = crate::paired::render_against_baseline(study, b.name())
+        let comparison = crate::paired::against_baseline(&study, b.name())
             .map_err(|e| MontecarloError::Args(e.to_string()))?;
-        text.push_str(&ratios);
+        table.push_str(&comparison.render());
+        let path = args.out.join("baseline.json");
+        let text = serde_json::to_string_pretty(&comparison)?;
+        std::fs::write(&path, text + "\n")
+            .map_err(|source| MontecarloError::Io { path, source })?;
     }
-    Ok(text)
+    let path = args.out.join("table.md");
+    std::fs::write(&path, &table).map_err(|source| MontecarloError::Io { path, source })?;
+    Ok((study, table))
 }
 
 /// Runs `sim-fleet montecarlo`: the study, then the table on stdout.
 pub fn run_montecarlo(args: &MontecarloArgs) -> anyhow::Result<()> {
-    let study = montecarlo(args)?;
-    print!("{}", render(&study, args)?);
+    let (study, table) = montecarlo(args)?;
+    print!("{table}");
     if !study.failures.is_empty() {
         tracing::warn!(
             "{} robot runs failed (listed under `failures` in {})",

@@ -196,36 +196,63 @@ pub fn render(report: &PairedReport) -> String {
     out
 }
 
-/// Every other variant of `study` against `baseline`, seed by seed: the ratio
-/// of the robot means (`variant / baseline`) of each scalar key with its 95 %
-/// bootstrap interval, one row per variant (`sim-fleet montecarlo --baseline`).
-pub fn render_against_baseline(study: &StudySummary, baseline: &str) -> Result<String> {
+/// Every other variant of `study` compared with `baseline`, seed by seed
+/// (`sim-fleet montecarlo --baseline`), in the study's variant order.
+pub fn against_baseline(study: &StudySummary, baseline: &str) -> Result<BaselineComparison> {
     let here = Path::new("this study");
-    let mut out = String::new();
-    let _ = writeln!(
-        out,
-        "\nRatio of each variant's mean to `{baseline}`'s, seed by seed (95 % bootstrap \
-         interval; below 1: smaller than {baseline}'s):\n"
-    );
-    out.push_str("| variant | ATE ori deg | ATE pos m | NEES ori | NEES pos |\n");
-    out.push_str("| --- | ---: | ---: | ---: | ---: |\n");
-    for (name, _) in study.variants.iter().filter(|(n, _)| n != baseline) {
-        let report = compare((baseline, study), (name, study), (here, here))?;
-        let cells: Vec<String> = report
-            .rows
-            .iter()
-            .filter(|r| r.robot == "mean")
-            .map(
-                |r| match r.stats.and_then(|p| p.ratio.map(|x| (x, p.ratio_ci95))) {
-                    Some((x, Some((lo, hi)))) => format!("{x:.3} [{lo:.3}-{hi:.3}]"),
-                    Some((x, None)) => format!("{x:.3}"),
-                    None => "-".to_string(),
-                },
-            )
-            .collect();
-        let _ = writeln!(out, "| {name} | {} |", cells.join(" | "));
+    let variants = study
+        .variants
+        .iter()
+        .filter(|(n, _)| n != baseline)
+        .map(|(name, _)| {
+            compare((baseline, study), (name, study), (here, here)).map(|r| (name.clone(), r))
+        })
+        .collect::<Result<_>>()?;
+    Ok(BaselineComparison {
+        baseline: baseline.to_string(),
+        variants,
+    })
+}
+
+/// The variants of one study against its baseline (`DIR/baseline.json`).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct BaselineComparison {
+    /// The baseline variant.
+    pub baseline: String,
+    /// Each other variant with its comparison (`a` = the baseline).
+    pub variants: Vec<(String, PairedReport)>,
+}
+
+impl BaselineComparison {
+    /// One row per variant: the ratio of its robot mean to the baseline's for
+    /// each scalar key, with the 95 % bootstrap interval.
+    pub fn render(&self) -> String {
+        let baseline = &self.baseline;
+        let mut out = String::new();
+        let _ = writeln!(
+            out,
+            "\nRatio of each variant's mean to `{baseline}`'s, seed by seed (95 % bootstrap \
+             interval; below 1: smaller than {baseline}'s):\n"
+        );
+        out.push_str("| variant | ATE ori deg | ATE pos m | NEES ori | NEES pos |\n");
+        out.push_str("| --- | ---: | ---: | ---: | ---: |\n");
+        for (name, report) in &self.variants {
+            let cells: Vec<String> = report
+                .rows
+                .iter()
+                .filter(|r| r.robot == "mean")
+                .map(
+                    |r| match r.stats.and_then(|p| p.ratio.map(|x| (x, p.ratio_ci95))) {
+                        Some((x, Some((lo, hi)))) => format!("{x:.3} [{lo:.3}-{hi:.3}]"),
+                        Some((x, None)) => format!("{x:.3}"),
+                        None => "-".to_string(),
+                    },
+                )
+                .collect();
+            let _ = writeln!(out, "| {name} | {} |", cells.join(" | "));
+        }
+        out
     }
-    Ok(out)
 }
 
 /// `sim-fleet paired`: prints the table (and writes the JSON with `--out`).
@@ -333,7 +360,9 @@ mod tests {
                 ("same", vec![vec![0.2, 0.2], vec![0.4, 0.4]]),
             ],
         );
-        let t = render_against_baseline(&s, "indp").unwrap();
+        let c = against_baseline(&s, "indp").unwrap();
+        assert_eq!(c.variants.len(), 2);
+        let t = c.render();
         assert!(
             t.contains("| half | - | 0.500 [0.500-0.500] | - | - |"),
             "{t}"

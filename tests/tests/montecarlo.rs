@@ -98,6 +98,18 @@ fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_
     assert!(slam_robot["metrics"]["ate_ori_deg"].is_number());
     assert!(slam_robot["spread"]["nees_pos"]["min"].is_number());
     assert!(out1.join("table.md").is_file());
+    // --baseline indp: the comparison of every other variant, as JSON too.
+    let baseline: Value =
+        serde_json::from_str(&std::fs::read_to_string(out1.join("baseline.json")).unwrap())
+            .unwrap();
+    assert_eq!(baseline["baseline"], "indp");
+    let slam = &baseline["variants"][0];
+    assert_eq!(slam[0], "indp-slam");
+    assert_eq!(slam[1]["seeds"], serde_json::json!([1, 2]));
+    assert!(
+        slam[1]["rows"][1]["stats"]["ratio"].is_number(),
+        "{baseline}"
+    );
     // Per-seed values (for paired comparisons) and the 95 % intervals of the means.
     assert_eq!(indp["run_means"].as_array().map(Vec::len), Some(2));
     assert_eq!(slam_robot["per_run"].as_array().map(Vec::len), Some(2));
