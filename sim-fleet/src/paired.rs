@@ -182,11 +182,7 @@ pub fn render(report: &PairedReport) -> String {
             Some(h) => format!("{:+.4} ± {h:.4}", p.diff),
             None => format!("{:+.4}", p.diff),
         };
-        let ratio = match (p.ratio, p.ratio_ci95) {
-            (Some(x), Some((lo, hi))) => format!("{x:.3} [{lo:.3}-{hi:.3}]"),
-            (Some(x), None) => format!("{x:.3}"),
-            (None, _) => "-".to_string(),
-        };
+        let ratio = ratio_cell(Some(p));
         let _ = writeln!(
             out,
             "| {} | {} | {} | {:.4} | {:.4} | {diff} | {ratio} |",
@@ -241,17 +237,20 @@ impl BaselineComparison {
                 .rows
                 .iter()
                 .filter(|r| r.robot == "mean")
-                .map(
-                    |r| match r.stats.and_then(|p| p.ratio.map(|x| (x, p.ratio_ci95))) {
-                        Some((x, Some((lo, hi)))) => format!("{x:.3} [{lo:.3}-{hi:.3}]"),
-                        Some((x, None)) => format!("{x:.3}"),
-                        None => "-".to_string(),
-                    },
-                )
+                .map(|r| ratio_cell(r.stats.as_ref()))
                 .collect();
             let _ = writeln!(out, "| {name} | {} |", cells.join(" | "));
         }
         out
+    }
+}
+
+/// `b / a [lo-hi]`, `b / a` without an interval, or `-` without a ratio.
+fn ratio_cell(p: Option<&Paired>) -> String {
+    match p.and_then(|p| p.ratio.map(|x| (x, p.ratio_ci95))) {
+        Some((x, Some((lo, hi)))) => format!("{x:.3} [{lo:.3}-{hi:.3}]"),
+        Some((x, None)) => format!("{x:.3}"),
+        None => "-".to_string(),
     }
 }
 
