@@ -178,5 +178,6 @@ pub fn metrics_of(report: &NodeReport) -> MetricSet {
     m.latency_ms_mean = (!lat.is_empty()).then(|| lat.iter().sum::<f64>() / lat.len() as f64);
     m.latency_ms_p99 = (!lat.is_empty()).then(|| percentile(&lat, 0.99));
     m.history_bytes = Some(report.peak_history_bytes as u64);
+    m.cpu_s = report.cpu_s;
     m
 }

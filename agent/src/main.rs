@@ -142,7 +142,10 @@ fn run_agent(config: &std::path::Path, progress: bool) -> Result<()> {
         ticks = setup.ticks_total,
         "agent starting"
     );
-    let report = run_node(&cfg, &setup, transport, &stop, |p| {
+    // This process is one agent: its CPU time (the transport's threads too) is
+    // the agent's cost, rather than the node thread's alone.
+    let cpu_start = cpu_time::ProcessTime::try_now().ok();
+    let mut report = run_node(&cfg, &setup, transport, &stop, |p| {
         if progress {
             println!(
                 "progress {} {} {} {:.3}",
@@ -150,6 +153,9 @@ fn run_agent(config: &std::path::Path, progress: bool) -> Result<()> {
             );
         }
     })?;
+    if let Some(d) = cpu_start.and_then(|t| t.try_elapsed().ok()) {
+        report.cpu_s = Some(d.as_secs_f64());
+    }
     std::fs::create_dir_all(&cfg.output_dir)
         .with_context(|| format!("creating {}", cfg.output_dir.display()))?;
     write_outputs(&report, cfg.robot_id, name, &cfg.output_dir)

@@ -88,6 +88,9 @@ pub struct NodeReport {
     pub fleet_s: f64,
     /// Wall time, s.
     pub wall_s: f64,
+    /// CPU time of the node's thread over the run, s (the agent binary
+    /// replaces it with its whole process's: the transport's threads too).
+    pub cpu_s: Option<f64>,
     /// Stopped by a signal before the end of the data.
     pub interrupted: bool,
     /// Publish errors (the message was not sent; the run went on).
@@ -366,6 +369,7 @@ pub fn run_node(
     stop: &AtomicBool,
     mut progress: impl FnMut(Progress),
 ) -> Result<NodeReport, NodeError> {
+    let cpu_start = cpu_time::ThreadTime::try_now().ok();
     let fleet = &setup.fleet;
     let robot = setup.robot;
     let truth = fleet
@@ -633,6 +637,10 @@ pub fn run_node(
     node.report.fleet_s = t_last - grid.t0_s;
     node.report.run.cooperation = est.cooperation().map(|c| c.stats);
     node.report.wall_s = node.wall_s();
+    node.report.cpu_s = cpu_start
+        .as_ref()
+        .map(|t| t.try_elapsed().map_or(f64::NAN, |d| d.as_secs_f64()))
+        .filter(|s| s.is_finite());
     if let Some(log) = node.log.take() {
         if let Err(e) = log.finish() {
             tracing::warn!("MCAP log: {e}");

@@ -87,6 +87,10 @@ pub struct MetricSet {
     pub loop_closures: Option<u64>,
     /// Filter updates with features seen by several robots.
     pub common_feature_updates: Option<u64>,
+    /// CPU time of the run, s: an agent process's, all its threads (transport
+    /// included) from the start of its run to the end; an agent on a thread of
+    /// `sim-fleet`, its thread's. It includes simulating the robot's sensors.
+    pub cpu_s: Option<f64>,
 }
 
 /// Why a summary could not be written or read.
@@ -172,6 +176,7 @@ impl MetricSet {
             history_bytes: u(|s| s.history_bytes),
             loop_closures: u(|s| s.loop_closures),
             common_feature_updates: u(|s| s.common_feature_updates),
+            cpu_s: f(|s| s.cpu_s),
         }
     }
 }

@@ -266,7 +266,7 @@ pub fn run_fleet(args: &RunArgs) -> Result<()> {
     bar.finish_and_clear();
     let summary = collect(&scenario, args, &configs, wall.elapsed().as_secs_f64());
     summary.write_json(out.join("summary.json"))?;
-    print_summary(&summary, &out);
+    print_summary(&summary, &out, scenario.sensors.camera.rate_hz);
     if !failures.is_empty() {
         bail!("agents failed: {}", failures.join("; "));
     }
@@ -310,7 +310,7 @@ fn run_centralized(
         robots,
     };
     summary.write_json(out.join("summary.json"))?;
-    print_summary(&summary, out);
+    print_summary(&summary, out, scenario.sensors.camera.rate_hz);
     Ok(())
 }
 
@@ -522,7 +522,7 @@ fn collect(
     }
 }
 
-fn print_summary(s: &RunSummary, out: &Path) {
+fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
     let f = |v: Option<f64>, d: usize| v.map_or("-".to_string(), |v| format!("{v:.d$}"));
     println!(
         "{} robots over {}, {} s of fleet time in {} s",
@@ -531,11 +531,21 @@ fn print_summary(s: &RunSummary, out: &Path) {
         f(s.sim_s, 1),
         f(s.wall_s, 1)
     );
-    println!("robot  trajectory            ATE deg  ATE m   NEES ori  NEES pos  KB/s sent  msgs in  dropped");
+    println!(
+        "robot  trajectory            ATE deg  ATE m   NEES ori  NEES pos  KB/s sent  msgs in  dropped  CPU %"
+    );
+    // CPU time per second of the robot's own data (its frames at the camera
+    // rate): the share of a core the agent needs to keep up in real time.
+    let data_s = |m: &MetricSet| m.frames.map(|n| n as f64 / camera_rate_hz);
+    let share = |m: &MetricSet| {
+        m.cpu_s
+            .zip(data_s(m))
+            .and_then(|(c, t)| (t > 0.0).then(|| c / t))
+    };
     for r in &s.robots {
         let m = &r.metrics;
         println!(
-            "{:<6} {:<21} {:>7}  {:>6}  {:>8}  {:>8}  {:>9}  {:>7}  {:>7}",
+            "{:<6} {:<21} {:>7}  {:>6}  {:>8}  {:>8}  {:>9}  {:>7}  {:>7}  {:>5}",
             r.id,
             r.trajectory,
             f(m.ate_ori_deg, 3),
@@ -545,6 +555,21 @@ fn print_summary(s: &RunSummary, out: &Path) {
             f(m.bytes_per_s_sent.map(|b| b / 1000.0), 1),
             m.messages_received.map_or("-".into(), |v| v.to_string()),
             m.messages_dropped.map_or("-".into(), |v| v.to_string()),
+            f(share(m).map(|x| 100.0 * x), 1),
+        );
+    }
+    // Over the fleet: all CPU time over all data time.
+    let (cpu, data) = s.robots.iter().fold((0.0, 0.0), |(c, d), r| {
+        match (r.metrics.cpu_s, data_s(&r.metrics)) {
+            (Some(x), Some(y)) => (c + x, d + y),
+            _ => (c, d),
+        }
+    });
+    if let Some(x) = (data > 0.0 && cpu > 0.0).then(|| cpu / data) {
+        println!(
+            "real time needs {:.1} % of a core per agent: {:.0} agents per core (simulated sensors included)",
+            100.0 * x,
+            1.0 / x
         );
     }
     println!("summary: {}", out.join("summary.json").display());

@@ -82,6 +82,9 @@ fn assert_valid_estimates(summary: &Value, robots: usize) {
             "robot {}: ATE {ate} m",
             r["id"]
         );
+        // Its CPU time, for the real-time share of a core the launcher prints.
+        let cpu = r["cpu_s"].as_f64().unwrap_or(-1.0);
+        assert!(cpu > 0.0 && cpu < 600.0, "robot {}: cpu_s {cpu}", r["id"]);
     }
 }
 

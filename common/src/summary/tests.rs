@@ -11,7 +11,7 @@ fn rpe_row(segment_m: f64, pos: Option<f64>, count: usize) -> RpeEntry {
     }
 }
 
-const METRIC_KEYS: [&str; 20] = [
+const METRIC_KEYS: [&str; 21] = [
     "ate_ori_deg",
     "ate_pos_m",
     "nees_ori",
@@ -32,6 +32,7 @@ const METRIC_KEYS: [&str; 20] = [
     "history_bytes",
     "loop_closures",
     "common_feature_updates",
+    "cpu_s",
 ];
 
 #[test]
