@@ -59,8 +59,8 @@ fn montecarlo(scenario: &Path, jobs: &str, out: &Path) -> Result<Value> {
     )?)?)
 }
 
-/// The `mean` of every variant without the timing and latency keys (which
-/// depend on the load).
+/// The `mean` of every variant without the timing, latency and CPU-time keys
+/// (which depend on the load).
 fn means_without_timing(summary: &Value) -> Vec<(String, Value)> {
     let Some(variants) = summary["variants"].as_object() else {
         return Vec::new();
@@ -69,7 +69,9 @@ fn means_without_timing(summary: &Value) -> Vec<(String, Value)> {
         .iter()
         .map(|(name, v)| {
             let mut mean = v["mean"].as_object().cloned().unwrap_or_default();
-            mean.retain(|k, _| !k.starts_with("ms_per_frame") && !k.starts_with("latency"));
+            mean.retain(|k, _| {
+                !k.starts_with("ms_per_frame") && !k.starts_with("latency") && k != "cpu_s"
+            });
             (name.clone(), Value::Object(mean))
         })
         .collect()
