@@ -398,6 +398,25 @@ mod tests {
     }
 
     #[test]
+    fn a_summary_without_per_seed_values_asks_for_a_new_study() {
+        // A summary.json written before `run_means` existed parses (the keys
+        // default to empty) but cannot be paired.
+        let mut s = study(vec![1, 2], vec![("indp", vec![vec![1.0, 1.0]; 2])]);
+        for (_, v) in &mut s.variants {
+            v.run_means.clear();
+        }
+        let p = Path::new("old");
+        let err = compare(("indp", &s), ("indp", &s), (p, p)).unwrap_err();
+        assert!(err.to_string().contains("no per-seed values"), "{err}");
+        let old = serde_json::to_string(&s)
+            .unwrap()
+            .replace("\"run_means\":[],", "");
+        assert!(!old.contains("run_means"), "{old}");
+        let back: StudySummary = serde_json::from_str(&old).expect("an old summary still parses");
+        assert!(back.variants[0].1.run_means.is_empty());
+    }
+
+    #[test]
     fn sides_are_variant_equals_study() {
         assert_eq!(
             parse_side("dc-full-history=out/mc").unwrap(),
