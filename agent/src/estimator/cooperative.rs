@@ -119,7 +119,7 @@ pub fn update(
     stats.constraint_ms = ms(t);
     let t = Instant::now();
     slam_rows.extend(constraint_rows);
-    updater_common::apply_own_rows(state, &mut vio, &mut slam_rows);
+    let own_applied = updater_common::apply_own_rows(state, &mut vio, &mut slam_rows);
     let mut rows = std::mem::take(&mut vio.ci);
     rows.extend(slam_rows);
     let result = ci_system::update(state, &rows, p, &opts.cooperation);
@@ -129,6 +129,9 @@ pub fn update(
         stats.omega_own = o.omega_own;
     }
     stats.ci_update_ms = ms(t);
+    if !ok {
+        updater_common::fall_back(&mut vio.outcome, own_applied);
+    }
     stats.common_vio = vio.outcome.stats;
     stats.common_slam = slam.stats;
     stats.constraints = constraints.stats;
@@ -138,8 +141,6 @@ pub fn update(
         used.slam = slam.used;
         used.constraints = constraints.used;
     } else {
-        used.vio_fallback.extend(vio.outcome.used);
-        stats.common_vio.used = 0;
         stats.common_slam.used = 0;
         stats.constraints.used = 0;
     }

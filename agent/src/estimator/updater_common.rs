@@ -419,15 +419,31 @@ pub fn rows(
 }
 
 /// Our own rows by a standard EKF update; the CI rows' residuals then follow its
-/// correction to first order (they were linearized before it).
-pub fn apply_own_rows(state: &mut State, rows: &mut CommonRows, others: &mut [CiRows]) {
+/// correction to first order (they were linearized before it). Returns whether
+/// the update was applied: the tracks' own measurements are then spent, and
+/// must not go to the MSCKF again should the CI-EKF update fail.
+pub fn apply_own_rows(state: &mut State, rows: &mut CommonRows, others: &mut [CiRows]) -> bool {
     let Some((vars, h, res)) = rows.own.take() else {
-        return;
+        return false;
     };
     let eye = DMatrix::identity(res.len(), res.len());
-    if let Ok(dx) = state.ekf_update_dx(&vars, &h, &res, &eye) {
-        correct_residuals(&mut rows.ci, state, &dx);
-        correct_residuals(others, state, &dx);
+    let Ok(dx) = state.ekf_update_dx(&vars, &h, &res, &eye) else {
+        return false;
+    };
+    correct_residuals(&mut rows.ci, state, &dx);
+    correct_residuals(others, state, &dx);
+    true
+}
+
+/// After a failed CI-EKF update: the common tracks it would have used go to the
+/// MSCKF, unless their own rows were already applied (the MSCKF would use those
+/// measurements a second time; what they said of the peers is then lost).
+pub fn fall_back(out: &mut CommonOutcome, own_applied: bool) {
+    out.stats.used = 0;
+    if own_applied {
+        out.used.clear();
+    } else {
+        out.fallback.append(&mut out.used);
     }
 }
 
@@ -444,11 +460,10 @@ pub fn update(
     tri: &TriangulationOptions,
 ) -> CommonOutcome {
     let mut rows = rows(state, db, tracks, participants, opts, chi2, tri);
-    apply_own_rows(state, &mut rows, &mut []);
+    let own_applied = apply_own_rows(state, &mut rows, &mut []);
     let mut out = rows.outcome;
     if ci_system::update(state, &rows.ci, participants, &opts.cooperation).is_err() {
-        out.stats.used = 0;
-        out.fallback.append(&mut out.used);
+        fall_back(&mut out, own_applied);
     }
     out
 }

@@ -135,6 +135,38 @@ mod cases {
         assert_eq!(sc.state.cov(), before.cov());
     }
 
+    /// A CI-EKF update that fails (here: a peer window whose covariance is not
+    /// positive, which passes the gate but not the CI system) after our own
+    /// rows went in must not send the tracks to the MSCKF: their measurements
+    /// would be used twice. Without own rows (combined projection) they fall back.
+    #[test]
+    fn a_failed_ci_update_spends_each_measurement_once() {
+        for projection in [CommonProjection::TwoStage, CommonProjection::Combined] {
+            let mut sc = scene(6, 12, 1e-4, -1e-8);
+            let tracks: Vec<CommonTrack> = (0..12)
+                .map(|l| CommonTrack {
+                    id: l as u64,
+                    peer_obs: sc.peer_obs(l),
+                })
+                .collect();
+            let mut opts = EstimatorOptions::default();
+            opts.cooperation.projection = projection;
+            let before = sc.state.cov().trace();
+            let out = sc.common_update(&tracks, &opts);
+            assert_eq!(out.stats.used, 0, "{projection:?}: {:?}", out.stats);
+            assert!(out.used.is_empty());
+            let after = sc.state.cov().trace();
+            if projection == CommonProjection::TwoStage {
+                assert!(out.stats.own_rows > 0);
+                assert!(after < before, "our own rows were applied");
+                assert!(out.fallback.is_empty(), "{:?}", out.fallback);
+            } else {
+                assert_eq!(after, before);
+                assert_eq!(out.fallback.len(), 12);
+            }
+        }
+    }
+
     #[test]
     fn a_wrong_association_is_gated_out_and_falls_back() {
         let (out, _, _) = run(CommonProjection::TwoStage, true);
