@@ -298,6 +298,7 @@ impl RobotRun {
             .zip(self.truth.iter().copied())
             .collect();
         let a = ate(&pairs, Alignment::None);
+        let aligned = ate(&pairs, Alignment::PosYaw);
         let n = nees(&pairs, &self.covariance);
         let mut times: Vec<f64> = self.frames.iter().map(|f| f.timing.total_ms).collect();
         times.sort_by(f64::total_cmp);
@@ -306,6 +307,8 @@ impl RobotRun {
         MetricSet {
             ate_ori_deg: (a.n > 0).then_some(a.ori_deg),
             ate_pos_m: (a.n > 0).then_some(a.pos_m),
+            ate_posyaw_ori_deg: (aligned.n > 0).then_some(aligned.ori_deg),
+            ate_posyaw_pos_m: (aligned.n > 0).then_some(aligned.pos_m),
             nees_ori: n.ori_mean,
             nees_pos: n.pos_mean,
             rpe: Some(rpe(&pairs, &DEFAULT_RPE_SEGMENTS_M)),
@@ -370,4 +373,35 @@ pub fn write_run_outputs(run: &RobotRun, dir: &std::path::Path) -> std::io::Resu
         )?;
     }
     timing.flush()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Rotation3, Vector3};
+
+    /// An estimate that is the truth turned by 2 deg of yaw and moved by 10 cm:
+    /// the unaligned ATE sees both, the position-and-yaw aligned one neither.
+    #[test]
+    fn the_aligned_ate_removes_a_yaw_and_offset_the_plain_one_keeps() {
+        let yaw = Rotation3::from_axis_angle(&Vector3::z_axis(), 2f64.to_radians());
+        let offset = Vector3::new(0.06, -0.08, 0.0);
+        let mut run = RobotRun::default();
+        for k in 0..50 {
+            let t = 0.1 * k as f64;
+            let rot = Rotation3::from_euler_angles(0.1 * t.sin(), 0.05, 0.3 * t).into_inner();
+            let pos = Vector3::new(2.0 * t.cos(), 1.5 * t.sin(), 0.2 * t);
+            run.truth.push(StampedPose { t, rot, pos });
+            run.estimate.push(StampedPose {
+                t,
+                rot: yaw.matrix() * rot,
+                pos: yaw * pos + offset,
+            });
+        }
+        let m = run.metrics();
+        assert!(m.ate_pos_m.unwrap() > 0.09, "{:?}", m.ate_pos_m);
+        assert!((m.ate_ori_deg.unwrap() - 2.0).abs() < 1e-9);
+        assert!(m.ate_posyaw_pos_m.unwrap() < 1e-9, "{m:?}");
+        assert!(m.ate_posyaw_ori_deg.unwrap() < 1e-6, "{m:?}");
+    }
 }

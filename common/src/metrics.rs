@@ -67,7 +67,7 @@ pub enum Alignment {
     /// No alignment (both already in the same frame).
     #[default]
     None,
-    /// Yaw about `z` plus translation (4 DoF, what VIO can observe).
+    /// Yaw about `z` plus translation (4 DoF, the directions VIO cannot observe).
     PosYaw,
     /// Rotation plus translation (6 DoF), no scale.
     Se3,

@@ -51,6 +51,14 @@ pub struct MetricSet {
     pub ate_ori_deg: Option<f64>,
     /// ATE position RMSE (m).
     pub ate_pos_m: Option<f64>,
+    /// ATE orientation RMSE after aligning the estimate to the truth by a yaw and
+    /// a translation (4 DoF, the directions VIO cannot observe; fitted to the
+    /// positions, `Alignment::PosYaw`), degrees: the figure single-robot VIO
+    /// papers report. The fit minimizes the position error, so this can exceed
+    /// the unaligned orientation ATE.
+    pub ate_posyaw_ori_deg: Option<f64>,
+    /// ATE position RMSE after the same alignment (m).
+    pub ate_posyaw_pos_m: Option<f64>,
     /// Mean orientation NEES.
     pub nees_ori: Option<f64>,
     /// Mean position NEES.
@@ -158,6 +166,8 @@ impl MetricSet {
         MetricSet {
             ate_ori_deg: f(|s| s.ate_ori_deg),
             ate_pos_m: f(|s| s.ate_pos_m),
+            ate_posyaw_ori_deg: f(|s| s.ate_posyaw_ori_deg),
+            ate_posyaw_pos_m: f(|s| s.ate_posyaw_pos_m),
             nees_ori: f(|s| s.nees_ori),
             nees_pos: f(|s| s.nees_pos),
             rpe: mean_rpe(sets),

@@ -230,8 +230,10 @@ impl BaselineComparison {
             "\nRatio of each variant's mean to `{baseline}`'s, seed by seed (95 % bootstrap \
              interval; below 1: smaller than {baseline}'s):\n"
         );
-        out.push_str("| variant | ATE ori deg | ATE pos m | NEES ori | NEES pos |\n");
-        out.push_str("| --- | ---: | ---: | ---: | ---: |\n");
+        let keys = Scalars::default().named();
+        let names: Vec<&str> = keys.iter().map(|(n, _)| *n).collect();
+        let _ = writeln!(out, "| variant | {} |", names.join(" | "));
+        let _ = writeln!(out, "| --- |{}", " ---: |".repeat(names.len()));
         for (name, report) in &self.variants {
             let cells: Vec<String> = report
                 .rows
@@ -322,8 +324,8 @@ mod tests {
         let p = Path::new("mc");
         let r = compare(("indp", &s), ("coop", &s), (p, p)).unwrap();
         assert_eq!(r.seeds, vec![1, 2, 3]);
-        // The mean and two robots, four keys each.
-        assert_eq!(r.rows.len(), 12);
+        // The mean and two robots, six keys each (with the aligned ATE).
+        assert_eq!(r.rows.len(), 18);
         let pos = r
             .rows
             .iter()

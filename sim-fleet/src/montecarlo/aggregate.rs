@@ -95,6 +95,12 @@ pub struct Scalars {
     pub nees_ori: Option<f64>,
     /// Mean position NEES.
     pub nees_pos: Option<f64>,
+    /// ATE orientation RMSE after a position-and-yaw alignment (degrees).
+    #[serde(default)]
+    pub ate_posyaw_ori_deg: Option<f64>,
+    /// ATE position RMSE after a position-and-yaw alignment (m).
+    #[serde(default)]
+    pub ate_posyaw_pos_m: Option<f64>,
 }
 
 impl Scalars {
@@ -105,16 +111,20 @@ impl Scalars {
             ate_pos_m: m.ate_pos_m,
             nees_ori: m.nees_ori,
             nees_pos: m.nees_pos,
+            ate_posyaw_ori_deg: m.ate_posyaw_ori_deg,
+            ate_posyaw_pos_m: m.ate_posyaw_pos_m,
         }
     }
 
     /// Each key with its name, in table order.
-    pub fn named(&self) -> [(&'static str, Option<f64>); 4] {
+    pub fn named(&self) -> [(&'static str, Option<f64>); 6] {
         [
             ("ATE ori deg", self.ate_ori_deg),
             ("ATE pos m", self.ate_pos_m),
             ("NEES ori", self.nees_ori),
             ("NEES pos", self.nees_pos),
+            ("aligned ATE ori deg", self.ate_posyaw_ori_deg),
+            ("aligned ATE pos m", self.ate_posyaw_pos_m),
         ]
     }
 
@@ -129,6 +139,8 @@ impl Scalars {
             ate_pos_m: ci(|s| s.ate_pos_m),
             nees_ori: ci(|s| s.nees_ori),
             nees_pos: ci(|s| s.nees_pos),
+            ate_posyaw_ori_deg: ci(|s| s.ate_posyaw_ori_deg),
+            ate_posyaw_pos_m: ci(|s| s.ate_posyaw_pos_m),
         }
     }
 }
@@ -198,6 +210,8 @@ pub fn finite_only(metrics: &MetricSet) -> MetricSet {
     MetricSet {
         ate_ori_deg: f(metrics.ate_ori_deg),
         ate_pos_m: f(metrics.ate_pos_m),
+        ate_posyaw_ori_deg: f(metrics.ate_posyaw_ori_deg),
+        ate_posyaw_pos_m: f(metrics.ate_posyaw_pos_m),
         nees_ori: f(metrics.nees_ori),
         nees_pos: f(metrics.nees_pos),
         rpe: metrics.rpe.as_ref().map(|rows| {

@@ -9,7 +9,9 @@ use std::fmt::Write as _;
 /// ATE columns show `mean ± h [min-max]` over the runs, `h` the half-width of
 /// the mean's 95 % interval (Student t); `runs` counts the robot
 /// runs of the row and `diverged` those that diverged (failed ones included,
-/// also shown in brackets). Unknown values are `-`.
+/// also shown in brackets). `aligned` is the mean ATE after aligning each run by
+/// position and yaw (the directions VIO cannot observe), deg / m. Unknown
+/// values are `-`.
 pub fn render_table(study: &StudySummary) -> String {
     let mut out = String::new();
     let seeds = match (study.seeds.first(), study.seeds.last()) {
@@ -22,9 +24,9 @@ pub fn render_table(study: &StudySummary) -> String {
         study.scenario, study.runs, study.diverged_ate_pos_m
     );
     out.push_str(
-        "| variant | robot | ATE ori deg | ATE pos m | NEES ori | NEES pos | ms/frame | p95 ms | runs | diverged |\n",
+        "| variant | robot | ATE ori deg | ATE pos m | NEES ori | NEES pos | aligned deg / m | ms/frame | p95 ms | runs | diverged |\n",
     );
-    out.push_str("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n");
+    out.push_str("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n");
     for (name, v) in &study.variants {
         for r in &v.robots {
             row(
@@ -66,11 +68,13 @@ fn row(
     };
     let _ = writeln!(
         out,
-        "| {variant} | {robot} | {} | {} | {} | {} | {} | {} | {runs} | {diverged} |",
+        "| {variant} | {robot} | {} | {} | {} | {} | {} / {} | {} | {} | {runs} | {diverged} |",
         with_range(m.ate_ori_deg, ci.ate_ori_deg, ori_spread, 3),
         with_range(m.ate_pos_m, ci.ate_pos_m, pos_spread, 3),
         num(m.nees_ori, 2),
         num(m.nees_pos, 2),
+        num(m.ate_posyaw_ori_deg, 3),
+        num(m.ate_posyaw_pos_m, 3),
         num(m.ms_per_frame_mean, 2),
         num(m.ms_per_frame_p95, 2),
     );
