@@ -637,10 +637,7 @@ pub fn run_node(
     node.report.fleet_s = t_last - grid.t0_s;
     node.report.run.cooperation = est.cooperation().map(|c| c.stats);
     node.report.wall_s = node.wall_s();
-    node.report.cpu_s = cpu_start
-        .as_ref()
-        .map(|t| t.try_elapsed().map_or(f64::NAN, |d| d.as_secs_f64()))
-        .filter(|s| s.is_finite());
+    node.report.cpu_s = crate::runner::thread_cpu_s(cpu_start.as_ref());
     if let Some(log) = node.log.take() {
         if let Err(e) = log.finish() {
             tracing::warn!("MCAP log: {e}");

@@ -150,6 +150,16 @@ pub struct RobotRun {
     pub rejected: Vec<String>,
     /// Cooperation counters at the end (cooperative variants only).
     pub cooperation: Option<crate::cooperation::CooperationStats>,
+    /// CPU time of the run, s, simulating the sensors included (`None` where
+    /// the platform has no thread clock). See [`MetricSet::cpu_s`].
+    pub cpu_s: Option<f64>,
+}
+
+/// The calling thread's CPU time since `start`, s (`None` without a clock).
+pub fn thread_cpu_s(start: Option<&cpu_time::ThreadTime>) -> Option<f64> {
+    start
+        .and_then(|t| t.try_elapsed().ok())
+        .map(|d| d.as_secs_f64())
 }
 
 /// Runs robot `robot` of `fleet` with `opts`, initialized at the true state once
@@ -208,6 +218,7 @@ pub fn run_stream(
     let start = fleet
         .estimator_start_time(robot)
         .ok_or(simulator::SimError::NoSuchRobot(robot))?;
+    let cpu_start = cpu_time::ThreadTime::try_now().ok();
     let mut est = Estimator::new(opts, fleet.initial_calibration(robot));
     let mut run = RobotRun::default();
     let mut initialized = false;
@@ -245,6 +256,7 @@ pub fn run_stream(
     if !initialized {
         return Err(RunError::NeverStarted(robot));
     }
+    run.cpu_s = thread_cpu_s(cpu_start.as_ref());
     Ok(run)
 }
 
@@ -319,6 +331,7 @@ impl RobotRun {
             common_feature_updates: self
                 .cooperation
                 .map(|_| self.frames.iter().map(|f| f.coop.updates() as u64).sum()),
+            cpu_s: self.cpu_s,
             ..MetricSet::default()
         }
     }

@@ -97,7 +97,10 @@ pub struct MetricSet {
     pub common_feature_updates: Option<u64>,
     /// CPU time of the run, s: an agent process's, all its threads (transport
     /// included) from the start of its run to the end; an agent on a thread of
-    /// `sim-fleet`, its thread's. It includes simulating the robot's sensors.
+    /// `sim-fleet`, or a standalone run (`agent run`, the independent
+    /// Monte-Carlo variants), its thread's; a centralized run, its joint
+    /// estimator's thread divided by the robots. It includes simulating the
+    /// robots' sensors.
     pub cpu_s: Option<f64>,
 }
 

@@ -119,6 +119,18 @@ fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_
         .as_f64()
         .is_some_and(|h| h >= 0.0));
     assert!(slam_robot["ci95"]["ate_ori_deg"].is_number());
+    // The position-and-yaw aligned ATE, never above the unaligned one in
+    // position (the alignment minimizes it), and each run's CPU time.
+    let aligned = indp["mean"]["ate_posyaw_pos_m"]
+        .as_f64()
+        .expect("aligned ATE");
+    assert!(aligned <= ate + 1e-12, "aligned {aligned} > plain {ate}");
+    assert!(slam_robot["metrics"]["ate_posyaw_ori_deg"].is_number());
+    assert!(indp["mean_ci95"]["ate_posyaw_pos_m"].is_number());
+    for v in ["indp", "indp-slam"] {
+        let cpu = one["variants"][v]["mean"]["cpu_s"].as_f64().unwrap_or(-1.0);
+        assert!(cpu > 0.0 && cpu < 600.0, "{v}: cpu_s {cpu}");
+    }
 
     // `paired` compares the two variants of the study seed by seed.
     let side = |v: &str| format!("{v}={}", out1.display());
@@ -266,6 +278,10 @@ fn cooperative_variants_run_whole_fleets_and_aggregate_per_robot() {
                 assert!(f.is_file(), "{}", f.display());
             }
         }
+    }
+    for v in ["dc-full-history", "ce-cmsckf-cslam"] {
+        let cpu = one["variants"][v]["mean"]["cpu_s"].as_f64().unwrap_or(-1.0);
+        assert!(cpu > 0.0 && cpu < 600.0, "{v}: cpu_s {cpu}");
     }
     assert!(
         one["variants"]["dc-full-history"]["mean"]["common_feature_updates"]

@@ -4,7 +4,9 @@
 //! against its own truth.
 
 use super::CentralEstimator;
-use crate::runner::{initial_state, options_for, record, RobotRun, RunError, Variant};
+use crate::runner::{
+    initial_state, options_for, record, thread_cpu_s, RobotRun, RunError, Variant,
+};
 use simulator::{Fleet, SimEvent};
 
 fn time_of(e: &SimEvent) -> f64 {
@@ -17,6 +19,7 @@ fn time_of(e: &SimEvent) -> f64 {
 /// Runs `variant` (a `ce-*` variant) over every robot of `fleet`; one run per
 /// robot, in robot order.
 pub fn run_central(fleet: &Fleet, variant: Variant) -> Result<Vec<RobotRun>, RunError> {
+    let cpu_start = cpu_time::ThreadTime::try_now().ok();
     let n = fleet.robot_count();
     let spec = &fleet.scenario.estimator;
     let opts = options_for(spec, fleet, variant);
@@ -79,6 +82,11 @@ pub fn run_central(fleet: &Fleet, variant: Variant) -> Result<Vec<RobotRun>, Run
     }
     if let Some(r) = initialized.iter().position(|i| !i) {
         return Err(RunError::NeverStarted(r));
+    }
+    // One joint estimator serves every robot: each gets an equal share.
+    let share = thread_cpu_s(cpu_start.as_ref()).map(|s| s / n.max(1) as f64);
+    for run in &mut runs {
+        run.cpu_s = share;
     }
     Ok(runs)
 }
