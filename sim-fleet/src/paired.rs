@@ -275,16 +275,9 @@ pub fn run_paired(args: &PairedArgs) -> Result<()> {
 mod tests {
     use super::*;
     use crate::montecarlo::aggregate::{aggregate_variant, RobotOutcome, DIVERGED_ATE_POS_M};
-    use common::summary::MetricSet;
 
     fn outcome(ate_pos: f64) -> RobotOutcome {
-        RobotOutcome {
-            metrics: MetricSet {
-                ate_pos_m: Some(ate_pos),
-                ..MetricSet::default()
-            },
-            error: None,
-        }
+        RobotOutcome::with_ate_pos(ate_pos)
     }
 
     fn study(seeds: Vec<u64>, variants: Vec<(&str, Vec<Vec<f64>>)>) -> StudySummary {

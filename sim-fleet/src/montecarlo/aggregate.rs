@@ -23,6 +23,20 @@ pub struct RobotOutcome {
     pub error: Option<String>,
 }
 
+impl RobotOutcome {
+    /// A successful run with only its ATE position known (tests of the tables).
+    #[cfg(test)]
+    pub fn with_ate_pos(ate_pos_m: f64) -> Self {
+        RobotOutcome {
+            metrics: MetricSet {
+                ate_pos_m: Some(ate_pos_m),
+                ..MetricSet::default()
+            },
+            error: None,
+        }
+    }
+}
+
 /// The smallest and the largest value of a metric over runs.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Range {

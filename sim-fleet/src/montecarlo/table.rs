@@ -106,15 +106,10 @@ mod tests {
     use crate::montecarlo::aggregate::{aggregate_variant, RobotOutcome, DIVERGED_ATE_POS_M};
 
     fn outcome(ate_pos: f64) -> RobotOutcome {
-        RobotOutcome {
-            metrics: MetricSet {
-                ate_pos_m: Some(ate_pos),
-                ate_ori_deg: Some(1.0),
-                nees_pos: Some(3.14289),
-                ..MetricSet::default()
-            },
-            error: None,
-        }
+        let mut o = RobotOutcome::with_ate_pos(ate_pos);
+        o.metrics.ate_ori_deg = Some(1.0);
+        o.metrics.nees_pos = Some(3.14289);
+        o
     }
 
     #[test]
