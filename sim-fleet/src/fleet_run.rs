@@ -532,7 +532,7 @@ fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
         f(s.wall_s, 1)
     );
     println!(
-        "robot  trajectory            ATE deg  ATE m   NEES ori  NEES pos  KB/s sent  msgs in  dropped  CPU %"
+        "robot  trajectory            ATE deg  ATE m   aligned m  NEES ori  NEES pos  KB/s sent  msgs in  dropped  CPU %"
     );
     // CPU time per second of the robot's own data (its frames at the camera
     // rate): the share of a core the agent needs to keep up in real time.
@@ -545,11 +545,12 @@ fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
     for r in &s.robots {
         let m = &r.metrics;
         println!(
-            "{:<6} {:<21} {:>7}  {:>6}  {:>8}  {:>8}  {:>9}  {:>7}  {:>7}  {:>5}",
+            "{:<6} {:<21} {:>7}  {:>6}  {:>9}  {:>8}  {:>8}  {:>9}  {:>7}  {:>7}  {:>5}",
             r.id,
             r.trajectory,
             f(m.ate_ori_deg, 3),
             f(m.ate_pos_m, 3),
+            f(m.ate_posyaw_pos_m, 3),
             f(m.nees_ori, 2),
             f(m.nees_pos, 2),
             f(m.bytes_per_s_sent.map(|b| b / 1000.0), 1),
