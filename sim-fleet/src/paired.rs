@@ -363,6 +363,20 @@ mod tests {
         );
         assert!(t.contains("| same | - | 1.000 [1.000-1.000] |"), "{t}");
         assert!(!t.contains("| indp |"), "{t}");
+        // Header, rule and rows have as many cells as there are keys (+ name).
+        let cells = |l: &str| l.matches('|').count();
+        let widths: Vec<usize> = t
+            .lines()
+            .filter(|l| l.starts_with('|'))
+            .map(cells)
+            .collect();
+        assert_eq!(widths.len(), 4, "{t}");
+        assert!(
+            widths
+                .iter()
+                .all(|w| *w == Scalars::default().named().len() + 2),
+            "{t}"
+        );
     }
 
     #[test]
