@@ -10,8 +10,9 @@ use std::fmt::Write as _;
 /// the mean's 95 % interval (Student t); `runs` counts the robot
 /// runs of the row and `diverged` those that diverged (failed ones included,
 /// also shown in brackets). `aligned` is the mean ATE after aligning each run by
-/// position and yaw (the directions VIO cannot observe), deg / m. Unknown
-/// values are `-`.
+/// position and yaw (the directions VIO cannot observe), deg / m. `CPU s` is
+/// the mean CPU time of one robot's run (simulating its sensors included; see
+/// `MetricSet::cpu_s`). Unknown values are `-`.
 pub fn render_table(study: &StudySummary) -> String {
     let mut out = String::new();
     let seeds = match (study.seeds.first(), study.seeds.last()) {
@@ -24,9 +25,11 @@ pub fn render_table(study: &StudySummary) -> String {
         study.scenario, study.runs, study.diverged_ate_pos_m
     );
     out.push_str(
-        "| variant | robot | ATE ori deg | ATE pos m | NEES ori | NEES pos | aligned deg / m | ms/frame | p95 ms | runs | diverged |\n",
+        "| variant | robot | ATE ori deg | ATE pos m | NEES ori | NEES pos | aligned deg / m | ms/frame | p95 ms | CPU s | runs | diverged |\n",
     );
-    out.push_str("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n");
+    out.push_str(
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n",
+    );
     for (name, v) in &study.variants {
         for r in &v.robots {
             row(
@@ -68,7 +71,7 @@ fn row(
     };
     let _ = writeln!(
         out,
-        "| {variant} | {robot} | {} | {} | {} | {} | {} / {} | {} | {} | {runs} | {diverged} |",
+        "| {variant} | {robot} | {} | {} | {} | {} | {} / {} | {} | {} | {} | {runs} | {diverged} |",
         with_range(m.ate_ori_deg, ci.ate_ori_deg, ori_spread, 3),
         with_range(m.ate_pos_m, ci.ate_pos_m, pos_spread, 3),
         num(m.nees_ori, 2),
@@ -77,6 +80,7 @@ fn row(
         num(m.ate_posyaw_pos_m, 3),
         num(m.ms_per_frame_mean, 2),
         num(m.ms_per_frame_p95, 2),
+        num(m.cpu_s, 2),
     );
 }
 
@@ -109,6 +113,7 @@ mod tests {
         let mut o = RobotOutcome::with_ate_pos(ate_pos);
         o.metrics.ate_ori_deg = Some(1.0);
         o.metrics.nees_pos = Some(3.14289);
+        o.metrics.cpu_s = Some(1.25);
         o
     }
 
@@ -147,7 +152,13 @@ mod tests {
             ),
             "{table}"
         );
+        assert!(
+            lines[2].ends_with("| 1.25 | 2 | 0 |"),
+            "CPU s, runs, diverged; {table}"
+        );
         assert!(lines[3].ends_with("| 2 | 1 |"), "{table}");
+        let cells = |l: &str| l.matches('|').count();
+        assert!(lines.iter().all(|l| cells(l) == cells(lines[0])), "{table}");
         assert!(lines[4].starts_with("| indp | mean |"), "{table}");
         assert!(lines[4].ends_with("| 4 | 1 |"), "{table}");
         assert!(
