@@ -1,7 +1,9 @@
 //! Helpers for the integration tests in `tests/tests/`, which start the real
 //! binaries. Build them first: `cargo build --release --workspace --bins`.
 
+use serde_json::Value;
 use std::path::{Path, PathBuf};
+use std::process::Command;
 
 /// Path of a workspace binary built in the same profile as the running test.
 ///
@@ -22,6 +24,39 @@ pub fn bin(name: &str) -> PathBuf {
         path.display()
     );
     path
+}
+
+/// The JSON file at `path`.
+///
+/// # Panics
+/// If it cannot be read or parsed, naming the file.
+pub fn read_json(path: &Path) -> Value {
+    let text =
+        std::fs::read_to_string(path).unwrap_or_else(|e| panic!("reading {}: {e}", path.display()));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("parsing {}: {e}", path.display()))
+}
+
+/// Runs `sim-fleet run SCENARIO --out OUT EXTRA...` (real agent processes) and
+/// returns the fleet's `summary.json`.
+///
+/// # Panics
+/// If the run fails (with its output) or writes no summary.
+pub fn sim_fleet_run(scenario: &Path, out: &Path, extra: &[&str]) -> Value {
+    let output = Command::new(bin("sim-fleet"))
+        .arg("run")
+        .arg(scenario)
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap_or_else(|e| panic!("starting sim-fleet: {e}"));
+    assert!(
+        output.status.success(),
+        "sim-fleet run failed:\n{}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    read_json(&out.join("summary.json"))
 }
 
 /// The workspace root.

@@ -4,10 +4,9 @@
 //! process.
 #![allow(clippy::unwrap_used)] // helpers outside #[test] functions
 
-use integration_tests::{bin, write_loop_trajectory};
+use integration_tests::{sim_fleet_run, write_loop_trajectory};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 /// Three robots on one 24 s loop: the second starts 4 s after the first, the
 /// third 30 s after (after the first has finished: only its history is left).
@@ -20,25 +19,6 @@ fn scenario(dir: &Path) -> PathBuf {
     )
     .unwrap();
     p
-}
-
-fn run(scenario: &Path, out: &Path, extra: &[&str]) -> Value {
-    let output = Command::new(bin("sim-fleet"))
-        .arg("run")
-        .arg(scenario)
-        .arg("--out")
-        .arg(out)
-        .args(extra)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "sim-fleet run failed:\n{}\n{}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let text = std::fs::read_to_string(out.join("summary.json")).unwrap();
-    serde_json::from_str(&text).unwrap()
 }
 
 fn metric(summary: &Value, robot: usize, key: &str) -> f64 {
@@ -71,7 +51,7 @@ fn assert_cooperates(summary: &Value) {
 fn agents_over_zenoh_share_features_and_close_loops_on_peer_histories() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path());
-    let summary = run(
+    let summary = sim_fleet_run(
         &sc,
         &dir.path().join("zenoh"),
         &[
@@ -90,7 +70,7 @@ fn agents_over_zenoh_share_features_and_close_loops_on_peer_histories() {
 fn agents_over_iceoryx2_share_features_and_close_loops_on_peer_histories() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path());
-    let summary = run(
+    let summary = sim_fleet_run(
         &sc,
         &dir.path().join("iox"),
         &[
@@ -110,7 +90,7 @@ fn the_centralized_estimator_runs_the_fleet_in_one_process() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path());
     let out = dir.path().join("ce");
-    let summary = run(&sc, &out, &["--variant", "ce-cmsckf-cslam", "--seed", "2"]);
+    let summary = sim_fleet_run(&sc, &out, &["--variant", "ce-cmsckf-cslam", "--seed", "2"]);
     for r in 0..3 {
         let ate = metric(&summary, r, "ate_pos_m");
         assert!(ate.is_finite() && ate < 0.5, "robot {r}: ATE {ate} m");

@@ -3,7 +3,7 @@
 //! determinism across runs and transports.
 #![allow(clippy::unwrap_used)] // helpers outside #[test] functions
 
-use integration_tests::{bin, write_loop_trajectory};
+use integration_tests::{bin, read_json, sim_fleet_run, write_loop_trajectory};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -21,34 +21,10 @@ fn scenario(dir: &Path, duration_s: f64) -> PathBuf {
     p
 }
 
-fn json(path: &Path) -> Value {
-    let text =
-        std::fs::read_to_string(path).unwrap_or_else(|e| panic!("reading {}: {e}", path.display()));
-    serde_json::from_str(&text).unwrap()
-}
-
-fn fleet_run(scenario: &Path, out: &Path, extra: &[&str]) -> Value {
-    let output = Command::new(bin("sim-fleet"))
-        .arg("run")
-        .arg(scenario)
-        .arg("--out")
-        .arg(out)
-        .args(extra)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "sim-fleet run failed:\n{}\n{}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-    json(&out.join("summary.json"))
-}
-
 /// Every agent received every message every peer sent, kind by kind.
 fn assert_complete_delivery(out: &Path, robots: usize) {
     let stats: Vec<Value> = (0..robots)
-        .map(|i| json(&out.join(format!("robot{i}")).join("transport_stats.json")))
+        .map(|i| read_json(&out.join(format!("robot{i}")).join("transport_stats.json")))
         .collect();
     for (me, st) in stats.iter().enumerate() {
         for (peer, pst) in stats.iter().enumerate() {
@@ -93,7 +69,7 @@ fn three_agents_over_zenoh_on_loopback_receive_everything() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path(), 20.0);
     let out = dir.path().join("zenoh");
-    let summary = fleet_run(&sc, &out, &["--transport", "zenoh", "--seed", "3"]);
+    let summary = sim_fleet_run(&sc, &out, &["--transport", "zenoh", "--seed", "3"]);
     assert_eq!(summary["transport"], "zenoh");
     assert_valid_estimates(&summary, 3);
     assert_complete_delivery(&out, 3);
@@ -110,7 +86,7 @@ fn three_agents_over_iceoryx2_receive_everything() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path(), 20.0);
     let out = dir.path().join("iox");
-    let summary = fleet_run(&sc, &out, &["--transport", "iceoryx2", "--seed", "3"]);
+    let summary = sim_fleet_run(&sc, &out, &["--transport", "iceoryx2", "--seed", "3"]);
     assert_eq!(summary["transport"], "iceoryx2");
     assert_valid_estimates(&summary, 3);
     assert_complete_delivery(&out, 3);
@@ -145,17 +121,17 @@ fn lockstep_runs_are_identical_across_runs_and_transports() {
     // Every envelope carries the fleet id, so the byte counts compare only
     // between fleet ids of one length (the default, `fleet-<pid>`, changes
     // length when process ids wrap).
-    let a = fleet_run(
+    let a = sim_fleet_run(
         &sc,
         &dir.path().join("a"),
         &["--transport", "zenoh", "--seed", "5", "--fleet-id", "det-a"],
     );
-    let b = fleet_run(
+    let b = sim_fleet_run(
         &sc,
         &dir.path().join("b"),
         &["--transport", "zenoh", "--seed", "5", "--fleet-id", "det-b"],
     );
-    let c = fleet_run(
+    let c = sim_fleet_run(
         &sc,
         &dir.path().join("c"),
         &[
@@ -263,7 +239,7 @@ fn a_killed_agent_is_seen_leaving_and_coming_back_and_the_others_finish() {
             ["appeared", "vanished", "reappeared"],
             "robot {i}: {events}"
         );
-        let s = json(&dir.join("summary.json"));
+        let s = read_json(&dir.join("summary.json"));
         let r = &s["robots"][0];
         assert!(r["frames"].as_u64().unwrap() > 150, "{r}");
         assert!(r["ate_pos_m"].as_f64().unwrap().is_finite());
@@ -296,10 +272,10 @@ fn malformed_and_foreign_messages_are_dropped_and_counted() {
     for (i, a) in agents.iter_mut().enumerate() {
         assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
     }
-    let st = json(&out.join("robot0").join("transport_stats.json"));
+    let st = read_json(&out.join("robot0").join("transport_stats.json"));
     assert_eq!(st["net"]["dropped"]["malformed"], 3, "{}", st["net"]);
     assert_eq!(st["net"]["dropped"]["foreign_fleet"], 1, "{}", st["net"]);
-    let s = json(&out.join("robot0").join("summary.json"));
+    let s = read_json(&out.join("robot0").join("summary.json"));
     assert!(s["robots"][0]["frames"].as_u64().unwrap() > 100);
 }
 
@@ -338,7 +314,7 @@ fn an_agent_replays_an_mcap_recording() {
     let cfg = lone_config(dir.path(), &sc, &input, "  mode: lockstep\n");
     let mut agent = start_agent(&cfg, &dir.path().join("lone.log"));
     assert!(wait(&mut agent, Duration::from_secs(60)), "replay failed");
-    let s = json(&dir.path().join("lone-out/summary.json"));
+    let s = read_json(&dir.path().join("lone-out/summary.json"));
     let r = &s["robots"][0];
     assert!(r["frames"].as_u64().unwrap() > 100, "{r}");
     assert!(r["ate_pos_m"].as_f64().unwrap() < 0.5, "{r}");
@@ -363,12 +339,12 @@ fn sigterm_stops_an_agent_with_its_outputs_written() {
     assert!(status.success());
     assert!(wait(&mut agent, Duration::from_secs(15)), "no clean exit");
     let out = dir.path().join("lone-out");
-    let st = json(&out.join("transport_stats.json"));
+    let st = read_json(&out.join("transport_stats.json"));
     assert_eq!(st["interrupted"], true);
     let est = std::fs::read_to_string(out.join("estimate.txt")).unwrap();
     assert!(est.lines().count() > 5, "{est}");
     assert!(
-        json(&out.join("summary.json"))["robots"][0]["frames"]
+        read_json(&out.join("summary.json"))["robots"][0]["frames"]
             .as_u64()
             .unwrap()
             > 5

@@ -1,6 +1,6 @@
 //! `sim-fleet montecarlo` as a user runs it, on a short synthetic loop.
 
-use integration_tests::{bin, write_loop_trajectory};
+use integration_tests::{bin, read_json, write_loop_trajectory};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -101,9 +101,7 @@ fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_
     assert!(slam_robot["spread"]["nees_pos"]["min"].is_number());
     assert!(out1.join("table.md").is_file());
     // --baseline indp: the comparison of every other variant, as JSON too.
-    let baseline: Value =
-        serde_json::from_str(&std::fs::read_to_string(out1.join("baseline.json")).unwrap())
-            .unwrap();
+    let baseline = read_json(&out1.join("baseline.json"));
     assert_eq!(baseline["baseline"], "indp");
     let slam = &baseline["variants"][0];
     assert_eq!(slam[0], "indp-slam");
@@ -167,9 +165,7 @@ fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_
                     "{variant}/{seed}/{file}"
                 );
             }
-            let summary: Value =
-                serde_json::from_str(&std::fs::read_to_string(run.join("summary.json")).unwrap())
-                    .unwrap();
+            let summary = read_json(&run.join("summary.json"));
             assert_eq!(summary["variant"], variant);
             assert!(summary["transport"].is_null());
             assert!(summary["robots"][0]["ate_pos_m"].is_number());
@@ -257,7 +253,7 @@ fn cooperative_variants_run_whole_fleets_and_aggregate_per_robot() {
             "montecarlo failed: {}",
             String::from_utf8_lossy(&output.stderr)
         );
-        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap()
+        read_json(&out.join("summary.json"))
     };
     let one = study("1", &dir.path().join("one"));
     let two = study("2", &dir.path().join("two"));

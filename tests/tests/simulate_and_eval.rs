@@ -1,6 +1,6 @@
 //! `sim-fleet simulate` and `sim-fleet eval` as a user runs them.
 
-use integration_tests::{bin, write_loop_trajectory};
+use integration_tests::{bin, read_json, write_loop_trajectory};
 use std::process::Command;
 
 #[test]
@@ -30,8 +30,7 @@ fn simulate_writes_measurements_ground_truth_and_a_summary_with_null_unknowns() 
         assert!(out.join(r).join("measurements.mcap").is_file());
         assert!(out.join(r).join("groundtruth.txt").is_file());
     }
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let summary = read_json(&out.join("summary.json"));
     assert_eq!(summary["scenario"], "two");
     assert_eq!(summary["seed"], 2);
     for key in ["variant", "transport", "wall_s", "sim_s", "mean", "robots"] {
