@@ -6,6 +6,7 @@
 //! `covariance.txt`).
 
 use crate::eval::{evaluate, EvalReport};
+use crate::plots::{draw_xy, range};
 use anyhow::{bail, Context, Result};
 use common::metrics::{Alignment, DEFAULT_RPE_SEGMENTS_M};
 use common::trajectory::{read_covariances, read_trajectory};
@@ -62,75 +63,34 @@ fn evaluate_dir(dir: &Path) -> Result<EvalReport> {
 
 type Draw = Result<(), Box<dyn std::error::Error + Send + Sync>>;
 
-fn span(v: impl Iterator<Item = f64>) -> std::ops::Range<f64> {
-    let (lo, hi) = v
-        .filter(|x| x.is_finite())
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
-            (a.min(x), b.max(x))
-        });
-    if !lo.is_finite() {
-        return 0.0..1.0;
-    }
-    let pad = ((hi - lo) * 0.05).max(1e-6);
-    lo - pad..hi + pad
-}
-
 fn trajectories(path: &Path, robot: usize, reports: &[(String, EvalReport)]) -> Draw {
     let root = SVGBackend::new(path, (900, 900)).into_drawing_area();
     root.fill(&WHITE)?;
-    let gt: Vec<(f64, f64)> = reports
+    let xy = |p: [f64; 3]| (p[0], p[1]);
+    let gt = reports
         .first()
-        .map(|(_, r)| {
-            r.per_pose
-                .iter()
-                .map(|p| (p.gt_pos[0], p.gt_pos[1]))
-                .collect()
-        })
+        .map(|(_, r)| r.per_pose.iter().map(|p| xy(p.gt_pos)).collect())
         .unwrap_or_default();
-    let all = reports
+    let estimates = reports
         .iter()
-        .flat_map(|(_, r)| r.per_pose.iter().map(|p| (p.est_pos[0], p.est_pos[1])))
-        .chain(gt.iter().copied());
-    let pts: Vec<(f64, f64)> = all.collect();
-    let (xs, ys) = (span(pts.iter().map(|p| p.0)), span(pts.iter().map(|p| p.1)));
-    let half = 0.5 * (xs.end - xs.start).max(ys.end - ys.start);
-    let (cx, cy) = (0.5 * (xs.start + xs.end), 0.5 * (ys.start + ys.end));
-    let mut chart = ChartBuilder::on(&root)
-        .caption(format!("robot {robot}: trajectory x-y"), ("sans-serif", 24))
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(60)
-        .build_cartesian_2d(cx - half..cx + half, cy - half..cy + half)?;
-    chart
-        .configure_mesh()
-        .label_style(("sans-serif", 15))
-        .x_desc("x [m]")
-        .y_desc("y [m]")
-        .draw()?;
-    chart
-        .draw_series(LineSeries::new(gt, BLACK.stroke_width(2)))?
-        .label("ground truth")
-        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
-    for (k, (label, r)) in reports.iter().enumerate() {
-        let c = COLORS[k % COLORS.len()];
-        let est: Vec<(f64, f64)> = r
-            .per_pose
-            .iter()
-            .map(|p| (p.est_pos[0], p.est_pos[1]))
-            .collect();
-        let ate = r
-            .ate_pos_m
-            .map_or_else(|| "-".into(), |a| format!("{a:.3}"));
-        chart
-            .draw_series(LineSeries::new(est, c.stroke_width(2)))?
-            .label(format!("{label} (ATE {ate} m)"))
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c));
-    }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()?;
+        .enumerate()
+        .map(|(k, (label, r))| {
+            let ate = r
+                .ate_pos_m
+                .map_or_else(|| "-".into(), |a| format!("{a:.3}"));
+            (
+                format!("{label} (ATE {ate} m)"),
+                r.per_pose.iter().map(|p| xy(p.est_pos)).collect(),
+                COLORS[k % COLORS.len()],
+            )
+        })
+        .collect();
+    draw_xy(
+        &root,
+        &format!("robot {robot}: trajectory x-y"),
+        gt,
+        estimates,
+    )?;
     root.present()?;
     Ok(())
 }
@@ -142,13 +102,13 @@ fn position_errors(path: &Path, robot: usize, reports: &[(String, EvalReport)]) 
         .iter()
         .filter_map(|(_, r)| r.per_pose.first().map(|p| p.t))
         .fold(f64::INFINITY, f64::min);
-    let t_range = span(
+    let t_range = range(
         reports
             .iter()
             .flat_map(|(_, r)| r.per_pose.iter().map(|p| p.t - t0)),
     );
     for (axis, panel) in root.split_evenly((3, 1)).iter().enumerate() {
-        let y = span(reports.iter().flat_map(|(_, r)| {
+        let y = range(reports.iter().flat_map(|(_, r)| {
             r.per_pose.iter().flat_map(move |p| {
                 let s = p.pos_sigma.map_or(0.0, |s| 3.0 * s[axis]);
                 [p.pos_err[axis], s, -s]

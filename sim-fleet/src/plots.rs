@@ -97,25 +97,34 @@ pub fn write_plots(report: &EvalReport, dir: &Path) -> Result<Vec<PathBuf>, Plot
 
 /// Top-down view of the aligned estimate and the ground truth, equal axes.
 fn trajectory_xy(root: &Area, report: &EvalReport) -> DrawResult {
-    let gt: Vec<(f64, f64)> = report
-        .per_pose
-        .iter()
-        .map(|p| (p.gt_pos[0], p.gt_pos[1]))
-        .collect();
-    let est: Vec<(f64, f64)> = report
-        .per_pose
-        .iter()
-        .map(|p| (p.est_pos[0], p.est_pos[1]))
-        .collect();
-    let xs = range(gt.iter().chain(&est).map(|p| p.0));
-    let ys = range(gt.iter().chain(&est).map(|p| p.1));
+    let xy = |p: [f64; 3]| (p[0], p[1]);
+    let gt = report.per_pose.iter().map(|p| xy(p.gt_pos)).collect();
+    let est = report.per_pose.iter().map(|p| xy(p.est_pos)).collect();
+    draw_xy(
+        root,
+        &format!("trajectory x-y (alignment {})", report.align),
+        gt,
+        vec![("estimate".into(), est, COLORS[2])],
+    )
+}
+
+/// One estimated path of a top-down chart: legend label, x-y points, colour.
+pub(crate) type XyPath = (String, Vec<(f64, f64)>, RGBColor);
+
+/// A top-down chart with equal axes: the ground truth `gt` in black and each
+/// path of `estimates` over it, with a legend.
+pub(crate) fn draw_xy(
+    root: &Area,
+    caption: &str,
+    gt: Vec<(f64, f64)>,
+    estimates: Vec<XyPath>,
+) -> DrawResult {
+    let all = || gt.iter().chain(estimates.iter().flat_map(|e| &e.1));
+    let (xs, ys) = (range(all().map(|p| p.0)), range(all().map(|p| p.1)));
     let half = 0.5 * (xs.end - xs.start).max(ys.end - ys.start);
     let (cx, cy) = (0.5 * (xs.start + xs.end), 0.5 * (ys.start + ys.end));
     let mut chart = ChartBuilder::on(root)
-        .caption(
-            format!("trajectory x-y (alignment {})", report.align),
-            ("sans-serif", 24),
-        )
+        .caption(caption, ("sans-serif", 24))
         .margin(15)
         .x_label_area_size(45)
         .y_label_area_size(60)
@@ -130,10 +139,12 @@ fn trajectory_xy(root: &Area, report: &EvalReport) -> DrawResult {
         .draw_series(LineSeries::new(gt, BLACK.stroke_width(2)))?
         .label("ground truth")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
-    chart
-        .draw_series(LineSeries::new(est, COLORS[2].stroke_width(2)))?
-        .label("estimate")
-        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], COLORS[2]));
+    for (label, points, c) in estimates {
+        chart
+            .draw_series(LineSeries::new(points, c.stroke_width(2)))?
+            .label(label)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c));
+    }
     chart
         .configure_series_labels()
         .background_style(WHITE.mix(0.8))
@@ -267,7 +278,7 @@ fn percentile(values: impl Iterator<Item = f64>, q: f64) -> f64 {
 
 /// The range of the finite values with 5 % padding (`-1..1` when empty,
 /// widened around a single value).
-fn range(values: impl Iterator<Item = f64>) -> Range<f64> {
+pub(crate) fn range(values: impl Iterator<Item = f64>) -> Range<f64> {
     let (lo, hi) = values
         .filter(|v| v.is_finite())
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
