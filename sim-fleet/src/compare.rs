@@ -6,7 +6,7 @@
 //! `covariance.txt`).
 
 use crate::eval::{evaluate, EvalReport};
-use crate::plots::{draw_xy, range};
+use crate::plots::{draw_xy, range, DrawResult};
 use anyhow::{bail, Context, Result};
 use common::metrics::{Alignment, DEFAULT_RPE_SEGMENTS_M};
 use common::trajectory::{read_covariances, read_trajectory};
@@ -61,9 +61,7 @@ fn evaluate_dir(dir: &Path) -> Result<EvalReport> {
     ))
 }
 
-type Draw = Result<(), Box<dyn std::error::Error + Send + Sync>>;
-
-fn trajectories(path: &Path, robot: usize, reports: &[(String, EvalReport)]) -> Draw {
+fn trajectories(path: &Path, robot: usize, reports: &[(String, EvalReport)]) -> DrawResult {
     let root = SVGBackend::new(path, (900, 900)).into_drawing_area();
     root.fill(&WHITE)?;
     let xy = |p: [f64; 3]| (p[0], p[1]);
@@ -95,7 +93,7 @@ fn trajectories(path: &Path, robot: usize, reports: &[(String, EvalReport)]) -> 
     Ok(())
 }
 
-fn position_errors(path: &Path, robot: usize, reports: &[(String, EvalReport)]) -> Draw {
+fn position_errors(path: &Path, robot: usize, reports: &[(String, EvalReport)]) -> DrawResult {
     let root = SVGBackend::new(path, (1000, 900)).into_drawing_area();
     root.fill(&WHITE)?;
     let t0 = reports

@@ -34,7 +34,7 @@ pub enum PlotError {
     },
 }
 
-type DrawResult = Result<(), Box<dyn std::error::Error + Send + Sync>>;
+pub(crate) type DrawResult = Result<(), Box<dyn std::error::Error + Send + Sync>>;
 type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
 /// Name, mean and per-pose value of one NEES panel.
 type NeesPanel = (&'static str, Option<f64>, fn(&PoseError) -> Option<f64>);
