@@ -4,8 +4,8 @@
 //! to score.
 
 use crate::dataset::{DatasetError, EurocDataset};
-use crate::estimator::static_init::{StaticInitOptions, StaticInitResult};
-use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, InitialState};
+use crate::estimator::static_init::{static_start_sigmas, StaticInitOptions, StaticInitResult};
+use crate::estimator::{Estimator, EstimatorOptions, FrameOutput};
 use crate::frontend::{Frontend, FrontendError, FrontendOptions, FrontendOutput};
 use common::trajectory::{StampedCovariance, StampedPose};
 use nalgebra::{Matrix3, Vector3};
@@ -39,23 +39,6 @@ pub struct DatasetRun {
     pub outputs: Vec<FrameOutput>,
     /// Inputs the estimator rejected, with the reason.
     pub rejected: Vec<String>,
-}
-
-/// Prior standard deviations after a static start (position and yaw are
-/// defined by the start itself; velocity is known to be zero).
-pub fn static_start_sigmas() -> InitialState {
-    InitialState {
-        t: 0.0,
-        rot: Matrix3::identity(),
-        pos: Vector3::zeros(),
-        vel: Vector3::zeros(),
-        bias_gyro: Vector3::zeros(),
-        bias_accel: Vector3::zeros(),
-        sigma_ori_rad: 0.017,
-        sigma_pos_m: 0.001,
-        sigma_vel_mps: 0.01,
-        sigma_bias: 0.02,
-    }
 }
 
 /// Runs the whole sequence: IMU samples and frontend frames into the

@@ -3,11 +3,11 @@
 
 #![allow(clippy::expect_used)]
 
-use agent::estimator::static_init::{read_euroc_imu_csv, StaticInitOptions};
-use agent::estimator::{Estimator, EstimatorOptions, InitialState};
+use agent::estimator::static_init::{read_euroc_imu_csv, static_start_sigmas, StaticInitOptions};
+use agent::estimator::{Estimator, EstimatorOptions};
 use common::calibration::CameraCalibration;
 use common::trajectory::{interpolate_pose, read_euroc_csv};
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::Vector3;
 
 fn data(rel: &str) -> String {
     format!("{}/../../shared/data/{rel}", env!("CARGO_MANIFEST_DIR"))
@@ -23,18 +23,8 @@ fn static_initialization_on_real_euroc_imu_recovers_roll_and_pitch_within_one_de
     for s in imu.iter().filter(|s| s.t <= t_end) {
         est.feed_imu(*s).expect("valid sample");
     }
-    let sigmas = InitialState {
-        t: 0.0,
-        rot: Matrix3::identity(),
-        pos: Vector3::zeros(),
-        vel: Vector3::zeros(),
-        bias_gyro: Vector3::zeros(),
-        bias_accel: Vector3::zeros(),
-        sigma_ori_rad: 0.017,
-        sigma_pos_m: 0.001,
-        sigma_vel_mps: 0.01,
-        sigma_bias: 0.02,
-    };
+    // The sigmas `agent run --dataset` starts a static run with.
+    let sigmas = static_start_sigmas();
     let res = est
         .initialize_static(&StaticInitOptions::default(), &sigmas)
         .expect("standing still");

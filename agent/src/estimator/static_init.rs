@@ -14,6 +14,7 @@
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 
+use crate::estimator::InitialState;
 use common::measurement::ImuSample;
 use nalgebra::{Matrix3, Vector3};
 
@@ -61,6 +62,23 @@ impl Default for StaticInitOptions {
             max_gyro_std_radps: 0.1,
             gravity_mps2: common::conventions::GRAVITY_MPS2,
         }
+    }
+}
+
+/// Prior standard deviations after a static start (position and yaw are
+/// defined by the start itself; velocity is known to be zero).
+pub fn static_start_sigmas() -> InitialState {
+    InitialState {
+        t: 0.0,
+        rot: Matrix3::identity(),
+        pos: Vector3::zeros(),
+        vel: Vector3::zeros(),
+        bias_gyro: Vector3::zeros(),
+        bias_accel: Vector3::zeros(),
+        sigma_ori_rad: 0.017,
+        sigma_pos_m: 0.001,
+        sigma_vel_mps: 0.01,
+        sigma_bias: 0.02,
     }
 }
 
