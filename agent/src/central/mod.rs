@@ -359,30 +359,16 @@ impl CentralEstimator {
         let Some(mut slot) = self.joint.slot(rid) else {
             return Err(FrameError::NotInitialized(frame.t));
         };
-        for id in &classes.slam_candidates {
-            if updater_slam::initialize(
-                &mut slot,
-                &robot.features,
-                *id,
-                &opts,
-                &self.chi2,
-                &self.tri,
-            ) {
-                slam.initialized += 1;
-            } else {
-                slam.init_failed += 1;
-                if !independent.contains(id) {
-                    let _ = updater_msckf::update(
-                        &mut slot,
-                        &robot.features,
-                        &[*id],
-                        &opts,
-                        &self.chi2,
-                        &self.tri,
-                    );
-                }
-            }
-        }
+        updater_slam::initialize_candidates(
+            &mut slot,
+            &robot.features,
+            &classes.slam_candidates,
+            |id| independent.contains(&id),
+            &opts,
+            &self.chi2,
+            &self.tri,
+            &mut slam,
+        );
         timing.slam_init_ms = ms(t);
 
         // 10. Clean up, and forget the links of ended tracks.

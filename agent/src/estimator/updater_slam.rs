@@ -150,6 +150,33 @@ pub fn update<F: Filter + ?Sized>(
     }
 }
 
+/// Delayed initialization of each of `candidates`, counted in `stats`. A
+/// candidate that does not enter the state still has measurements worth using
+/// once: they go through the MSCKF, unless `used_elsewhere` says another update
+/// of this frame already took them.
+#[allow(clippy::too_many_arguments)]
+pub fn initialize_candidates<F: Filter + ?Sized>(
+    state: &mut F,
+    db: &FeatureDb,
+    candidates: &[u64],
+    used_elsewhere: impl Fn(u64) -> bool,
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+    tri: &TriangulationOptions,
+    stats: &mut SlamStats,
+) {
+    for &id in candidates {
+        if initialize(state, db, id, opts, chi2, tri) {
+            stats.initialized += 1;
+        } else {
+            stats.init_failed += 1;
+            if !used_elsewhere(id) {
+                let _ = super::updater_msckf::update(state, db, &[id], opts, chi2, tri);
+            }
+        }
+    }
+}
+
 /// Delayed initialization of feature `id` into the state from its whole track.
 /// Returns whether it entered the state.
 pub fn initialize<F: Filter + ?Sized>(

@@ -397,24 +397,16 @@ impl Estimator {
 
         // 8. Delayed initialization of new SLAM features.
         let t = Instant::now();
-        for id in slam_candidates {
-            if updater_slam::initialize(state, &self.features, *id, &opts, &self.chi2, &self.tri) {
-                slam.initialized += 1;
-            } else {
-                slam.init_failed += 1;
-                if !independent.contains(id) && !common.contains(id) {
-                    // Not initialized: its measurements are still useful, once.
-                    let _ = updater_msckf::update(
-                        state,
-                        &self.features,
-                        &[*id],
-                        &opts,
-                        &self.chi2,
-                        &self.tri,
-                    );
-                }
-            }
-        }
+        updater_slam::initialize_candidates(
+            state,
+            &self.features,
+            slam_candidates,
+            |id| independent.contains(&id) || common.contains(&id),
+            &opts,
+            &self.chi2,
+            &self.tri,
+            &mut slam,
+        );
         timing.slam_init_ms = ms(t);
 
         // 9. Clean up: used and lost features, lost SLAM features, oldest clone,
