@@ -16,8 +16,9 @@ pub struct PeerEvent {
     pub fleet_t_s: Option<f64>,
     /// The peer.
     pub peer: u32,
-    /// `appeared`, `vanished`, `reappeared`, `finished`, `released` (no longer
-    /// waited for in lockstep) or `silent`.
+    /// `appeared`, `vanished`, `reappeared`, `finished`, `left` (gone after
+    /// announcing the end of its data), `released` (no longer waited for in
+    /// lockstep) or `silent`.
     pub event: &'static str,
 }
 
@@ -28,9 +29,9 @@ pub struct PeerPresence {
     pub alive: bool,
     /// Times it appeared (1 for a peer that never left).
     pub appearances: u32,
-    /// Times it vanished.
+    /// Times it vanished without having announced the end of its data.
     pub losses: u32,
-    /// It announced the end of its data.
+    /// It announced the end of its data (since it last appeared).
     pub finished: bool,
 }
 
@@ -59,6 +60,7 @@ impl PeerEvents {
                 }
                 st.alive = true;
                 st.appearances += 1;
+                st.finished = false;
                 (
                     p,
                     if st.appearances > 1 {
@@ -74,8 +76,15 @@ impl PeerEvents {
                     return None;
                 }
                 st.alive = false;
-                st.losses += 1;
-                (p, "vanished")
+                // A peer that said it was done and then ends is not lost. Whether
+                // it ends before we do is thread timing, so counting it made the
+                // loss count vary between identical lockstep runs.
+                if st.finished {
+                    (p, "left")
+                } else {
+                    st.losses += 1;
+                    (p, "vanished")
+                }
             }
         };
         Some(self.push(peer, event, wall_s, fleet_t_s))
@@ -154,5 +163,25 @@ mod tests {
         let mut out = Vec::new();
         p.write_jsonl(&mut out).unwrap();
         assert_eq!(String::from_utf8(out).unwrap().lines().count(), 3);
+    }
+
+    #[test]
+    fn a_peer_gone_after_finishing_has_left_and_is_not_lost() {
+        let mut p = PeerEvents::default();
+        p.presence(PresenceEvent::Appeared(1), 0.0, None);
+        p.push(1, "finished", 1.0, Some(80.0));
+        let e = p
+            .presence(PresenceEvent::Vanished(1), 1.1, Some(80.0))
+            .unwrap();
+        assert_eq!(e.event, "left");
+        assert_eq!(p.peers[&1].losses, 0);
+        // Back with new data, then gone without a word: that is a loss.
+        assert_eq!(p.heard(1, 2.0, Some(81.0)).unwrap().event, "reappeared");
+        assert!(!p.peers[&1].finished);
+        let e = p
+            .presence(PresenceEvent::Vanished(1), 3.0, Some(82.0))
+            .unwrap();
+        assert_eq!(e.event, "vanished");
+        assert_eq!(p.peers[&1].losses, 1);
     }
 }

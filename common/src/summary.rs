@@ -83,7 +83,8 @@ pub struct MetricSet {
     pub messages_received: Option<u64>,
     /// Received payloads dropped (malformed, foreign fleet, impostor sender).
     pub messages_dropped: Option<u64>,
-    /// Times a peer vanished (died, froze or left) during the run.
+    /// Times a peer vanished (died, froze or was cut off) before announcing
+    /// the end of its data.
     pub peer_losses: Option<u64>,
     /// Mean one-way message latency, ms (wall clock, same host).
     pub latency_ms_mean: Option<f64>,

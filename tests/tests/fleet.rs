@@ -108,7 +108,9 @@ fn deterministic_part(summary: &Value) -> Vec<Value> {
                 r["frames"],
                 r["bytes_sent"],
                 r["messages_sent"],
-                r["messages_received"]
+                r["messages_received"],
+                // A peer that finishes before us has left, not been lost.
+                r["peer_losses"]
             ])
         })
         .collect()
