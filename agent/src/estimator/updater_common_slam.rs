@@ -17,7 +17,7 @@ use super::options::EstimatorOptions;
 use super::peer_window::{peer_measurement, PeerWindow};
 use super::slam_feature::global_position;
 use super::state::{State, Var};
-use super::updater_common::{CommonOutcome, CommonTrack};
+use super::updater_common::{self, CommonOutcome, CommonTrack};
 use nalgebra::{DMatrix, DVector, Vector3};
 
 /// Our SLAM feature `id` is landmark `landmark` of participant window
@@ -279,8 +279,7 @@ pub fn measurement_update(
 ) -> CommonOutcome {
     let (rows, mut out) = measurement_blocks(state, tracks, participants, opts, chi2);
     if ci_system::update(state, &rows, participants, &opts.cooperation).is_err() {
-        out.stats.used = 0;
-        out.fallback.append(&mut out.used);
+        updater_common::fall_back(&mut out, false);
     }
     out
 }
@@ -295,8 +294,7 @@ pub fn constraint_update(
 ) -> CommonOutcome {
     let (rows, mut out) = constraint_blocks(state, constraints, participants, opts, chi2);
     if ci_system::update(state, &rows, participants, &opts.cooperation).is_err() {
-        out.stats.used = 0;
-        out.fallback.append(&mut out.used);
+        updater_common::fall_back(&mut out, false);
     }
     out
 }
