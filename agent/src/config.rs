@@ -439,6 +439,15 @@ pub struct HistoryConfig {
     /// Recent (non-keyframe) track frames kept per peer, s.
     #[serde(default = "default_recent_s")]
     pub recent_tracks_s: f64,
+    /// Distinct peers kept (first come, first served); messages from further
+    /// robot ids are dropped and counted, so forged ids cannot grow memory.
+    #[serde(default = "default_max_peers")]
+    pub max_peers: usize,
+    /// Received bytes per peer and second (MiB/s, with a one-second burst);
+    /// beyond it a peer's messages are dropped undecoded. A peer sends about
+    /// 0.03 MiB/s of fleet time; lockstep runs some 30x faster than real time.
+    #[serde(default = "default_max_peer_mib_per_s")]
+    pub max_peer_mib_per_s: f64,
 }
 
 fn default_history_mib() -> f64 {
@@ -447,12 +456,20 @@ fn default_history_mib() -> f64 {
 fn default_recent_s() -> f64 {
     2.0
 }
+fn default_max_peers() -> usize {
+    64
+}
+fn default_max_peer_mib_per_s() -> f64 {
+    16.0
+}
 
 impl Default for HistoryConfig {
     fn default() -> Self {
         Self {
             max_mib_per_peer: default_history_mib(),
             recent_tracks_s: default_recent_s(),
+            max_peers: default_max_peers(),
+            max_peer_mib_per_s: default_max_peer_mib_per_s(),
         }
     }
 }
@@ -529,6 +546,10 @@ impl AgentConfig {
             ),
             ("history.max_mib_per_peer", self.history.max_mib_per_peer),
             ("history.recent_tracks_s", self.history.recent_tracks_s),
+            (
+                "history.max_peer_mib_per_s",
+                self.history.max_peer_mib_per_s,
+            ),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} must be a finite number >= 0 (got {v})"));
@@ -541,6 +562,13 @@ impl AgentConfig {
             return Err(format!(
                 "clock.peers lists this agent's own robot_id {}",
                 self.robot_id
+            ));
+        }
+        if c.peers.len() > self.history.max_peers {
+            return Err(format!(
+                "history.max_peers ({}) is below the {} clock.peers: their messages would be dropped",
+                self.history.max_peers,
+                c.peers.len()
             ));
         }
         Ok(())

@@ -5,7 +5,7 @@
 use crate::transport::Received;
 use common::messages::{decode, Envelope, MessageKind};
 use serde::Serialize;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// Traffic of one message kind.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
@@ -34,6 +34,49 @@ pub enum DropReason {
     KindMismatch,
     /// It claims to come from this agent.
     FromSelf,
+    /// Its sender would be one peer more than the agent keeps (`history.max_peers`).
+    TooManyPeers,
+    /// Its sender's messages waiting for the fleet clock already fill that peer's
+    /// memory bound: it sends faster than the fleet runs.
+    Backlog,
+    /// Its sender exceeded `history.max_peer_mib_per_s` (dropped undecoded).
+    RateLimit,
+}
+
+/// A byte budget per peer that refills at a fixed rate (a token bucket holding
+/// at most one second's worth): what a flooding peer sends beyond it is dropped
+/// before it costs a decode.
+#[derive(Debug)]
+pub struct PeerRates {
+    bytes_per_s: f64,
+    /// Per peer: bytes still allowed, and when that was computed (s).
+    buckets: BTreeMap<u32, (f64, f64)>,
+}
+
+impl PeerRates {
+    /// `bytes_per_s` per peer, with a burst of one second's worth.
+    pub fn new(bytes_per_s: f64) -> Self {
+        Self {
+            bytes_per_s,
+            buckets: BTreeMap::new(),
+        }
+    }
+
+    /// Whether `peer` may send `bytes` more at wall time `now_s`; if so they
+    /// are taken from its budget. Only admitted peers should be asked (the map
+    /// grows with the peers asked about).
+    pub fn admit(&mut self, peer: u32, bytes: usize, now_s: f64) -> bool {
+        let cap = self.bytes_per_s;
+        let (left, at) = self.buckets.entry(peer).or_insert((cap, now_s));
+        *left = (*left + (now_s - *at).max(0.0) * cap).min(cap);
+        *at = now_s;
+        let b = bytes as f64;
+        if b > *left {
+            return false;
+        }
+        *left -= b;
+        true
+    }
 }
 
 /// Traffic statistics of one agent.
@@ -70,7 +113,8 @@ impl NetStats {
         self.kinds.values().map(|k| k.received_bytes).sum()
     }
 
-    fn drop(&mut self, reason: DropReason, why: String) {
+    /// Counts a dropped payload, keeping the first explanations for the log.
+    pub fn drop(&mut self, reason: DropReason, why: String) {
         *self.dropped.entry(reason).or_default() += 1;
         if self.drop_samples.len() < 20 {
             self.drop_samples.push(why);
@@ -83,16 +127,23 @@ impl NetStats {
 pub struct Inbox {
     fleet_id: String,
     robot_id: u32,
+    /// Peers admitted so far; at most `max_peers`, first come first served, so
+    /// one sender forging many robot ids cannot grow what the agent keeps.
+    peers: BTreeSet<u32>,
+    max_peers: usize,
     /// Next expected sequence number per (peer, kind).
     next_seq: BTreeMap<(u32, MessageKind), u64>,
 }
 
 impl Inbox {
-    /// The inbox of robot `robot_id` in fleet `fleet_id`.
-    pub fn new(fleet_id: &str, robot_id: u32) -> Self {
+    /// The inbox of robot `robot_id` in fleet `fleet_id`, admitting at most
+    /// `max_peers` distinct peers.
+    pub fn new(fleet_id: &str, robot_id: u32, max_peers: usize) -> Self {
         Self {
             fleet_id: fleet_id.to_string(),
             robot_id,
+            peers: BTreeSet::new(),
+            max_peers,
             next_seq: BTreeMap::new(),
         }
     }
@@ -153,6 +204,21 @@ impl Inbox {
             );
             return None;
         }
+        if !self.peers.contains(&env.robot_id) {
+            if self.peers.len() >= self.max_peers {
+                stats.drop(
+                    DropReason::TooManyPeers,
+                    format!(
+                        "{:?} from robot {}: already {} peers",
+                        env.kind(),
+                        env.robot_id,
+                        self.max_peers
+                    ),
+                );
+                return None;
+            }
+            self.peers.insert(env.robot_id);
+        }
         let next = self.next_seq.entry((env.robot_id, env.kind())).or_insert(0);
         // A restarted peer numbers from 0 again: only forward jumps are losses.
         if env.seq > *next {
@@ -204,7 +270,7 @@ mod tests {
 
     #[test]
     fn bad_payloads_are_dropped_and_counted_by_reason() {
-        let mut inbox = Inbox::new("a", 0);
+        let mut inbox = Inbox::new("a", 0, 8);
         let mut st = NetStats::default();
         let hb = MessageKind::Heartbeat;
         assert!(inbox
@@ -242,7 +308,7 @@ mod tests {
 
     #[test]
     fn sequence_gaps_count_lost_messages() {
-        let mut inbox = Inbox::new("a", 0);
+        let mut inbox = Inbox::new("a", 0, 8);
         let mut st = NetStats::default();
         let hb = MessageKind::Heartbeat;
         for seq in [0, 1, 4, 5, 0, 1] {
@@ -250,5 +316,35 @@ mod tests {
         }
         assert_eq!(st.sequence_gaps, 2);
         assert_eq!(st.received_from[&1][&hb], 6);
+    }
+
+    #[test]
+    fn peers_beyond_the_limit_are_dropped_and_the_admitted_stay() {
+        let mut inbox = Inbox::new("a", 0, 2);
+        let mut st = NetStats::default();
+        let hb = MessageKind::Heartbeat;
+        for robot in [1, 2, 3, 4, 1, 2] {
+            inbox.accept(&received(robot, hb, heartbeat("a", robot, 0)), &mut st);
+        }
+        assert_eq!(st.dropped.get(&DropReason::TooManyPeers), Some(&2));
+        assert_eq!(st.received_from.keys().copied().collect::<Vec<_>>(), [1, 2]);
+        assert_eq!(st.kinds[&hb].received, 4);
+    }
+
+    #[test]
+    fn a_peer_beyond_its_rate_is_refused_until_its_budget_refills() {
+        let mut r = PeerRates::new(1000.0);
+        // A burst of one second's worth, then nothing more at that instant.
+        assert!(r.admit(1, 600, 0.0));
+        assert!(r.admit(1, 400, 0.0));
+        assert!(!r.admit(1, 1, 0.0));
+        // Others have their own budget.
+        assert!(r.admit(2, 1000, 0.0));
+        // Half a second refills half.
+        assert!(!r.admit(1, 600, 0.5));
+        assert!(r.admit(1, 500, 0.5));
+        // Never more than one second's worth, however long the pause.
+        assert!(!r.admit(1, 1001, 100.0));
+        assert!(r.admit(1, 1000, 100.0));
     }
 }

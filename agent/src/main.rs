@@ -39,7 +39,8 @@ enum Command {
     Dataset(agent::dataset_cli::DatasetArgs),
     /// Robustness probe: join a fleet as another robot and send it malformed
     /// payloads and a message of a foreign fleet (they must be dropped and
-    /// counted, and the agents must keep running).
+    /// counted, and the agents must keep running), and optionally flood it with
+    /// valid messages as fast as the transport takes them.
     Probe(ProbeArgs),
 }
 
@@ -60,6 +61,12 @@ struct ProbeArgs {
     /// How long to wait for a peer before sending, s.
     #[arg(long, default_value_t = 10.0)]
     wait_s: f64,
+    /// Then flood for this long, s: valid track frames and descriptor batches
+    /// of the largest size a message may have, and keyframe windows, half of
+    /// them stamped far in the future (they wait for a fleet clock that never
+    /// comes), half at time 0.
+    #[arg(long, default_value_t = 0.0)]
+    flood_s: f64,
 }
 
 #[derive(clap::Args, Debug)]
@@ -233,6 +240,26 @@ fn probe(args: &ProbeArgs) -> Result<()> {
         };
         t.publish(MessageKind::Heartbeat, &encode(&env)?)?;
     }
+    let (mut flood_msgs, mut flood_bytes) = (0u64, 0usize);
+    let started = Instant::now();
+    let mut seq = 0u64;
+    while started.elapsed().as_secs_f64() < args.flood_s {
+        for (kind, body) in flood_round(seq) {
+            let env = Envelope {
+                fleet_id: cfg.fleet_id.clone(),
+                robot_id: args.as_robot,
+                seq,
+                stamp_s: if seq % 2 == 0 { 0.0 } else { 1e6 },
+                sent_wall_ns: 0,
+                body,
+            };
+            let bytes = encode(&env)?;
+            t.publish(kind, &bytes)?;
+            flood_msgs += 1;
+            flood_bytes += bytes.len();
+        }
+        seq += 1;
+    }
     // Give the transport time to deliver before leaving.
     std::thread::sleep(Duration::from_millis(500));
     t.close(Duration::from_secs(2))?;
@@ -242,7 +269,103 @@ fn probe(args: &ProbeArgs) -> Result<()> {
         u32::from(args.foreign_fleet.is_some()),
         cfg.fleet_id
     );
+    if args.flood_s > 0.0 {
+        let s = started.elapsed().as_secs_f64();
+        println!(
+            "flooded it with {flood_msgs} valid messages, {:.1} MB in {s:.1} s ({:.1} MB/s)",
+            flood_bytes as f64 / 1e6,
+            flood_bytes as f64 / 1e6 / s
+        );
+    }
     Ok(())
+}
+
+/// One round of the probe's flood: a track frame and a new-track descriptor
+/// batch as large as a message may be (fresh track ids each round), and a
+/// keyframe window with its keyframe descriptors.
+fn flood_round(k: u64) -> Vec<(common::messages::MessageKind, common::messages::Body)> {
+    use common::messages::{
+        Body, CameraModelWire, CameraPose, DescriptorBatch, DescriptorEntry, MessageKind,
+        PackedCovariance, StateSnapshot, TrackFrame, TrackPoint,
+    };
+    // Every round a new keyframe window (keyed by its newest clone's time).
+    let t = if k % 2 == 0 {
+        2.0 * k as f64
+    } else {
+        1e6 + k as f64
+    };
+    let n = 4000u64;
+    let id = |i: u64| k * n + i;
+    let xy = |i: u64| ((i % 61) as f64 * 0.01 - 0.3, (i % 37) as f64 * 0.01 - 0.2);
+    let features = (0..n)
+        .map(|i| {
+            let (x, y) = xy(i);
+            TrackPoint::new(
+                id(i),
+                &nalgebra::Vector2::new(370.0 + 450.0 * x, 240.0 + 450.0 * y),
+                &nalgebra::Vector2::new(x, y),
+            )
+        })
+        .collect();
+    let descriptors = |count: u64| -> Vec<DescriptorEntry> {
+        (0..count)
+            .map(|i| DescriptorEntry {
+                id: id(i),
+                bits: [id(i).wrapping_mul(0x9e37_79b9_7f4a_7c15); 4],
+            })
+            .collect()
+    };
+    let clones: Vec<CameraPose> = (0..11)
+        .map(|c| {
+            CameraPose::new(
+                t + 0.1 * c as f64,
+                &nalgebra::Matrix3::identity(),
+                &nalgebra::Vector3::new(k as f64, 0.0, 1.0),
+            )
+        })
+        .collect();
+    let covariance = PackedCovariance::from_dmatrix(&(nalgebra::DMatrix::identity(66, 66) * 1e-4))
+        .unwrap_or_default();
+    vec![
+        (
+            MessageKind::Tracks,
+            Body::Tracks(TrackFrame {
+                frame_index: k,
+                t_s: t,
+                features,
+            }),
+        ),
+        (
+            MessageKind::Descriptors,
+            Body::Descriptors(DescriptorBatch {
+                frame_index: k,
+                t_s: t,
+                keyframe: false,
+                entries: descriptors(n),
+            }),
+        ),
+        (
+            MessageKind::Descriptors,
+            Body::Descriptors(DescriptorBatch {
+                frame_index: k,
+                t_s: t,
+                keyframe: true,
+                entries: descriptors(500),
+            }),
+        ),
+        (
+            MessageKind::Snapshot,
+            Body::Snapshot(StateSnapshot {
+                frame_index: k,
+                t_s: t + 1.0,
+                keyframe: true,
+                camera: CameraModelWire::default(),
+                covariance,
+                clones,
+                landmarks: Vec::new(),
+            }),
+        ),
+    ]
 }
 
 /// Images (with their tracks) logged by `agent run --render`: one in this many.

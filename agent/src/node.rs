@@ -15,7 +15,7 @@ use crate::agent_log_views::PeerPose;
 use crate::config::{AgentConfig, ClockMode, InputSource};
 use crate::estimator::{Estimator, FrameOutput};
 use crate::fleet_clock::{Lockstep, Pacer, TickGrid};
-use crate::inbox::{Inbox, NetStats};
+use crate::inbox::{DropReason, Inbox, NetStats, PeerRates};
 use crate::node_images::ImageFrames;
 use crate::outbox::Outbox;
 use crate::peer_events::{PeerEvent, PeerEvents};
@@ -97,7 +97,8 @@ pub struct NodeReport {
     pub publish_errors: u64,
     /// Largest lag behind the wall clock in real-time mode, s.
     pub max_lag_s: f64,
-    /// One-way latencies of received messages, ms (same-host wall clocks).
+    /// One-way latencies of received messages, ms (same-host wall clocks); the
+    /// first [`MAX_LATENCY_SAMPLES`].
     pub latencies_ms: Vec<f64>,
     /// Scenario name.
     pub scenario: String,
@@ -178,13 +179,26 @@ fn event_time(e: &SimEvent) -> f64 {
     }
 }
 
+/// Latency samples kept for the summary (8 MiB): a flooding peer must not grow
+/// them without bound.
+pub const MAX_LATENCY_SAMPLES: usize = 1 << 20;
+
+/// Messages taken in one [`Node::drain`]: a peer sending faster than the agent
+/// decodes must not keep it from its own frames.
+const MAX_DRAIN: usize = 256;
+
 /// The agent's moving parts during a run.
 struct Node {
     transport: Box<dyn Transport>,
     inbox: Inbox,
     outbox: Outbox,
     lockstep: Lockstep,
-    pending: Vec<Envelope>,
+    /// Accepted messages waiting for the fleet clock, with their encoded size.
+    pending: Vec<(Envelope, usize)>,
+    /// Encoded bytes in `pending`, per admitted peer (bounded by `limits.max_bytes`).
+    pending_bytes: BTreeMap<u32, usize>,
+    /// Received bytes per admitted peer and second.
+    rates: PeerRates,
     limits: HistoryLimits,
     report: NodeReport,
     started: Instant,
@@ -256,6 +270,31 @@ impl Node {
                 return false;
             }
         };
+        // A peer beyond its rate, or whose waiting messages fill its memory
+        // bound, loses the new ones before they cost a decode.
+        let size = msg.bytes.len();
+        let backlog = self.pending_bytes.get(&msg.from_robot).copied();
+        if backlog.is_some() && !self.rates.admit(msg.from_robot, size, self.wall_s()) {
+            self.report.net.drop(
+                DropReason::RateLimit,
+                format!(
+                    "{:?} from robot {}: beyond its receive rate",
+                    msg.kind, msg.from_robot
+                ),
+            );
+            return true;
+        }
+        let backlog = backlog.unwrap_or(0);
+        if backlog + size > self.limits.max_bytes {
+            self.report.net.drop(
+                DropReason::Backlog,
+                format!(
+                    "{:?} from robot {}: {backlog} bytes already wait for the fleet clock",
+                    msg.kind, msg.from_robot
+                ),
+            );
+            return true;
+        }
         let Some(env) = self.inbox.accept(&msg, &mut self.report.net) else {
             if let Some(why) = self.report.net.drop_samples.last() {
                 if self.report.net.dropped.values().sum::<u64>() <= 20 {
@@ -264,11 +303,14 @@ impl Node {
             }
             return true;
         };
-        let now = self.wall_s();
-        if let Some(ms) = latency_ms(&env) {
-            self.report.latencies_ms.push(ms);
-        }
         let peer = env.robot_id;
+        *self.pending_bytes.entry(peer).or_default() += size;
+        let now = self.wall_s();
+        if self.report.latencies_ms.len() < MAX_LATENCY_SAMPLES {
+            if let Some(ms) = latency_ms(&env) {
+                self.report.latencies_ms.push(ms);
+            }
+        }
         let e = self.report.peers.heard(peer, now, self.fleet_t);
         self.note(e);
         self.lockstep.heard(peer, now);
@@ -288,23 +330,35 @@ impl Node {
                 self.note(Some(e));
             }
         }
-        self.pending.push(env);
+        self.pending.push((env, size));
         true
     }
 
-    /// Receives everything already there.
+    /// Receives what is already there, up to [`MAX_DRAIN`] messages.
     fn drain(&mut self) {
-        while self.pump(Duration::ZERO) {}
+        for _ in 0..MAX_DRAIN {
+            if !self.pump(Duration::ZERO) {
+                break;
+            }
+        }
     }
 
     /// Moves pending messages stamped up to `until_s` into the peers' histories,
     /// in a deterministic order.
     fn deliver(&mut self, until_s: f64) {
-        let (now, later): (Vec<Envelope>, Vec<Envelope>) = std::mem::take(&mut self.pending)
+        let (now, later): (Vec<_>, Vec<_>) = std::mem::take(&mut self.pending)
             .into_iter()
-            .partition(|e| e.stamp_s <= until_s);
+            .partition(|(e, _)| e.stamp_s <= until_s);
         self.pending = later;
-        let mut now = now;
+        let mut now: Vec<Envelope> = now
+            .into_iter()
+            .map(|(env, size)| {
+                if let Some(b) = self.pending_bytes.get_mut(&env.robot_id) {
+                    *b = b.saturating_sub(size);
+                }
+                env
+            })
+            .collect();
         now.sort_by(|a, b| {
             a.stamp_s
                 .total_cmp(&b.stamp_s)
@@ -316,7 +370,7 @@ impl Node {
             let h = self.report.histories.entry(env.robot_id).or_default();
             match env.body {
                 Body::Tracks(t) => h.add_tracks(t, &self.limits),
-                Body::Descriptors(d) => h.add_descriptors(d),
+                Body::Descriptors(d) => h.add_descriptors(d, &self.limits),
                 Body::Snapshot(s) => {
                     if let Some(c) = s.clones.last() {
                         let pose = PeerPose {
@@ -405,10 +459,12 @@ pub fn run_node(
     };
     let mut node = Node {
         transport,
-        inbox: Inbox::new(&cfg.fleet_id, cfg.robot_id),
+        inbox: Inbox::new(&cfg.fleet_id, cfg.robot_id, cfg.history.max_peers),
         outbox: Outbox::new(&cfg.fleet_id, cfg.robot_id, cfg.publish.clone()),
         lockstep: Lockstep::new(&cfg.clock.peers, 0.0),
         pending: Vec::new(),
+        pending_bytes: BTreeMap::new(),
+        rates: PeerRates::new(cfg.history.max_peer_mib_per_s * 1024.0 * 1024.0),
         limits: HistoryLimits {
             max_bytes: (cfg.history.max_mib_per_peer * 1024.0 * 1024.0) as usize,
             recent_s: cfg.history.recent_tracks_s,

@@ -10,7 +10,10 @@
 //!   the keyframe's descriptors; historical states are never updated;
 //! * **bound**: when a peer's history exceeds `max_mib_per_peer`, its oldest
 //!   keyframe windows are dropped first (counted), so memory per peer is bounded
-//!   whatever the mission length.
+//!   whatever the mission length. The recent frames and the recent descriptors
+//!   each get an eighth of that bound on top ([`RECENT_SHARE`]), which a peer
+//!   that sends at its own pace never reaches (20 frames in 2 s) and a peer that
+//!   floods cannot exceed.
 
 use common::messages::{DescriptorBatch, DescriptorEntry, StateSnapshot, TrackFrame};
 use std::collections::{BTreeMap, HashMap, VecDeque};
@@ -64,13 +67,28 @@ impl KeyframeWindow {
     }
 }
 
+/// The share of `max_bytes` the recent frames, and again the recent
+/// descriptors, may hold beyond the keyframe history: 1 / `RECENT_SHARE`.
+pub const RECENT_SHARE: usize = 8;
+
+/// Bytes one recent track frame holds.
+fn frame_bytes(f: &TrackFrame) -> usize {
+    std::mem::size_of::<TrackFrame>()
+        + f.features.len() * std::mem::size_of::<common::messages::TrackPoint>()
+}
+
+/// Bytes one recent descriptor holds (key, time and bits, with the map's overhead).
+const DESCRIPTOR_BYTES: usize = 48;
+
 /// Everything kept of one peer.
 #[derive(Clone, Debug, Default)]
 pub struct PeerHistory {
     /// The newest snapshot (any kind).
     pub latest: Option<StateSnapshot>,
-    /// Recent track frames, oldest first.
-    pub recent: VecDeque<TrackFrame>,
+    /// Recent track frames, oldest first (see [`PeerHistory::recent`]).
+    recent: VecDeque<TrackFrame>,
+    /// Bytes held by `recent`.
+    recent_bytes: usize,
     /// Descriptors of recently started tracks, by track id.
     pub recent_descriptors: HashMap<u64, (f64, [u64; 4])>,
     /// Keyframe windows by their newest clone time (bit pattern of the f64, which
@@ -106,28 +124,62 @@ pub struct HistoryLimits {
 }
 
 impl PeerHistory {
+    /// Recent track frames, oldest first.
+    pub fn recent(&self) -> &VecDeque<TrackFrame> {
+        &self.recent
+    }
+
+    /// Forgets the recent frames (a test's peer that has moved on).
+    #[cfg(test)]
+    pub(crate) fn clear_recent(&mut self) {
+        self.recent.clear();
+        self.recent_bytes = 0;
+    }
+
     /// Adds a track frame; drops recent frames older than `recent_s`.
+    /// Beyond `recent_s`, the oldest frames also go while the ring holds more
+    /// than its share of the memory bound.
     pub fn add_tracks(&mut self, frame: TrackFrame, limits: &HistoryLimits) {
         let newest = frame.t_s;
+        self.recent_bytes += frame_bytes(&frame);
         self.recent.push_back(frame);
-        while self
-            .recent
-            .front()
-            .is_some_and(|f| f.t_s < newest - limits.recent_s)
-        {
+        let budget = limits.max_bytes / RECENT_SHARE;
+        while let Some(f) = self.recent.front() {
+            if f.t_s >= newest - limits.recent_s && self.recent_bytes <= budget {
+                break;
+            }
+            self.recent_bytes = self.recent_bytes.saturating_sub(frame_bytes(f));
             self.recent.pop_front();
         }
         self.recent_descriptors
             .retain(|_, (t, _)| *t >= newest - limits.recent_s);
     }
 
+    /// Keeps the recent descriptors within their share of the memory bound:
+    /// past it, the older half goes (all of them if they share one time).
+    fn bound_recent_descriptors(&mut self, limits: &HistoryLimits) {
+        let cap = limits.max_bytes / RECENT_SHARE / DESCRIPTOR_BYTES;
+        if self.recent_descriptors.len() <= cap {
+            return;
+        }
+        let mut times: Vec<f64> = self.recent_descriptors.values().map(|(t, _)| *t).collect();
+        let drop = times.len() - cap / 2;
+        let (_, cutoff, _) = times.select_nth_unstable_by(drop.saturating_sub(1), f64::total_cmp);
+        let cutoff = *cutoff;
+        self.recent_descriptors.retain(|_, (t, _)| *t > cutoff);
+        if self.recent_descriptors.len() > cap {
+            self.recent_descriptors.clear();
+        }
+    }
+
     /// Adds descriptors: new-track descriptors go to the recent map, keyframe
     /// descriptors wait for (or join) their keyframe window.
-    pub fn add_descriptors(&mut self, batch: DescriptorBatch) {
+    pub fn add_descriptors(&mut self, batch: DescriptorBatch, limits: &HistoryLimits) {
         if !batch.keyframe {
             for e in &batch.entries {
                 self.recent_descriptors.insert(e.id, (batch.t_s, e.bits));
             }
+            self.bound_recent_descriptors(limits);
             return;
         }
         let key = batch.frame_index;
@@ -198,19 +250,12 @@ impl PeerHistory {
 
     /// Approximate bytes held for this peer (history and recent data).
     pub fn bytes(&self) -> usize {
-        let recent: usize = self
-            .recent
-            .iter()
-            .map(|f| {
-                std::mem::size_of::<TrackFrame>()
-                    + f.features.len() * std::mem::size_of::<common::messages::TrackPoint>()
-            })
-            .sum();
+        let recent = self.recent_bytes;
         let latest = self.latest.as_ref().map_or(0, |s| {
             s.covariance.lower.len() * 4
                 + s.clones.len() * std::mem::size_of::<common::messages::CameraPose>()
         });
-        self.history_bytes + recent + latest + self.recent_descriptors.len() * 48
+        self.history_bytes + recent + latest + self.recent_descriptors.len() * DESCRIPTOR_BYTES
     }
 
     /// The keyframe windows whose time span `[oldest clone, newest clone]` overlaps
@@ -289,15 +334,18 @@ mod tests {
             h.add_tracks(tracks(t, 100), &l);
         }
         let snap = snapshot(2.0, true);
-        h.add_descriptors(DescriptorBatch {
-            frame_index: snap.frame_index,
-            t_s: 2.0,
-            keyframe: true,
-            entries: vec![DescriptorEntry {
-                id: 3,
-                bits: [1; 4],
-            }],
-        });
+        h.add_descriptors(
+            DescriptorBatch {
+                frame_index: snap.frame_index,
+                t_s: 2.0,
+                keyframe: true,
+                entries: vec![DescriptorEntry {
+                    id: 3,
+                    bits: [1; 4],
+                }],
+            },
+            &l,
+        );
         h.add_snapshot(snap, &l);
         assert_eq!(h.keyframes.len(), 1);
         let kf = h.keyframes.values().next().unwrap();
@@ -328,6 +376,42 @@ mod tests {
         assert!(h.history_bytes <= l.max_bytes);
         let oldest = h.keyframes.values().next().unwrap().snapshot.t_s;
         assert!((oldest - 1.2 * 16.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_flood_of_frames_or_descriptors_stays_within_its_share() {
+        let mut h = PeerHistory::default();
+        let l = limits(1 << 20);
+        // Frames that all claim the same time never age out of the 2 s ring.
+        for _ in 0..2000 {
+            h.add_tracks(tracks(5.0, 100), &l);
+        }
+        assert!(h.recent_bytes <= l.max_bytes / RECENT_SHARE);
+        assert!(!h.recent().is_empty());
+        assert_eq!(
+            h.recent_bytes,
+            h.recent().iter().map(frame_bytes).sum::<usize>()
+        );
+        // New-track descriptors of ever new ids, no frames to age them out.
+        let cap = l.max_bytes / RECENT_SHARE / DESCRIPTOR_BYTES;
+        for k in 0..100u64 {
+            let batch = DescriptorBatch {
+                frame_index: k,
+                t_s: k as f64 * 0.01,
+                keyframe: false,
+                entries: (0..500)
+                    .map(|i| DescriptorEntry {
+                        id: k * 1000 + i,
+                        bits: [i; 4],
+                    })
+                    .collect(),
+            };
+            h.add_descriptors(batch, &l);
+            assert!(h.recent_descriptors.len() <= cap);
+        }
+        // The newest stay.
+        assert!(h.recent_descriptors.contains_key(&99_499));
+        assert!(h.bytes() <= 2 * l.max_bytes / RECENT_SHARE + 4096);
     }
 
     #[test]

@@ -180,7 +180,14 @@ pub fn agent_configs(
                 },
                 clock: clock(me),
                 publish: PublishConfig::default(),
-                history: HistoryConfig::default(),
+                history: {
+                    // Room for every robot of the fleet, however large.
+                    let h = HistoryConfig::default();
+                    HistoryConfig {
+                        max_peers: h.max_peers.max(n),
+                        ..h
+                    }
+                },
                 mcap_log: true,
                 images: Default::default(),
             }

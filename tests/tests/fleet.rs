@@ -175,6 +175,31 @@ fn configs(sc: &Path, out: &Path, extra: &[&str]) -> Vec<PathBuf> {
         .collect()
 }
 
+/// Starts one agent per configuration, logging to `out/robot<i>.log`.
+fn start_agents(cfgs: &[PathBuf], out: &Path) -> Vec<Child> {
+    cfgs.iter()
+        .enumerate()
+        .map(|(i, c)| start_agent(c, &out.join(format!("robot{i}.log"))))
+        .collect()
+}
+
+/// Runs `agent probe` against the fleet of `config`; returns what it printed.
+fn probe(config: &Path, args: &[&str]) -> String {
+    let out = Command::new(bin("agent"))
+        .args(["probe", "--config"])
+        .arg(config)
+        .args(args)
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(
+        out.status.success(),
+        "{said}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    said
+}
+
 fn start_agent(config: &Path, log: &Path) -> Child {
     Command::new(bin("agent"))
         .arg("--config")
@@ -204,11 +229,7 @@ fn a_killed_agent_is_seen_leaving_and_coming_back_and_the_others_finish() {
     let out = dir.path().join("kill");
     // Real time at 4x: 24 s of data take about 6 s, time to kill and restart.
     let cfgs = configs(&sc, &out, &["--transport", "zenoh", "--realtime", "4"]);
-    let mut agents: Vec<Child> = cfgs
-        .iter()
-        .enumerate()
-        .map(|(i, c)| start_agent(c, &out.join(format!("robot{i}.log"))))
-        .collect();
+    let mut agents = start_agents(&cfgs, &out);
     std::thread::sleep(Duration::from_millis(2500));
     agents[2].kill().unwrap();
     agents[2].wait().unwrap();
@@ -255,21 +276,10 @@ fn malformed_and_foreign_messages_are_dropped_and_counted() {
     let sc = scenario(dir.path(), 16.0);
     let out = dir.path().join("probe");
     let cfgs = configs(&sc, &out, &["--transport", "zenoh", "--realtime", "2"]);
-    let mut agents: Vec<Child> = cfgs
-        .iter()
-        .enumerate()
-        .map(|(i, c)| start_agent(c, &out.join(format!("robot{i}.log"))))
-        .collect();
-    let probe = Command::new(bin("agent"))
-        .args(["probe", "--config"])
-        .arg(&cfgs[0])
-        .args(["--malformed", "3", "--foreign-fleet", "someone-else"])
-        .output()
-        .unwrap();
-    assert!(
-        probe.status.success(),
-        "{}",
-        String::from_utf8_lossy(&probe.stderr)
+    let mut agents = start_agents(&cfgs, &out);
+    probe(
+        &cfgs[0],
+        &["--malformed", "3", "--foreign-fleet", "someone-else"],
     );
     for (i, a) in agents.iter_mut().enumerate() {
         assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
@@ -279,6 +289,91 @@ fn malformed_and_foreign_messages_are_dropped_and_counted() {
     assert_eq!(st["net"]["dropped"]["foreign_fleet"], 1, "{}", st["net"]);
     let s = read_json(&out.join("robot0").join("summary.json"));
     assert!(s["robots"][0]["frames"].as_u64().unwrap() > 100);
+}
+
+#[test]
+fn a_flooding_peer_neither_stops_an_agent_nor_grows_its_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 16.0);
+    let out = dir.path().join("flood");
+    let cfgs = configs(&sc, &out, &["--transport", "zenoh"]);
+    // A small memory bound per peer, so the flood reaches it in seconds.
+    let mib = 4.0;
+    for c in &cfgs {
+        let text = std::fs::read_to_string(c).unwrap();
+        let text = text.replace(
+            "max_mib_per_peer: 64.0",
+            &format!("max_mib_per_peer: {mib}"),
+        );
+        assert!(text.contains(&format!("max_mib_per_peer: {mib}")));
+        std::fs::write(c, text).unwrap();
+    }
+    // Robot 0 starts alone: while it waits for its peers, the probe floods it
+    // with valid messages, half stamped for a fleet time that never comes.
+    let mut first = start_agent(&cfgs[0], &out.join("robot0.log"));
+    let said = probe(&cfgs[0], &["--malformed", "0", "--flood-s", "3"]);
+    let mut others: Vec<Child> = (1..3)
+        .map(|i| start_agent(&cfgs[i], &out.join(format!("robot{i}.log"))))
+        .collect();
+    assert!(wait(&mut first, Duration::from_secs(120)), "robot 0 failed");
+    for (i, a) in others.iter_mut().enumerate() {
+        assert!(wait(a, Duration::from_secs(120)), "robot {} failed", i + 1);
+    }
+    let st = read_json(&out.join("robot0").join("transport_stats.json"));
+    let net = &st["net"];
+    let flood_received: u64 = ["Tracks", "Descriptors", "Snapshot"]
+        .iter()
+        .map(|k| net["received_from"]["999"][k].as_u64().unwrap_or(0))
+        .sum();
+    assert!(flood_received > 20, "{said}: {net}");
+    for reason in ["backlog", "rate_limit"] {
+        assert!(
+            net["dropped"][reason].as_u64().unwrap_or(0) > 0,
+            "{reason}: {said}: {net}"
+        );
+    }
+    let s = read_json(&out.join("robot0").join("summary.json"));
+    let r = &s["robots"][0];
+    assert!(r["frames"].as_u64().unwrap() > 100, "{r}");
+    assert!(r["ate_pos_m"].as_f64().unwrap() < 0.5, "{r}");
+    // Three peers (two robots and the probe), each within its bound and the
+    // recent frames' and descriptors' shares of it.
+    let bound = 3.0 * mib * 1.25 * 1024.0 * 1024.0;
+    let held = r["history_bytes"].as_f64().unwrap();
+    assert!(held <= bound, "{held} bytes held: {r}");
+    // The flood did not cost the peers' data: robot 0 fused theirs.
+    assert!(r["common_feature_updates"].as_u64().unwrap_or(0) > 0, "{r}");
+}
+
+#[test]
+fn agents_flooded_in_real_time_keep_up_with_the_clock() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 16.0);
+    let out = dir.path().join("flood-rt");
+    let cfgs = configs(&sc, &out, &["--transport", "zenoh", "--realtime", "1"]);
+    let mut agents = start_agents(&cfgs, &out);
+    // Flood robot 0's fleet for most of the run (every agent receives it).
+    let said = probe(&cfgs[0], &["--malformed", "0", "--flood-s", "10"]);
+    for (i, a) in agents.iter_mut().enumerate() {
+        assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
+    }
+    for i in 0..3 {
+        let st = read_json(&out.join(format!("robot{i}")).join("transport_stats.json"));
+        // Beyond its rate the flood is dropped undecoded, so the agent stays
+        // within a frame or two of the wall clock (without the limit: 10 s
+        // behind at 4x real time on two cores).
+        assert!(
+            st["net"]["dropped"]["rate_limit"].as_u64().unwrap_or(0) > 0,
+            "robot {i}: {said}: {}",
+            st["net"]
+        );
+        let lag = st["max_lag_s"].as_f64().unwrap();
+        assert!(lag < 2.0, "robot {i} fell {lag} s behind: {said}");
+        let s = read_json(&out.join(format!("robot{i}")).join("summary.json"));
+        let r = &s["robots"][0];
+        assert!(r["frames"].as_u64().unwrap() > 100, "{r}");
+        assert!(r["ate_pos_m"].as_f64().unwrap() < 0.5, "{r}");
+    }
 }
 
 /// A lone agent's configuration: no peers, the given input.

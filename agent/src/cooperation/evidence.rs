@@ -144,7 +144,7 @@ impl Cooperation {
             match link.source {
                 LinkSource::Window => {
                     let count = peers.get(&link.peer).map_or(0, |h| {
-                        h.recent
+                        h.recent()
                             .iter()
                             .filter(|f| {
                                 fresh(f.t_s) && f.features.iter().any(|p| p.id == link.peer_track)
@@ -264,7 +264,7 @@ fn measurements(h: &PeerHistory, link: &Link, w: &PeerWindow) -> Vec<(usize, f64
     let mut out = Vec::new();
     match link.source {
         LinkSource::Window => {
-            for f in &h.recent {
+            for f in h.recent() {
                 let Some(pose) = w.pose_at(f.t_s) else {
                     continue;
                 };

@@ -30,7 +30,7 @@ impl Cooperation {
             let live: Vec<u32> = peers
                 .iter()
                 .filter(|(_, h)| {
-                    h.recent
+                    h.recent()
                         .back()
                         .is_some_and(|f| frame.t_s - f.t_s <= self.opts.max_window_age_s)
                 })
@@ -69,7 +69,7 @@ impl Cooperation {
         threshold: f64,
         seq: u64,
     ) {
-        let Some(newest) = h.recent.back() else {
+        let Some(newest) = h.recent().back() else {
             return;
         };
         let latest_kf = h.keyframes.values().next_back();

@@ -10,7 +10,9 @@ use common::descriptor::Descriptor;
 use nalgebra::Vector2;
 use std::collections::{BTreeSet, HashMap};
 use std::sync::Arc;
-use vocabulary::{match_features, BowVector, Database, FeatureVector, MatchParams, Vocabulary};
+use vocabulary::{
+    match_features, BowVector, Database, EntryId, FeatureVector, MatchParams, Vocabulary,
+};
 
 /// How many of a peer's newest keyframe windows are checked for indexing each
 /// frame (keyframes arrive about once per second; their descriptors may come a
@@ -20,13 +22,23 @@ const INDEX_LOOKBACK: usize = 4;
 /// The keyframe database of one peer.
 #[derive(Debug)]
 pub struct KeyframeDb {
+    vocabulary: Arc<Vocabulary>,
     db: Database,
     /// Keyframe key (see `PeerHistory::keyframes`) of each database entry.
     keys: Vec<u64>,
     /// Descriptors of each entry, in the order the direct index refers to.
     descriptors: Vec<Vec<(u64, Descriptor)>>,
     indexed: BTreeSet<u64>,
+    /// The history's count of dropped windows when last looked at.
+    seen_dropped: u64,
+    /// Entries whose window the history may have dropped since the last prune
+    /// (an upper bound: not every dropped window was indexed).
+    maybe_dead: usize,
 }
+
+/// Dropped windows left in a database before it is rebuilt without them: at
+/// least this many, and at least a quarter of it.
+const MIN_PRUNE: usize = 64;
 
 /// Our current frame as the matcher sees it.
 #[derive(Clone, Debug, Default)]
@@ -59,10 +71,13 @@ impl KeyframeDb {
     pub fn new(vocabulary: Arc<Vocabulary>) -> Self {
         let levels_up = vocabulary.levels().saturating_sub(1);
         Self {
-            db: Database::new(vocabulary, levels_up),
+            db: Database::new(Arc::clone(&vocabulary), levels_up),
+            vocabulary,
             keys: Vec::new(),
             descriptors: Vec::new(),
             indexed: BTreeSet::new(),
+            seen_dropped: 0,
+            maybe_dead: 0,
         }
     }
 
@@ -78,7 +93,10 @@ impl KeyframeDb {
 
     /// Adds the peer's newest keyframe windows that have descriptors and are not
     /// indexed yet.
+    /// Then drops the windows the history's memory bound dropped, so the
+    /// database stays within that bound too.
     pub fn index_new(&mut self, history: &PeerHistory) {
+        self.prune(history);
         for (key, kf) in history.keyframes.iter().rev().take(INDEX_LOOKBACK) {
             if kf.descriptors.is_empty() || self.indexed.contains(key) {
                 continue;
@@ -94,6 +112,53 @@ impl KeyframeDb {
             self.descriptors.push(list);
             self.indexed.insert(*key);
         }
+    }
+
+    /// Rebuilds the database without the windows the history no longer holds,
+    /// once they are many enough to be worth it ([`MIN_PRUNE`]).
+    fn prune(&mut self, history: &PeerHistory) {
+        let newly = history.dropped_keyframes.saturating_sub(self.seen_dropped);
+        self.seen_dropped = history.dropped_keyframes;
+        self.maybe_dead += usize::try_from(newly).unwrap_or(usize::MAX);
+        let enough = MIN_PRUNE.max(self.keys.len() / 4);
+        if self.maybe_dead < enough {
+            return;
+        }
+        let live: Vec<bool> = self
+            .keys
+            .iter()
+            .map(|k| history.keyframes.contains_key(k))
+            .collect();
+        let dead = live.iter().filter(|l| !**l).count();
+        self.maybe_dead = dead;
+        if dead < enough {
+            return;
+        }
+        self.maybe_dead = 0;
+        let mut db = Database::new(
+            Arc::clone(&self.vocabulary),
+            self.db.direct_index_levels_up(),
+        );
+        let mut keys = Vec::with_capacity(self.keys.len() - dead);
+        let mut descriptors = Vec::with_capacity(self.keys.len() - dead);
+        let old = std::mem::take(&mut self.descriptors);
+        for (i, (d, keep)) in old.into_iter().zip(live).enumerate() {
+            let key = self.keys.get(i).copied();
+            match (keep, key, self.db.entry(EntryId(i as u32))) {
+                (true, Some(key), Some(e)) => {
+                    db.add_transformed(e.bow.clone(), e.features.clone());
+                    keys.push(key);
+                    descriptors.push(d);
+                }
+                (_, Some(key), _) => {
+                    self.indexed.remove(&key);
+                }
+                _ => {}
+            }
+        }
+        self.db = db;
+        self.keys = keys;
+        self.descriptors = descriptors;
     }
 
     /// The best `n` keyframes for `bow` scoring at least `min_score`:

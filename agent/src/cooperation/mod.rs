@@ -175,7 +175,7 @@ impl Cooperation {
                 continue;
             };
             // The oldest measurement time a link can still reach, s.
-            let recent = h.recent.front().map(|f| f.t_s);
+            let recent = h.recent().front().map(|f| f.t_s);
             let kf = h
                 .keyframes
                 .values()

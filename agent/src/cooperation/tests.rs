@@ -99,17 +99,20 @@ fn peer_history(w: &World, rng: &mut ChaCha8Rng) -> PeerHistory {
             &limits,
         );
     }
-    h.add_descriptors(DescriptorBatch {
-        frame_index: 10,
-        t_s: 2.0,
-        keyframe: true,
-        entries: w
-            .descriptors
-            .iter()
-            .enumerate()
-            .map(|(l, d)| DescriptorEntry::new(peer_track(l), noisy(d, rng)))
-            .collect(),
-    });
+    h.add_descriptors(
+        DescriptorBatch {
+            frame_index: 10,
+            t_s: 2.0,
+            keyframe: true,
+            entries: w
+                .descriptors
+                .iter()
+                .enumerate()
+                .map(|(l, d)| DescriptorEntry::new(peer_track(l), noisy(d, rng)))
+                .collect(),
+        },
+        &limits,
+    );
     let snap = StateSnapshot {
         frame_index: 10,
         t_s: 2.0,
@@ -191,7 +194,7 @@ fn a_loop_closure_finds_the_keyframe_and_its_measurements() {
     let w = world(40, &mut rng);
     let mut h = peer_history(&w, &mut rng);
     // The peer has moved on: its newest frames see nothing we see.
-    h.recent.clear();
+    h.clear_recent();
     let peers: Peers = [(3u32, h)].into_iter().collect();
     let seen: Vec<usize> = (0..30).collect();
     let frame = our_frame(&w, &seen, &mut rng);
@@ -282,4 +285,66 @@ fn a_frames_update_takes_at_most_the_busiest_participants() {
     for t in &ev.vio {
         assert!(t.peer_obs.iter().all(|o| o.participant < 2));
     }
+}
+
+#[test]
+fn the_keyframe_database_forgets_what_the_history_bound_dropped() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let Some(voc) = builtin_vocabulary() else {
+        panic!("no built-in vocabulary");
+    };
+    let mut db = loop_closure::KeyframeDb::new(voc);
+    let mut h = PeerHistory::default();
+    // Room for about 40 windows of one clone and 30 descriptors.
+    let limits = HistoryLimits {
+        max_bytes: 40 * 1500,
+        recent_s: 2.0,
+    };
+    let mut largest = 0;
+    for k in 0..600u64 {
+        let t = k as f64;
+        let entries = (0..30)
+            .map(|i| DescriptorEntry::new(k * 100 + i, Descriptor(rng.random())))
+            .collect();
+        h.add_descriptors(
+            DescriptorBatch {
+                frame_index: k,
+                t_s: t,
+                keyframe: true,
+                entries,
+            },
+            &limits,
+        );
+        h.add_snapshot(
+            StateSnapshot {
+                frame_index: k,
+                t_s: t,
+                keyframe: true,
+                camera: CameraModelWire::default(),
+                covariance: PackedCovariance::from_dmatrix(&(DMatrix::identity(6, 6) * 1e-4))
+                    .unwrap_or_default(),
+                clones: vec![CameraPose::new(t, &Matrix3::identity(), &Vector3::zeros())],
+                landmarks: Vec::new(),
+            },
+            &limits,
+        );
+        db.index_new(&h);
+        largest = largest.max(db.len());
+    }
+    let live = h.keyframes.len();
+    assert!(
+        h.dropped_keyframes > 500 && live < 100,
+        "{live} live, {} dropped",
+        h.dropped_keyframes
+    );
+    // Never more than the live windows plus what waits for the next rebuild.
+    assert!(
+        largest <= live + 64,
+        "{largest} entries for {live} live windows"
+    );
+    assert!(
+        db.len() >= live,
+        "{} entries, {live} live windows",
+        db.len()
+    );
 }
