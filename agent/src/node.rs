@@ -250,7 +250,21 @@ impl Node {
     /// Receives for at most `timeout` (one message, or none), and applies
     /// presence changes.
     fn pump(&mut self, timeout: Duration) -> bool {
-        for ev in self.transport.presence() {
+        let events = self.transport.presence();
+        if events
+            .iter()
+            .any(|e| matches!(e, crate::transport::PresenceEvent::Vanished(_)))
+        {
+            // A peer's last messages (its final heartbeat) may still wait behind
+            // the news of its departure: read them first, so that a peer that
+            // finished is seen leaving, not lost and back.
+            for _ in 0..MAX_DRAIN {
+                if !self.receive_one(Duration::ZERO) {
+                    break;
+                }
+            }
+        }
+        for ev in events {
             let e = self.report.peers.presence(ev, self.wall_s(), self.fleet_t);
             self.note(e);
             if let crate::transport::PresenceEvent::Vanished(p) = ev {
@@ -262,6 +276,11 @@ impl Node {
                 }
             }
         }
+        self.receive_one(timeout)
+    }
+
+    /// Receives for at most `timeout` (one message, or none).
+    fn receive_one(&mut self, timeout: Duration) -> bool {
         let msg = match self.transport.receive(timeout) {
             Ok(Some(m)) => m,
             Ok(None) => return false,
