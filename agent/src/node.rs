@@ -385,6 +385,7 @@ impl Node {
                 .then(a.kind().cmp(&b.kind()))
                 .then(a.seq.cmp(&b.seq))
         });
+        let mut moved: BTreeMap<u32, f64> = BTreeMap::new();
         for env in now {
             let h = self.report.histories.entry(env.robot_id).or_default();
             match env.body {
@@ -398,14 +399,21 @@ impl Node {
                             pos: c.p_c_in_g(),
                         };
                         self.peer_poses.insert(env.robot_id, pose);
-                        if let Some(log) = self.log.as_mut() {
-                            let topic = format!("/peers/{}/camera", env.robot_id);
-                            let _ = log.pose(&topic, "world", c.t_s, &pose.rot, &pose.pos);
-                        }
+                        moved.insert(env.robot_id, c.t_s);
                     }
                     h.add_snapshot(s, &self.limits);
                 }
                 Body::Heartbeat(_) => {}
+            }
+        }
+        // One logged pose per peer and delivery (a tick): a peer that floods
+        // snapshots must not grow the log with them.
+        if let Some(log) = self.log.as_mut() {
+            for (peer, t_s) in moved {
+                if let Some(pose) = self.peer_poses.get(&peer) {
+                    let topic = format!("/peers/{peer}/camera");
+                    let _ = log.pose(&topic, "world", t_s, &pose.rot, &pose.pos);
+                }
             }
         }
         let total: usize = self.report.histories.values().map(|h| h.bytes()).sum();
