@@ -25,6 +25,12 @@ pub struct HistoryReport {
     pub span_s: f64,
     /// Memory growth: history bytes per hour of the peer's fleet time.
     pub bytes_per_peer_hour: Option<f64>,
+    /// Bytes of the peer's bag-of-words keyframe database at the end (it holds
+    /// the windows the history holds, and one list per vocabulary word).
+    pub keyframe_db_bytes: usize,
+    /// Its growth per hour of the peer's fleet time: bytes per window it holds
+    /// times the history's windows per hour.
+    pub keyframe_db_bytes_per_peer_hour: Option<f64>,
 }
 
 /// The contents of `transport_stats.json`.
@@ -63,7 +69,9 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
 }
 
 /// History statistics of one peer.
-pub fn history_report(h: &crate::peer_history::PeerHistory) -> HistoryReport {
+/// History statistics of one peer, whose keyframe database holds `db.0`
+/// bytes, `db.1` per window.
+pub fn history_report(h: &crate::peer_history::PeerHistory, db: (usize, f64)) -> HistoryReport {
     let first = h
         .keyframes
         .values()
@@ -85,6 +93,9 @@ pub fn history_report(h: &crate::peer_history::PeerHistory) -> HistoryReport {
         bytes: h.bytes(),
         span_s,
         bytes_per_peer_hour: (span_s > 1.0).then(|| h.history_bytes as f64 / span_s * 3600.0),
+        keyframe_db_bytes: db.0,
+        keyframe_db_bytes_per_peer_hour: (span_s > 1.0)
+            .then(|| db.1 * h.keyframes.len() as f64 / span_s * 3600.0),
     }
 }
 
@@ -125,7 +136,10 @@ pub fn write_outputs(
         histories: report
             .histories
             .iter()
-            .map(|(p, h)| (*p, history_report(h)))
+            .map(|(p, h)| {
+                let db = report.keyframe_db_bytes.get(p).copied().unwrap_or_default();
+                (*p, history_report(h, db))
+            })
             .collect(),
         peak_history_bytes: report.peak_history_bytes,
         max_lag_s: report.max_lag_s,

@@ -82,6 +82,8 @@ pub struct NodeReport {
     pub histories: BTreeMap<u32, PeerHistory>,
     /// Largest total history bytes seen.
     pub peak_history_bytes: usize,
+    /// Each peer's keyframe database at the end: bytes, and bytes per window.
+    pub keyframe_db_bytes: BTreeMap<u32, (usize, f64)>,
     /// Ticks done.
     pub ticks: u64,
     /// Fleet time covered, s.
@@ -719,6 +721,10 @@ pub fn run_node(
     }
     node.report.fleet_s = t_last - grid.t0_s;
     node.report.run.cooperation = est.cooperation().map(|c| c.stats);
+    node.report.keyframe_db_bytes = est
+        .cooperation()
+        .map(|c| c.keyframe_db_bytes())
+        .unwrap_or_default();
     node.report.wall_s = node.wall_s();
     node.report.cpu_s = crate::runner::thread_cpu_s(cpu_start.as_ref());
     if let Some(log) = node.log.take() {

@@ -95,6 +95,36 @@ impl Database {
         id
     }
 
+    /// Approximate heap bytes held: the entries' BoW vectors and direct
+    /// indexes, and the inverted index.
+    pub fn bytes(&self) -> usize {
+        use std::mem::size_of;
+        let entries: usize = self
+            .entries
+            .iter()
+            .map(|e| {
+                size_of::<Entry>()
+                    + e.bow.len() * size_of::<(WordId, f64)>()
+                    + e.features
+                        .nodes()
+                        .iter()
+                        .map(|(_, f)| {
+                            size_of::<(crate::tree::NodeId, Vec<usize>)>()
+                                + f.len() * size_of::<usize>()
+                        })
+                        .sum::<usize>()
+            })
+            .sum();
+        let postings: usize = self.inverted.iter().map(Vec::len).sum();
+        entries + self.fixed_bytes() + postings * size_of::<(EntryId, f64)>()
+    }
+
+    /// The part of [`Database::bytes`] an empty database holds already: one
+    /// inverted list per word of the vocabulary.
+    pub fn fixed_bytes(&self) -> usize {
+        self.inverted.len() * std::mem::size_of::<Vec<(EntryId, f64)>>()
+    }
+
     /// One entry, `None` if out of range.
     pub fn entry(&self, id: EntryId) -> Option<&Entry> {
         self.entries.get(id.0 as usize)
@@ -213,6 +243,13 @@ mod tests {
             assert_eq!(top3.as_slice(), &all[..3]);
             assert!(db.query(img, 0).is_empty());
         }
+        // Memory grows with each entry: its words, once in its vector and once
+        // in the inverted index.
+        let words: usize = db.entries.iter().map(|e| e.bow.len()).sum();
+        assert!(db.bytes() >= 2 * words * std::mem::size_of::<(WordId, f64)>());
+        let mut one_more = db.clone();
+        one_more.add(&imgs[0]);
+        assert!(one_more.bytes() > db.bytes());
         let fv = db.features(EntryId(3)).unwrap();
         assert_eq!(fv.feature_count(), 50);
         assert!(db.features(EntryId(40)).is_none());

@@ -86,6 +86,26 @@ impl KeyframeDb {
         self.keys.len()
     }
 
+    /// Approximate heap bytes held: the database and the descriptors kept for
+    /// matching.
+    pub fn bytes(&self) -> usize {
+        let descriptors: usize = self
+            .descriptors
+            .iter()
+            .map(|d| d.len() * std::mem::size_of::<(u64, Descriptor)>())
+            .sum();
+        self.db.bytes() + descriptors + self.keys.len() * 8 + self.indexed.len() * 8
+    }
+
+    /// What one keyframe window adds to [`KeyframeDb::bytes`] on average (0
+    /// when empty).
+    pub fn bytes_per_keyframe(&self) -> f64 {
+        if self.keys.is_empty() {
+            return 0.0;
+        }
+        (self.bytes() - self.db.fixed_bytes()) as f64 / self.keys.len() as f64
+    }
+
     /// Whether the database is empty.
     pub fn is_empty(&self) -> bool {
         self.keys.is_empty()

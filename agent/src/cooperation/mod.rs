@@ -125,6 +125,18 @@ impl Cooperation {
         }
     }
 
+    /// Each peer's keyframe database (historical loop closures): approximate
+    /// bytes, and bytes per keyframe window it holds.
+    pub fn keyframe_db_bytes(&self) -> BTreeMap<u32, (usize, f64)> {
+        self.peers
+            .iter()
+            .filter_map(|(p, s)| {
+                let db = s.keyframes.as_ref()?;
+                Some((*p, (db.bytes(), db.bytes_per_keyframe())))
+            })
+            .collect()
+    }
+
     /// The links of our track `id`.
     pub fn links_of(&self, id: u64) -> &[Link] {
         self.links.get(&id).map_or(&[], Vec::as_slice)
