@@ -148,6 +148,13 @@ impl Inbox {
         }
     }
 
+    /// Whether a message from `peer` can still be admitted: the peer is known,
+    /// or there is room for one more. Asked before decoding, so that forged
+    /// robot ids beyond the limit cost nothing.
+    pub fn has_room_for(&self, peer: u32) -> bool {
+        self.peers.contains(&peer) || self.peers.len() < self.max_peers
+    }
+
     /// The envelope of `msg` if it is acceptable; otherwise counts why not.
     pub fn accept(&mut self, msg: &Received, stats: &mut NetStats) -> Option<Envelope> {
         let env = match decode(&msg.bytes) {
@@ -327,6 +334,7 @@ mod tests {
             inbox.accept(&received(robot, hb, heartbeat("a", robot, 0)), &mut st);
         }
         assert_eq!(st.dropped.get(&DropReason::TooManyPeers), Some(&2));
+        assert!(inbox.has_room_for(1) && !inbox.has_room_for(3));
         assert_eq!(st.received_from.keys().copied().collect::<Vec<_>>(), [1, 2]);
         assert_eq!(st.kinds[&hb].received, 4);
     }

@@ -291,9 +291,20 @@ impl Node {
                 return false;
             }
         };
-        // A peer beyond its rate, or whose waiting messages fill its memory
-        // bound, loses the new ones before they cost a decode.
+        // A robot id beyond the peer limit, a peer beyond its rate, or one whose
+        // waiting messages fill its memory bound loses the new messages before
+        // they cost a decode.
         let size = msg.bytes.len();
+        if !self.inbox.has_room_for(msg.from_robot) {
+            self.report.net.drop(
+                DropReason::TooManyPeers,
+                format!(
+                    "{:?} from robot {}: no room for another peer",
+                    msg.kind, msg.from_robot
+                ),
+            );
+            return true;
+        }
         let backlog = self.pending_bytes.get(&msg.from_robot).copied();
         if backlog.is_some() && !self.rates.admit(msg.from_robot, size, self.wall_s()) {
             self.report.net.drop(
