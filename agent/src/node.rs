@@ -21,7 +21,7 @@ use crate::outbox::Outbox;
 use crate::peer_events::{PeerEvent, PeerEvents};
 use crate::peer_history::{HistoryLimits, PeerHistory};
 use crate::runner::{initial_state, options_for, record, RobotRun, RunError, Variant};
-use crate::transport::{Transport, TransportError};
+use crate::transport::{Received, Transport, TransportError};
 use common::measurement::FeatureFrame;
 use common::messages::{encode, AgentState, Body, Envelope};
 use simulator::{Fleet, Scenario, SimEvent};
@@ -291,43 +291,15 @@ impl Node {
                 return false;
             }
         };
-        // A robot id beyond the peer limit, a peer beyond its rate, or one whose
-        // waiting messages fill its memory bound loses the new messages before
-        // they cost a decode.
         let size = msg.bytes.len();
-        if !self.inbox.has_room_for(msg.from_robot) {
-            self.report.net.drop(
-                DropReason::TooManyPeers,
-                format!(
-                    "{:?} from robot {}: no room for another peer",
-                    msg.kind, msg.from_robot
-                ),
-            );
-            return true;
-        }
-        let backlog = self.pending_bytes.get(&msg.from_robot).copied();
-        if backlog.is_some() && !self.rates.admit(msg.from_robot, size, self.wall_s()) {
-            self.report.net.drop(
-                DropReason::RateLimit,
-                format!(
-                    "{:?} from robot {}: beyond its receive rate",
-                    msg.kind, msg.from_robot
-                ),
-            );
-            return true;
-        }
-        let backlog = backlog.unwrap_or(0);
-        if backlog + size > self.limits.max_bytes {
-            self.report.net.drop(
-                DropReason::Backlog,
-                format!(
-                    "{:?} from robot {}: {backlog} bytes already wait for the fleet clock",
-                    msg.kind, msg.from_robot
-                ),
-            );
-            return true;
-        }
-        let Some(env) = self.inbox.accept(&msg, &mut self.report.net) else {
+        let accepted = match self.refusal(&msg) {
+            Some((reason, why)) => {
+                self.report.net.drop(reason, why);
+                None
+            }
+            None => self.inbox.accept(&msg, &mut self.report.net),
+        };
+        let Some(env) = accepted else {
             if let Some(why) = self.report.net.drop_samples.last() {
                 if self.report.net.dropped.values().sum::<u64>() <= 20 {
                     tracing::warn!("dropped: {why}");
@@ -364,6 +336,31 @@ impl Node {
         }
         self.pending.push((env, size));
         true
+    }
+
+    /// Why `msg` is dropped before it costs a decode, if it is: a robot id
+    /// beyond the peer limit, a peer beyond its rate, or one whose messages
+    /// waiting for the fleet clock fill its memory bound.
+    fn refusal(&mut self, msg: &Received) -> Option<(DropReason, String)> {
+        let (peer, kind, size) = (msg.from_robot, msg.kind, msg.bytes.len());
+        if !self.inbox.has_room_for(peer) {
+            let why = format!("{kind:?} from robot {peer}: no room for another peer");
+            return Some((DropReason::TooManyPeers, why));
+        }
+        // Only admitted peers have a backlog entry, and a rate budget.
+        let backlog = self.pending_bytes.get(&peer).copied();
+        if backlog.is_some() && !self.rates.admit(peer, size, self.wall_s()) {
+            let why = format!("{kind:?} from robot {peer}: beyond its receive rate");
+            return Some((DropReason::RateLimit, why));
+        }
+        let backlog = backlog.unwrap_or(0);
+        if backlog + size > self.limits.max_bytes {
+            let why = format!(
+                "{kind:?} from robot {peer}: {backlog} bytes already wait for the fleet clock"
+            );
+            return Some((DropReason::Backlog, why));
+        }
+        None
     }
 
     /// Receives what is already there, up to [`MAX_DRAIN`] messages.
