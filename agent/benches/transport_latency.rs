@@ -57,6 +57,7 @@ fn measure(kind: TransportKind, messages: usize, rate_hz: f64) -> anyhow::Result
             config: "loopback".to_owned(),
             listen: vec![format!("tcp/127.0.0.1:{}", ports[i])],
             connect: vec![format!("tcp/127.0.0.1:{}", ports[1 - i])],
+            robot_certificates: None,
         },
         iceoryx2: Iceoryx2Settings::default(),
     };

@@ -42,6 +42,30 @@ enum Command {
     /// counted, and the agents must keep running), and optionally flood it with
     /// valid messages as fast as the transport takes them.
     Probe(ProbeArgs),
+    /// Print the Zenoh `access_control` block that binds robot ids to certificate
+    /// names (JSON), for a Zenoh router between sites. Agents in peer mode make
+    /// their own from `transport: zenoh: robot_certificates:`.
+    Acl(AclArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct AclArgs {
+    /// The fleet id.
+    #[arg(long)]
+    fleet: String,
+    /// The fleet's robot ids, comma-separated.
+    #[arg(long, value_delimiter = ',', required = true)]
+    robots: Vec<u32>,
+    /// Robot N's certificate common name: this text with N in place of `{id}`.
+    #[arg(long, default_value = "robot{id}")]
+    common_name: String,
+    /// Other routers' certificate names whose forwarded messages this router
+    /// accepts as they come (each checks its own senders), comma-separated.
+    #[arg(long, value_delimiter = ',')]
+    trusted_routers: Vec<String>,
+    /// The block for robot N's agent instead of a router's.
+    #[arg(long)]
+    agent: Option<u32>,
 }
 
 #[derive(clap::Args, Debug)]
@@ -117,6 +141,7 @@ fn run_main() -> Result<()> {
     match (&cli.command, &cli.config) {
         (Some(Command::Run(args)), _) => run(args),
         (Some(Command::Probe(args)), _) => probe(args),
+        (Some(Command::Acl(args)), _) => print_acl(args),
         #[cfg(feature = "vision")]
         (Some(Command::Dataset(args)), _) => agent::dataset_cli::run_dataset_command(args),
         (None, Some(config)) => run_agent(config, cli.progress),
@@ -125,6 +150,20 @@ fn run_main() -> Result<()> {
             Ok(())
         }
     }
+}
+
+fn print_acl(args: &AclArgs) -> Result<()> {
+    use agent::transport::zenoh_acl::{access_control, AclRole, RobotCertificates};
+    agent::transport::settings::validate_fleet_id(&args.fleet)?;
+    let certs = RobotCertificates {
+        robots: args.robots.clone(),
+        common_name: args.common_name.clone(),
+        trusted_routers: args.trusted_routers.clone(),
+    };
+    let role = args.agent.map_or(AclRole::Router, AclRole::Agent);
+    let acl = access_control(&args.fleet, &certs, role)?;
+    println!("{}", serde_json::to_string_pretty(&acl)?);
+    Ok(())
 }
 
 /// One agent of a fleet: estimator, peers over the configured transport,

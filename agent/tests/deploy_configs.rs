@@ -28,6 +28,7 @@ fn zenoh_router_setup_files_load() {
             config: repo(f).display().to_string(),
             listen: Vec::new(),
             connect: Vec::new(),
+            robot_certificates: None,
         };
         agent::transport::zenoh::load_config(&s).unwrap_or_else(|e| panic!("{f}: {e}"));
     }

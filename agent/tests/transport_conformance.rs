@@ -4,6 +4,7 @@
 //!
 //! `cargo test -p agent --release --test transport_conformance`
 
+use agent::transport::zenoh_acl::RobotCertificates;
 use agent::transport::{
     open, Iceoryx2Settings, Iceoryx2Transport, InprocHub, PresenceEvent, Received, Transport,
     TransportError, TransportKind, TransportSettings, ZenohSettings,
@@ -114,6 +115,7 @@ fn settings_for(
                 .filter(|(i, _)| *i != index)
                 .map(|(_, p)| endpoint(p))
                 .collect(),
+            robot_certificates: None,
         },
         iceoryx2: Iceoryx2Settings::default(),
     }
@@ -559,16 +561,18 @@ fn iceoryx2_reports_a_killed_peer_vanished_and_cleans_it_up() -> TestResult {
     Ok(())
 }
 
-/// `broker-free-config/zenoh-tls.json5` as shipped (only the certificate paths
-/// changed): two peers with certificates of one CA talk over mutual TLS. The
-/// certificates are made with the `openssl` command.
-#[test]
-fn zenoh_tls_config_connects_peers_with_mutual_certificates() -> TestResult {
-    let dir = tempfile::tempdir()?;
+/// In `dir`: a fleet CA (`ca.pem`) and, for each name, a key and certificate with
+/// that common name (`<name>-key.pem`, `<name>-cert.pem`, for 127.0.0.1), made with
+/// the `openssl` command, and `<name>.json5`: `broker-free-config/zenoh-tls.json5` as
+/// shipped with only its certificate paths changed to these files.
+fn make_fleet_certificates(
+    dir: &std::path::Path,
+    names: &[&str],
+) -> Result<(), Box<dyn std::error::Error>> {
     let sh = |args: &[&str]| -> Result<(), Box<dyn std::error::Error>> {
         let status = std::process::Command::new("openssl")
             .args(args)
-            .current_dir(dir.path())
+            .current_dir(dir)
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
             .status()?;
@@ -591,55 +595,104 @@ fn zenoh_tls_config_connects_peers_with_mutual_certificates() -> TestResult {
         &["-days", "2", "-subj", "/CN=fleet-ca"],
     ]
     .concat())?;
-    sh(&[
-        &["req"][..],
-        &ec,
-        &["-keyout", "robot-key.pem", "-out", "robot.csr"],
-        &["-subj", "/CN=robot"],
-    ]
-    .concat())?;
     std::fs::write(
-        dir.path().join("ext.cnf"),
+        dir.join("ext.cnf"),
         "basicConstraints=CA:FALSE\nsubjectAltName=IP:127.0.0.1,DNS:localhost\n\
          extendedKeyUsage=serverAuth,clientAuth\n",
     )?;
-    sh(&[
-        "x509",
-        "-req",
-        "-in",
-        "robot.csr",
-        "-CA",
-        "ca.pem",
-        "-CAkey",
-        "ca-key.pem",
-        "-CAcreateserial",
-        "-out",
-        "robot-cert.pem",
-        "-days",
-        "2",
-        "-extfile",
-        "ext.cnf",
-    ])?;
-
     let shipped = std::fs::read_to_string(
         std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("../broker-free-config/zenoh-tls.json5"),
     )?;
-    let certs = format!("{}/", dir.path().display());
-    let config_path = dir.path().join("zenoh-tls.json5");
-    std::fs::write(&config_path, shipped.replace("/etc/fleet-vio/tls/", &certs))?;
+    for name in names {
+        let (key, csr, cert) = (
+            format!("{name}-key.pem"),
+            format!("{name}.csr"),
+            format!("{name}-cert.pem"),
+        );
+        let subject = format!("/CN={name}");
+        sh(&[
+            &["req"][..],
+            &ec,
+            &["-keyout", &key, "-out", &csr, "-subj", &subject],
+        ]
+        .concat())?;
+        sh(&[
+            "x509",
+            "-req",
+            "-in",
+            &csr,
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca-key.pem",
+            "-CAcreateserial",
+            "-out",
+            &cert,
+            "-days",
+            "2",
+            "-extfile",
+            "ext.cnf",
+        ])?;
+        let config = shipped
+            .replace(
+                "/etc/fleet-vio/tls/ca.pem",
+                &dir.join("ca.pem").display().to_string(),
+            )
+            .replace(
+                "/etc/fleet-vio/tls/robot-",
+                &format!("{}/{name}-", dir.display()),
+            );
+        std::fs::write(dir.join(format!("{name}.json5")), config)?;
+    }
+    Ok(())
+}
 
-    let net = Net::new(Backend::Zenoh, "tls", 2)?;
+/// Endpoint `index` of `net` over TLS with the files `make_fleet_certificates` made
+/// for `certificate`, claiming `robot_id`, checking `bind` if given.
+fn join_over_tls(
+    net: &Net,
+    dir: &std::path::Path,
+    index: usize,
+    robot_id: u32,
+    certificate: &str,
+    bind: Option<RobotCertificates>,
+) -> Result<Box<dyn Transport>, TransportError> {
     let tls = |port: &u16| format!("tls/127.0.0.1:{port}");
+    let mut settings = settings_for(Backend::Zenoh, &net.fleet_id, &net.ports, index, robot_id);
+    settings.zenoh = ZenohSettings {
+        config: dir
+            .join(format!("{certificate}.json5"))
+            .display()
+            .to_string(),
+        listen: vec![tls(&net.ports[index])],
+        connect: (net.ports.iter().enumerate())
+            .filter(|(i, _)| *i != index)
+            .map(|(_, p)| tls(p))
+            .collect(),
+        robot_certificates: bind,
+    };
+    open(&settings, None)
+}
+
+/// `broker-free-config/zenoh-tls.json5` as shipped (only the certificate paths
+/// changed): two peers with certificates of one CA talk over mutual TLS.
+#[test]
+fn zenoh_tls_config_connects_peers_with_mutual_certificates() -> TestResult {
+    let dir = tempfile::tempdir()?;
+    make_fleet_certificates(dir.path(), &["robot1", "robot2"])?;
+    let net = Net::new(Backend::Zenoh, "tls", 2)?;
     let mut endpoints = Vec::new();
     for i in 0..2 {
-        let mut settings = settings_for(Backend::Zenoh, &net.fleet_id, &net.ports, i, i as u32 + 1);
-        settings.zenoh = ZenohSettings {
-            config: config_path.display().to_string(),
-            listen: vec![tls(&net.ports[i])],
-            connect: vec![tls(&net.ports[1 - i])],
-        };
-        endpoints.push(open(&settings, None)?);
+        let name = format!("robot{}", i + 1);
+        endpoints.push(join_over_tls(
+            &net,
+            dir.path(),
+            i,
+            i as u32 + 1,
+            &name,
+            None,
+        )?);
     }
     wait_until_present(endpoints[0].as_mut(), &BTreeSet::from([2]))?;
     wait_until_present(endpoints[1].as_mut(), &BTreeSet::from([1]))?;
@@ -647,5 +700,228 @@ fn zenoh_tls_config_connects_peers_with_mutual_certificates() -> TestResult {
     let got = receive_n(endpoints[1].as_mut(), 1)?;
     assert_eq!(got[0].bytes, b"over tls");
     close_all(&mut endpoints)?;
+    Ok(())
+}
+
+/// Messages heard: the sender's id as the key says, the payload.
+type Messages = Vec<(u32, Vec<u8>)>;
+
+/// What robot 2 hears: messages and the robots it saw appear.
+type Heard = (Messages, BTreeSet<u32>);
+
+/// Robot 2 (certificate `robot2`) among three senders over mutual TLS, all with
+/// certificates of the fleet's CA: robot 1 with its own certificate, a peer holding
+/// robot 2's certificate that claims to be robot 1, and a peer with the certificate
+/// `robot3`, a robot the fleet does not list, as itself. With `bind`, robots 1 and 2
+/// bind the ids 1 and 2 to their certificates (the forgers never check anything).
+/// Robot 1 must hear robot 2 either way.
+fn heard_by_robot_2(
+    dir: &std::path::Path,
+    bind: bool,
+) -> Result<Heard, Box<dyn std::error::Error>> {
+    let certs = RobotCertificates {
+        robots: vec![1, 2],
+        common_name: "robot{id}".to_owned(),
+        trusted_routers: Vec::new(),
+    };
+    let net = Net::new(Backend::Zenoh, "forge", 4)?;
+    // (robot id it claims, certificate it holds, whether it binds ids)
+    let cast = [
+        (1, "robot1", bind),
+        (2, "robot2", bind),
+        (1, "robot2", false),
+        (3, "robot3", false),
+    ];
+    let mut endpoints = Vec::new();
+    for (i, (id, cert, checks)) in cast.into_iter().enumerate() {
+        let binding = checks.then(|| certs.clone());
+        endpoints.push(join_over_tls(&net, dir, i, id, cert, binding)?);
+    }
+    let mut appeared = BTreeSet::new();
+    let mut note = |t: &mut dyn Transport| {
+        for event in t.presence() {
+            if let PresenceEvent::Appeared(r) = event {
+                appeared.insert(r);
+            }
+        }
+    };
+    // Each sender waits until robot 2 is there to hear it. The outsider may never see
+    // it (with the binding, robot 2 declares nothing to it): it sends anyway.
+    let start = Instant::now();
+    let mut ready = [false; 4];
+    while !(ready[0] && ready[2]) || (!ready[3] && start.elapsed() < Duration::from_secs(3)) {
+        if start.elapsed() > PATIENCE {
+            return Err(format!("senders that saw robot 2: {ready:?}").into());
+        }
+        for i in [0, 2, 3] {
+            ready[i] |= endpoints[i]
+                .presence()
+                .contains(&PresenceEvent::Appeared(2));
+        }
+        note(endpoints[1].as_mut());
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    endpoints[0].publish(MessageKind::Heartbeat, b"robot 1")?;
+    endpoints[2].publish(MessageKind::Heartbeat, b"robot 2 as robot 1")?;
+    endpoints[3].publish(MessageKind::Heartbeat, b"robot 3, not in the fleet")?;
+    endpoints[1].publish(MessageKind::Heartbeat, b"robot 2")?;
+    let mut heard = Vec::new();
+    while let Some(m) = endpoints[1].receive(Duration::from_secs(1))? {
+        heard.push((m.from_robot, m.bytes));
+    }
+    note(endpoints[1].as_mut());
+    let at_robot_1: Vec<Vec<u8>> = (receive_rest(endpoints[0].as_mut())?.into_iter())
+        .filter(|m| m.from_robot == 2)
+        .map(|m| m.bytes)
+        .collect();
+    assert_eq!(
+        at_robot_1,
+        vec![b"robot 2".to_vec()],
+        "robot 1 must hear robot 2"
+    );
+    close_all(&mut endpoints)?;
+    heard.sort();
+    Ok((heard, appeared))
+}
+
+/// `robot_certificates`: with robot ids bound to certificate names, a fleet member
+/// cannot send as another robot, and a certificate of the fleet's CA that the fleet
+/// does not list can neither send nor appear. The same run without the binding shows
+/// what it stops: both forgeries arrive.
+#[test]
+fn zenoh_robot_certificates_stop_a_peer_sending_as_another_robot() -> TestResult {
+    let dir = tempfile::tempdir()?;
+    make_fleet_certificates(dir.path(), &["robot1", "robot2", "robot3"])?;
+
+    let (heard, appeared) = heard_by_robot_2(dir.path(), false)?;
+    let forged = (1, b"robot 2 as robot 1".to_vec());
+    let outsider = (3, b"robot 3, not in the fleet".to_vec());
+    assert!(
+        heard.contains(&forged) && heard.contains(&outsider),
+        "{heard:?}"
+    );
+    assert!(appeared.contains(&3), "{appeared:?}");
+
+    let (heard, appeared) = heard_by_robot_2(dir.path(), true)?;
+    assert_eq!(heard, vec![(1, b"robot 1".to_vec())]);
+    assert_eq!(appeared, BTreeSet::from([1]));
+    Ok(())
+}
+
+/// A Zenoh router in router mode, as `zenohd` would run it, in this process: TLS with
+/// `name`'s certificate from `make_fleet_certificates`, listening on `port`,
+/// connecting to `connect`; with `check`, enforcing the block `agent acl` prints for
+/// `fleet_id` with robots 1 and 2 and the routers `router1` and `router2`.
+fn start_router(
+    dir: &std::path::Path,
+    name: &str,
+    fleet_id: &str,
+    (port, connect): (u16, Option<u16>),
+    check: bool,
+) -> Result<::zenoh::Session, Box<dyn std::error::Error>> {
+    let acl = std::process::Command::new(env!("CARGO_BIN_EXE_agent"))
+        .args(["acl", "--fleet", fleet_id, "--robots", "1,2"])
+        .args(["--trusted-routers", "router1,router2"])
+        .output()?;
+    assert!(acl.status.success(), "{acl:?}");
+    let file = |f: String| dir.join(f).display().to_string();
+    let config = format!(
+        r#"{{
+          mode: "router",
+          listen: {{ endpoints: ["tls/127.0.0.1:{port}"] }},
+          connect: {{ endpoints: [{connect}] }},
+          scouting: {{ multicast: {{ enabled: false }} }},
+          transport: {{ link: {{ protocols: ["tls"], tls: {{
+            root_ca_certificate: "{ca}",
+            listen_private_key: "{key}", listen_certificate: "{cert}",
+            connect_private_key: "{key}", connect_certificate: "{cert}",
+            enable_mtls: true, verify_name_on_connect: true,
+          }} }} }},
+          access_control: {acl},
+        }}"#,
+        connect = connect.map_or(String::new(), |p| format!("\"tls/127.0.0.1:{p}\"")),
+        ca = file("ca.pem".into()),
+        key = file(format!("{name}-key.pem")),
+        cert = file(format!("{name}-cert.pem")),
+        acl = if check {
+            String::from_utf8(acl.stdout)?
+        } else {
+            "{ enabled: false }".to_owned()
+        },
+    );
+    let config = ::zenoh::Config::from_json5(&config).map_err(|e| e.to_string())?;
+    Ok(::zenoh::Wait::wait(::zenoh::open(config)).map_err(|e| e.to_string())?)
+}
+
+/// Across sites through Zenoh routers: robot 1 and a peer holding robot 2's
+/// certificate that claims to be robot 1 at one site, robot 2 at the other, a router
+/// per site; the agents trust what the routers forward (`trusted_routers`). What
+/// robot 2 hears, with the routers checking (`check`) or not.
+fn heard_across_sites(
+    d: &std::path::Path,
+    check: bool,
+) -> Result<Messages, Box<dyn std::error::Error>> {
+    let net = Net::new(Backend::Zenoh, "sites", 5)?;
+    let (port_a, port_b) = (net.ports[3], net.ports[4]);
+    let router_a = start_router(d, "router1", &net.fleet_id, (port_a, None), check)?;
+    let router_b = start_router(d, "router2", &net.fleet_id, (port_b, Some(port_a)), check)?;
+    let certs = RobotCertificates {
+        robots: vec![1, 2],
+        common_name: "robot{id}".to_owned(),
+        trusted_routers: vec!["router1".to_owned(), "router2".to_owned()],
+    };
+    let tls = |port: &u16| format!("tls/127.0.0.1:{port}");
+    let mut endpoints = Vec::new();
+    // (robot id it claims, certificate it holds, whether it binds ids, its router)
+    let cast = [
+        (1, "robot1", true, port_a),
+        (2, "robot2", true, port_b),
+        (1, "robot2", false, port_a),
+    ];
+    for (i, (id, cert, checks, router)) in cast.into_iter().enumerate() {
+        let mut settings = settings_for(Backend::Zenoh, &net.fleet_id, &net.ports, i, id);
+        settings.zenoh = ZenohSettings {
+            config: d.join(format!("{cert}.json5")).display().to_string(),
+            listen: vec![tls(&net.ports[i])],
+            connect: vec![tls(&router)],
+            robot_certificates: checks.then(|| certs.clone()),
+        };
+        endpoints.push(open(&settings, None)?);
+    }
+    for i in [0, 2] {
+        wait_until_present(endpoints[i].as_mut(), &BTreeSet::from([2]))?;
+    }
+    wait_until_present(endpoints[1].as_mut(), &BTreeSet::from([1]))?;
+    endpoints[0].publish(MessageKind::Heartbeat, b"robot 1")?;
+    endpoints[2].publish(MessageKind::Heartbeat, b"robot 2 as robot 1")?;
+    endpoints[1].publish(MessageKind::Heartbeat, b"robot 2")?;
+    let mut heard = Vec::new();
+    while let Some(m) = endpoints[1].receive(Duration::from_secs(1))? {
+        heard.push((m.from_robot, m.bytes));
+    }
+    let at_robot_1 = receive_n(endpoints[0].as_mut(), 1)?;
+    let first = (at_robot_1[0].from_robot, &at_robot_1[0].bytes[..]);
+    assert_eq!(first, (2, &b"robot 2"[..]));
+    close_all(&mut endpoints)?;
+    for router in [router_b, router_a] {
+        ::zenoh::Wait::wait(router.close()).map_err(|e| e.to_string())?;
+    }
+    heard.sort();
+    Ok(heard)
+}
+
+/// The routers enforce what `agent acl` prints: robot 2 hears robot 1 across sites,
+/// not the forger at robot 1's site. Routers that do not check forward both.
+#[test]
+fn routers_with_agent_acl_stop_a_forged_robot_id_between_sites() -> TestResult {
+    let dir = tempfile::tempdir()?;
+    make_fleet_certificates(dir.path(), &["robot1", "robot2", "router1", "router2"])?;
+    let genuine = (1, b"robot 1".to_vec());
+    let forged = (1, b"robot 2 as robot 1".to_vec());
+    assert_eq!(
+        heard_across_sites(dir.path(), false)?,
+        vec![genuine.clone(), forged]
+    );
+    assert_eq!(heard_across_sites(dir.path(), true)?, vec![genuine]);
     Ok(())
 }

@@ -157,6 +157,7 @@ pub fn agent_configs(
                     .filter(|(j, _)| *j != i)
                     .map(|(_, p)| format!("tcp/127.0.0.1:{p}"))
                     .collect(),
+                robot_certificates: None,
             };
             AgentConfig {
                 robot_id: me,

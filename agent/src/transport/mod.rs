@@ -17,6 +17,7 @@ pub mod iceoryx2;
 pub mod inproc;
 pub mod settings;
 pub mod zenoh;
+pub mod zenoh_acl;
 
 pub use faults::{FaultSettings, FaultyTransport};
 pub use iceoryx2::Iceoryx2Transport;

@@ -11,6 +11,9 @@
 //!     config: loopback         # a built-in name (see ZENOH_BUILTIN_CONFIGS) or a file path
 //!     listen: ["tcp/127.0.0.1:7447"]
 //!     connect: ["tcp/127.0.0.1:7448"]
+//!     robot_certificates:      # optional, with a mutual-TLS config: robot N may send
+//!       robots: [0, 1, 2]      #   only with the certificate named robot{N}
+//!       common_name: "robot{id}"
 //!   iceoryx2:
 //!     config: null             # null: iceoryx2's defaults; "iceoryx2": the built-in file; else a path
 //!     max_peers: 64
@@ -19,8 +22,8 @@
 //! ```
 
 use super::{
-    iceoryx2::Iceoryx2Transport, inproc::InprocHub, zenoh::ZenohTransport, Transport,
-    TransportError,
+    iceoryx2::Iceoryx2Transport, inproc::InprocHub, zenoh::ZenohTransport,
+    zenoh_acl::RobotCertificates, Transport, TransportError,
 };
 use serde::{Deserialize, Serialize};
 
@@ -74,6 +77,12 @@ pub struct ZenohSettings {
     /// `connect/endpoints`.
     #[serde(default)]
     pub connect: Vec<String>,
+    /// Bind robot ids to TLS certificates (needs a configuration with mutual TLS,
+    /// such as `tls`): robot N's messages and presence are let in only from the peer
+    /// whose certificate is named for N. `None` (default): any peer the link lets in
+    /// may send under any robot id.
+    #[serde(default)]
+    pub robot_certificates: Option<RobotCertificates>,
 }
 
 impl Default for ZenohSettings {
@@ -82,6 +91,7 @@ impl Default for ZenohSettings {
             config: default_zenoh_config(),
             listen: Vec::new(),
             connect: Vec::new(),
+            robot_certificates: None,
         }
     }
 }

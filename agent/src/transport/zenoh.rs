@@ -9,6 +9,7 @@
 //! or cut-off one after the lease (1 s in the built-in configurations).
 
 use super::settings::{ZenohSettings, ZENOH_BUILTIN_CONFIGS};
+use super::zenoh_acl::{access_control, AclRole, RobotCertificates};
 use super::{PresenceEvent, Received, Transport, TransportError};
 use common::messages::MessageKind;
 use std::sync::mpsc;
@@ -72,7 +73,10 @@ impl ZenohTransport {
         settings: &ZenohSettings,
     ) -> Result<Self, TransportError> {
         super::settings::validate_fleet_id(fleet_id)?;
-        let config = load_config(settings)?;
+        let mut config = load_config(settings)?;
+        if let Some(certs) = &settings.robot_certificates {
+            bind_robot_ids(&mut config, settings, fleet_id, robot_id, certs)?;
+        }
         let session = zenoh::open(config).wait().map_err(open_error)?;
         let mut publishers = Vec::with_capacity(MessageKind::ALL.len());
         for kind in MessageKind::ALL {
@@ -301,6 +305,37 @@ pub fn load_config(settings: &ZenohSettings) -> Result<Config, TransportError> {
     Ok(config)
 }
 
+/// Adds the access control that lets robot N's keys in only from the certificate
+/// named for N (`zenoh_acl`). It needs mutual TLS: without the peer's certificate
+/// there is no name to check and every message would be refused.
+fn bind_robot_ids(
+    config: &mut Config,
+    settings: &ZenohSettings,
+    fleet_id: &str,
+    robot_id: u32,
+    certs: &RobotCertificates,
+) -> Result<(), TransportError> {
+    let config_error = |reason: String| TransportError::Config {
+        path: settings.config.clone(),
+        reason,
+    };
+    let mtls = config
+        .get_json("transport/link/tls/enable_mtls")
+        .unwrap_or_default();
+    if mtls.trim() != "true" {
+        return Err(config_error(
+            "robot_certificates needs mutual TLS (transport/link/tls/enable_mtls: true, \
+             as in the built-in `tls` configuration): without the peers' certificates \
+             there is no name to check"
+                .to_owned(),
+        ));
+    }
+    let acl = access_control(fleet_id, certs, AclRole::Agent(robot_id))?;
+    config
+        .insert_json5("access_control", &acl.to_string())
+        .map_err(|e| config_error(format!("access_control: {e}")))
+}
+
 fn builtin_names() -> String {
     ZENOH_BUILTIN_CONFIGS
         .iter()
@@ -342,6 +377,7 @@ mod tests {
                 "tcp/127.0.0.1:17002".to_owned(),
                 "tcp/127.0.0.1:17003".to_owned(),
             ],
+            robot_certificates: None,
         };
         let config = load_config(&settings)?;
         let listen = config.get_json("listen/endpoints")?;
@@ -368,5 +404,23 @@ mod tests {
             load_config(&settings),
             Err(TransportError::Config { .. })
         ));
+    }
+
+    #[test]
+    fn binding_robot_ids_without_mutual_tls_is_refused_before_opening() {
+        let settings = ZenohSettings {
+            robot_certificates: Some(RobotCertificates {
+                robots: vec![1, 2],
+                common_name: "robot{id}".to_owned(),
+                trusted_routers: Vec::new(),
+            }),
+            ..ZenohSettings::default()
+        };
+        match ZenohTransport::open("f", 1, &settings) {
+            Err(TransportError::Config { reason, .. }) => {
+                assert!(reason.contains("mutual TLS"), "{reason}")
+            }
+            other => panic!("{other:?}"),
+        }
     }
 }
