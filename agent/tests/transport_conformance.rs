@@ -706,6 +706,15 @@ fn zenoh_tls_config_connects_peers_with_mutual_certificates() -> TestResult {
 /// Messages heard: the sender's id as the key says, the payload.
 type Messages = Vec<(u32, Vec<u8>)>;
 
+/// What `t` hears until a second passes with nothing, sender and payload.
+fn heard_within_a_second(t: &mut dyn Transport) -> Result<Messages, TransportError> {
+    let mut heard = Vec::new();
+    while let Some(m) = t.receive(Duration::from_secs(1))? {
+        heard.push((m.from_robot, m.bytes));
+    }
+    Ok(heard)
+}
+
 /// What robot 2 hears: messages and the robots it saw appear.
 type Heard = (Messages, BTreeSet<u32>);
 
@@ -765,10 +774,7 @@ fn heard_by_robot_2(
     endpoints[2].publish(MessageKind::Heartbeat, b"robot 2 as robot 1")?;
     endpoints[3].publish(MessageKind::Heartbeat, b"robot 3, not in the fleet")?;
     endpoints[1].publish(MessageKind::Heartbeat, b"robot 2")?;
-    let mut heard = Vec::new();
-    while let Some(m) = endpoints[1].receive(Duration::from_secs(1))? {
-        heard.push((m.from_robot, m.bytes));
-    }
+    let mut heard = heard_within_a_second(endpoints[1].as_mut())?;
     note(endpoints[1].as_mut());
     let at_robot_1: Vec<Vec<u8>> = (receive_rest(endpoints[0].as_mut())?.into_iter())
         .filter(|m| m.from_robot == 2)
@@ -895,10 +901,7 @@ fn heard_across_sites(
     endpoints[0].publish(MessageKind::Heartbeat, b"robot 1")?;
     endpoints[2].publish(MessageKind::Heartbeat, b"robot 2 as robot 1")?;
     endpoints[1].publish(MessageKind::Heartbeat, b"robot 2")?;
-    let mut heard = Vec::new();
-    while let Some(m) = endpoints[1].receive(Duration::from_secs(1))? {
-        heard.push((m.from_robot, m.bytes));
-    }
+    let mut heard = heard_within_a_second(endpoints[1].as_mut())?;
     let at_robot_1 = receive_n(endpoints[0].as_mut(), 1)?;
     let first = (at_robot_1[0].from_robot, &at_robot_1[0].bytes[..]);
     assert_eq!(first, (2, &b"robot 2"[..]));
