@@ -3,12 +3,19 @@
 //!
 //! `cargo bench -p agent --bench transport_latency [-- MESSAGES [RATE_HZ]]`
 //! (default 2000 messages at 500 Hz, the first 100 not counted). Prints p50, p99 and
-//! the maximum in microseconds for inproc, zenoh (loopback TCP) and iceoryx2.
+//! the maximum in microseconds for inproc, zenoh (loopback TCP), zenoh over mutual TLS
+//! without and with robot ids bound to the certificates (`robot_certificates`, Zenoh
+//! access control; certificates made with `openssl`, rows left out without it) and
+//! iceoryx2.
+use agent::transport::zenoh_acl::RobotCertificates;
 use agent::transport::{
     open, Iceoryx2Settings, InprocHub, Transport, TransportKind, TransportSettings, ZenohSettings,
 };
 use common::messages::MessageKind;
 use std::time::{Duration, Instant};
+
+#[path = "../tests/support/mod.rs"]
+mod support;
 
 const PAYLOAD: usize = 10_000;
 const WARM_UP: usize = 100;
@@ -22,20 +29,33 @@ fn main() -> anyhow::Result<()> {
     let rate_hz: f64 = args.get(1).and_then(|a| a.parse().ok()).unwrap_or(500.0);
     println!("one-way latency, {PAYLOAD} B payload, {messages} messages at {rate_hz} Hz");
     println!(
-        "{:<10} {:>10} {:>10} {:>10}",
+        "{:<14} {:>10} {:>10} {:>10}",
         "transport", "p50 us", "p99 us", "max us"
     );
-    for kind in [
-        TransportKind::Inproc,
-        TransportKind::Zenoh,
-        TransportKind::Iceoryx2,
-    ] {
-        let mut latencies = measure(kind, messages.max(WARM_UP + 1), rate_hz)?;
+    let certificates = tempfile::tempdir()?;
+    let tls = match support::make_fleet_certificates(certificates.path(), &["robot1", "robot2"]) {
+        Ok(()) => Some(certificates.path()),
+        Err(e) => {
+            eprintln!("no TLS rows: {e}");
+            None
+        }
+    };
+    let mut setups = vec![
+        Setup::plain(TransportKind::Inproc),
+        Setup::plain(TransportKind::Zenoh),
+    ];
+    if let Some(dir) = tls {
+        setups.push(Setup::tls(dir, false));
+        setups.push(Setup::tls(dir, true));
+    }
+    setups.push(Setup::plain(TransportKind::Iceoryx2));
+    for (n, setup) in setups.iter().enumerate() {
+        let mut latencies = measure(setup, n, messages.max(WARM_UP + 1), rate_hz)?;
         latencies.sort_by(f64::total_cmp);
         let at = |q: f64| latencies[((latencies.len() - 1) as f64 * q).round() as usize];
         println!(
-            "{:<10} {:>10.1} {:>10.1} {:>10.1}",
-            format!("{kind:?}").to_lowercase(),
+            "{:<14} {:>10.1} {:>10.1} {:>10.1}",
+            setup.label,
             at(0.5),
             at(0.99),
             at(1.0)
@@ -44,23 +64,77 @@ fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Latencies in microseconds after the warm-up.
-fn measure(kind: TransportKind, messages: usize, rate_hz: f64) -> anyhow::Result<Vec<f64>> {
+/// One row: a transport and, for Zenoh, the configuration file, the endpoints'
+/// scheme and the id binding.
+struct Setup {
+    label: String,
+    kind: TransportKind,
+    /// `None`: the built-in `loopback` over TCP; else the folder of the TLS files.
+    tls: Option<std::path::PathBuf>,
+    bind_ids: bool,
+}
+
+impl Setup {
+    fn plain(kind: TransportKind) -> Self {
+        let label = format!("{kind:?}").to_lowercase();
+        Self {
+            label,
+            kind,
+            tls: None,
+            bind_ids: false,
+        }
+    }
+
+    fn tls(dir: &std::path::Path, bind_ids: bool) -> Self {
+        Self {
+            label: if bind_ids {
+                "zenoh-tls+ids"
+            } else {
+                "zenoh-tls"
+            }
+            .to_owned(),
+            kind: TransportKind::Zenoh,
+            tls: Some(dir.to_owned()),
+            bind_ids,
+        }
+    }
+
+    /// Endpoint `i` (robot `i + 1`) of two, on `ports`.
+    fn settings(&self, fleet_id: &str, ports: &[u16], i: usize) -> TransportSettings {
+        let scheme = if self.tls.is_some() { "tls" } else { "tcp" };
+        let endpoint = |p: u16| format!("{scheme}/127.0.0.1:{p}");
+        let config = match &self.tls {
+            Some(dir) => dir
+                .join(format!("robot{}.json5", i + 1))
+                .display()
+                .to_string(),
+            None => "loopback".to_owned(),
+        };
+        TransportSettings {
+            fleet_id: fleet_id.to_owned(),
+            robot_id: i as u32 + 1,
+            kind: self.kind,
+            zenoh: ZenohSettings {
+                config,
+                listen: vec![endpoint(ports[i])],
+                connect: vec![endpoint(ports[1 - i])],
+                robot_certificates: self.bind_ids.then(|| RobotCertificates {
+                    robots: vec![1, 2],
+                    common_name: "robot{id}".to_owned(),
+                    trusted_routers: Vec::new(),
+                }),
+            },
+            iceoryx2: Iceoryx2Settings::default(),
+        }
+    }
+}
+
+/// Latencies in microseconds after the warm-up; `n` tells the rows' fleets apart.
+fn measure(setup: &Setup, n: usize, messages: usize, rate_hz: f64) -> anyhow::Result<Vec<f64>> {
     let hub = InprocHub::new();
     let ports = common::loopback_ports::free_loopback_ports(2)?;
-    let fleet_id = format!("latency-{}-{}", std::process::id(), kind as u8);
-    let settings = |i: usize| TransportSettings {
-        fleet_id: fleet_id.clone(),
-        robot_id: i as u32 + 1,
-        kind,
-        zenoh: ZenohSettings {
-            config: "loopback".to_owned(),
-            listen: vec![format!("tcp/127.0.0.1:{}", ports[i])],
-            connect: vec![format!("tcp/127.0.0.1:{}", ports[1 - i])],
-            robot_certificates: None,
-        },
-        iceoryx2: Iceoryx2Settings::default(),
-    };
+    let fleet_id = format!("latency-{}-{n}", std::process::id());
+    let settings = |i: usize| setup.settings(&fleet_id, &ports, i);
     let mut sender = open(&settings(0), Some(&hub))?;
     let mut receiver = open(&settings(1), Some(&hub))?;
     wait_for_peer(sender.as_mut())?;
