@@ -231,9 +231,14 @@ fn probe(args: &ProbeArgs) -> Result<()> {
     let cfg = AgentConfig::load(&args.config)?;
     let mut settings = cfg.transport_settings();
     settings.robot_id = args.as_robot;
-    // Join through the agent's own endpoint, listening on any free port.
+    // Join through the agent's own endpoint, listening on any free port of the same
+    // protocol (a TLS-only configuration refuses `tcp/`).
+    let scheme = (settings.zenoh.listen.first())
+        .and_then(|e| e.split_once('/'))
+        .map_or("tcp", |(scheme, _)| scheme)
+        .to_owned();
     settings.zenoh.connect = settings.zenoh.listen.clone();
-    settings.zenoh.listen = vec!["tcp/127.0.0.1:0".to_string()];
+    settings.zenoh.listen = vec![format!("{scheme}/127.0.0.1:0")];
     let mut t = agent::transport::open(&settings, None)?;
     let deadline = Instant::now() + Duration::from_secs_f64(args.wait_s);
     // Wait for the agent of the configuration itself (its presence means its

@@ -4,6 +4,9 @@
 #![allow(clippy::unwrap_used)] // helpers outside #[test] functions
 
 use integration_tests::{bin, read_json, sim_fleet_run, write_loop_trajectory};
+
+#[path = "../../agent/tests/support/mod.rs"]
+mod support;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -289,6 +292,61 @@ fn malformed_and_foreign_messages_are_dropped_and_counted() {
     assert_eq!(st["net"]["dropped"]["foreign_fleet"], 1, "{}", st["net"]);
     let s = read_json(&out.join("robot0").join("summary.json"));
     assert!(s["robots"][0]["frames"].as_u64().unwrap() > 100);
+}
+
+/// Three agents over mutual TLS (`broker-free-config/zenoh-tls.json5` with the test's
+/// certificates) with their robot ids bound to the certificates: every message
+/// arrives, and a probe holding robot 1's certificate that sends as robot 999 reaches
+/// nobody (`malformed_and_foreign_messages_are_dropped_and_counted` is the same probe
+/// without TLS, where the payloads arrive and are counted).
+#[test]
+fn agents_over_mutual_tls_with_bound_ids_hear_each_other_and_not_an_impostor() {
+    let dir = tempfile::tempdir().unwrap();
+    let certs = dir.path().join("certs");
+    std::fs::create_dir(&certs).unwrap();
+    support::make_fleet_certificates(&certs, &["robot0", "robot1", "robot2"]).unwrap();
+    let sc = scenario(dir.path(), 16.0);
+    let out = dir.path().join("tls");
+    let cfgs = configs(&sc, &out, &["--transport", "zenoh", "--realtime", "2"]);
+    let over_tls = |i: usize, bound: bool| {
+        let text = std::fs::read_to_string(&cfgs[i]).unwrap();
+        let file = certs.join(format!("robot{i}.json5"));
+        let bind = "robot_certificates:\n      robots: [0, 1, 2]";
+        let text = text
+            .replace("config: loopback", &format!("config: {}", file.display()))
+            .replace(
+                "robot_certificates: null",
+                if bound {
+                    bind
+                } else {
+                    "robot_certificates: null"
+                },
+            )
+            .replace("tcp/127.0.0.1", "tls/127.0.0.1");
+        assert!(text.contains(&file.display().to_string()), "{text}");
+        assert_eq!(text.contains("robots: [0, 1, 2]"), bound, "{text}");
+        text
+    };
+    let impostor = out.join("impostor.yaml");
+    std::fs::write(&impostor, over_tls(1, false)).unwrap();
+    for (i, cfg) in cfgs.iter().enumerate() {
+        std::fs::write(cfg, over_tls(i, true)).unwrap();
+    }
+    let mut agents = start_agents(&cfgs, &out);
+    let said = probe(&impostor, &["--as-robot", "999", "--malformed", "3"]);
+    for (i, a) in agents.iter_mut().enumerate() {
+        assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
+    }
+    assert_complete_delivery(&out, 3);
+    for i in 0..3 {
+        let st = read_json(&out.join(format!("robot{i}")).join("transport_stats.json"));
+        let net = &st["net"];
+        assert!(
+            net["dropped"]["malformed"].as_u64().unwrap_or(0) == 0,
+            "{said}{net}"
+        );
+        assert!(net["received_from"].get("999").is_none(), "{net}");
+    }
 }
 
 #[test]
