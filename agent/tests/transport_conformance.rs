@@ -663,27 +663,31 @@ fn heard_by_robot_2(
         endpoints.push(join_over_tls(&net, dir, i, id, cert, binding)?);
     }
     let mut appeared = BTreeSet::new();
-    let mut note = |t: &mut dyn Transport| {
+    let note = |t: &mut dyn Transport, appeared: &mut BTreeSet<u32>| {
         for event in t.presence() {
             if let PresenceEvent::Appeared(r) = event {
                 appeared.insert(r);
             }
         }
     };
-    // Each sender waits until robot 2 is there to hear it. The outsider may never see
-    // it (with the binding, robot 2 declares nothing to it): it sends anyway.
+    // Each sender waits until robot 2 is there to hear it, and robot 2 until robot 1
+    // is. The outsider may never see robot 2 (with the binding, robot 2 declares
+    // nothing to it): it sends anyway.
     let start = Instant::now();
     let mut ready = [false; 4];
-    while !(ready[0] && ready[2]) || (!ready[3] && start.elapsed() < Duration::from_secs(3)) {
+    while !(ready[0] && ready[1] && ready[2])
+        || (!ready[3] && start.elapsed() < Duration::from_secs(3))
+    {
         if start.elapsed() > PATIENCE {
-            return Err(format!("senders that saw robot 2: {ready:?}").into());
+            return Err(format!("ready (saw robot 2; robot 2 saw robot 1): {ready:?}").into());
         }
         for i in [0, 2, 3] {
             ready[i] |= endpoints[i]
                 .presence()
                 .contains(&PresenceEvent::Appeared(2));
         }
-        note(endpoints[1].as_mut());
+        note(endpoints[1].as_mut(), &mut appeared);
+        ready[1] = appeared.contains(&1);
         std::thread::sleep(Duration::from_millis(10));
     }
     endpoints[0].publish(MessageKind::Heartbeat, b"robot 1")?;
@@ -691,7 +695,7 @@ fn heard_by_robot_2(
     endpoints[3].publish(MessageKind::Heartbeat, b"robot 3, not in the fleet")?;
     endpoints[1].publish(MessageKind::Heartbeat, b"robot 2")?;
     let mut heard = heard_within_a_second(endpoints[1].as_mut())?;
-    note(endpoints[1].as_mut());
+    note(endpoints[1].as_mut(), &mut appeared);
     let at_robot_1: Vec<Vec<u8>> = (receive_rest(endpoints[0].as_mut())?.into_iter())
         .filter(|m| m.from_robot == 2)
         .map(|m| m.bytes)
