@@ -5,7 +5,7 @@
 //! (default 2000 messages at 500 Hz, the first 100 not counted). Prints p50, p99 and
 //! the maximum in microseconds for inproc, zenoh (loopback TCP), zenoh over mutual TLS
 //! without and with robot ids bound to the certificates (`robot_certificates`, Zenoh
-//! access control; certificates made with `openssl`, rows left out without it) and
+//! access control; certificates made by `agent certs`) and
 //! iceoryx2.
 use agent::transport::zenoh_acl::RobotCertificates;
 use agent::transport::{
@@ -33,7 +33,11 @@ fn main() -> anyhow::Result<()> {
         "transport", "p50 us", "p99 us", "max us"
     );
     let certificates = tempfile::tempdir()?;
-    let tls = match support::make_fleet_certificates(certificates.path(), &["robot1", "robot2"]) {
+    let tls = match support::make_fleet_certificates(
+        std::path::Path::new(env!("CARGO_BIN_EXE_agent")),
+        certificates.path(),
+        &["robot1", "robot2"],
+    ) {
         Ok(()) => Some(certificates.path()),
         Err(e) => {
             eprintln!("no TLS rows: {e}");

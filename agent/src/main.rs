@@ -46,6 +46,36 @@ enum Command {
     /// names (JSON), for a Zenoh router between sites. Agents in peer mode make
     /// their own from `transport: zenoh: robot_certificates:`.
     Acl(AclArgs),
+    /// Make the fleet's TLS certificates for the `tls` Zenoh configuration: a CA
+    /// (reused if the folder has one) and a key and certificate per robot or router.
+    Certs(CertsArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct CertsArgs {
+    /// The folder for the files (`ca.pem`, `ca-key.pem`, `<name>-cert.pem`,
+    /// `<name>-key.pem`).
+    #[arg(long)]
+    out: PathBuf,
+    /// A robot: `ID=HOST[,HOST...]`, the addresses or DNS names its peers connect
+    /// to. Its certificate's name is `--common-name` with ID in place of `{id}`.
+    #[arg(long = "robot", value_name = "ID=HOSTS")]
+    robots: Vec<String>,
+    /// Another member by its exact name, e.g. a Zenoh router: `NAME=HOST[,HOST...]`.
+    #[arg(long = "named", value_name = "NAME=HOSTS")]
+    named: Vec<String>,
+    /// Robot N's certificate common name (as `robot_certificates: common_name`).
+    #[arg(long, default_value = "robot{id}")]
+    common_name: String,
+    /// Days the certificates are valid.
+    #[arg(long, default_value_t = 365)]
+    days: u32,
+    /// Days a new CA is valid.
+    #[arg(long, default_value_t = 3650)]
+    ca_days: u32,
+    /// A new CA's common name.
+    #[arg(long, default_value = "fleet-ca")]
+    ca_name: String,
 }
 
 #[derive(clap::Args, Debug)]
@@ -142,6 +172,7 @@ fn run_main() -> Result<()> {
         (Some(Command::Run(args)), _) => run(args),
         (Some(Command::Probe(args)), _) => probe(args),
         (Some(Command::Acl(args)), _) => print_acl(args),
+        (Some(Command::Certs(args)), _) => make_certs(args),
         #[cfg(feature = "vision")]
         (Some(Command::Dataset(args)), _) => agent::dataset_cli::run_dataset_command(args),
         (None, Some(config)) => run_agent(config, cli.progress),
@@ -150,6 +181,46 @@ fn run_main() -> Result<()> {
             Ok(())
         }
     }
+}
+
+fn make_certs(args: &CertsArgs) -> Result<()> {
+    use agent::transport::fleet_certs::{issue, Member, Request};
+    let split = |spec: &str| -> Result<(String, Vec<String>)> {
+        let (name, hosts) = spec
+            .split_once('=')
+            .with_context(|| format!("{spec:?}: expected NAME=HOST[,HOST...]"))?;
+        Ok((
+            name.to_owned(),
+            hosts.split(',').map(str::to_owned).collect(),
+        ))
+    };
+    let mut members = Vec::new();
+    for spec in &args.robots {
+        let (id, hosts) = split(spec)?;
+        let id: u32 = id
+            .parse()
+            .with_context(|| format!("{spec:?}: the robot id {id:?} is not a number"))?;
+        let name = args.common_name.replace("{id}", &id.to_string());
+        members.push(Member { name, hosts });
+    }
+    for spec in &args.named {
+        let (name, hosts) = split(spec)?;
+        members.push(Member { name, hosts });
+    }
+    let request = Request {
+        ca_name: args.ca_name.clone(),
+        ca_days: args.ca_days,
+        days: args.days,
+        members,
+    };
+    let issued = issue(&args.out, &request)?;
+    if !issued.new_ca {
+        println!("signed with the CA already in {}", args.out.display());
+    }
+    for f in &issued.files {
+        println!("{}", f.display());
+    }
+    Ok(())
 }
 
 fn print_acl(args: &AclArgs) -> Result<()> {

@@ -17,6 +17,11 @@ use std::time::{Duration, Instant};
 mod support;
 use support::make_fleet_certificates;
 
+/// The `agent` binary (for `agent certs` and `agent acl`).
+fn agent_bin() -> &'static std::path::Path {
+    std::path::Path::new(env!("CARGO_BIN_EXE_agent"))
+}
+
 type TestResult = Result<(), Box<dyn std::error::Error>>;
 
 /// Longest wait for something that must happen (a message, a peer).
@@ -596,7 +601,7 @@ fn join_over_tls(
 #[test]
 fn zenoh_tls_config_connects_peers_with_mutual_certificates() -> TestResult {
     let dir = tempfile::tempdir()?;
-    make_fleet_certificates(dir.path(), &["robot1", "robot2"])?;
+    make_fleet_certificates(agent_bin(), dir.path(), &["robot1", "robot2"])?;
     let net = Net::new(Backend::Zenoh, "tls", 2)?;
     let mut endpoints = Vec::new();
     for i in 0..2 {
@@ -717,7 +722,7 @@ fn heard_by_robot_2(
 #[test]
 fn zenoh_robot_certificates_stop_a_peer_sending_as_another_robot() -> TestResult {
     let dir = tempfile::tempdir()?;
-    make_fleet_certificates(dir.path(), &["robot1", "robot2", "robot3"])?;
+    make_fleet_certificates(agent_bin(), dir.path(), &["robot1", "robot2", "robot3"])?;
 
     let (heard, appeared) = heard_by_robot_2(dir.path(), false)?;
     let forged = (1, b"robot 2 as robot 1".to_vec());
@@ -745,7 +750,7 @@ fn start_router(
     (port, connect): (u16, Option<u16>),
     check: bool,
 ) -> Result<::zenoh::Session, Box<dyn std::error::Error>> {
-    let acl = std::process::Command::new(env!("CARGO_BIN_EXE_agent"))
+    let acl = std::process::Command::new(agent_bin())
         .args(["acl", "--fleet", fleet_id, "--robots", "1,2"])
         .args(["--trusted-routers", "router1,router2"])
         .output()?;
@@ -838,7 +843,11 @@ fn heard_across_sites(
 #[test]
 fn routers_with_agent_acl_stop_a_forged_robot_id_between_sites() -> TestResult {
     let dir = tempfile::tempdir()?;
-    make_fleet_certificates(dir.path(), &["robot1", "robot2", "router1", "router2"])?;
+    make_fleet_certificates(
+        agent_bin(),
+        dir.path(),
+        &["robot1", "robot2", "router1", "router2"],
+    )?;
     let genuine = (1, b"robot 1".to_vec());
     let forged = (1, b"robot 2 as robot 1".to_vec());
     assert_eq!(

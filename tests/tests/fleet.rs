@@ -304,7 +304,8 @@ fn agents_over_mutual_tls_with_bound_ids_hear_each_other_and_not_an_impostor() {
     let dir = tempfile::tempdir().unwrap();
     let certs = dir.path().join("certs");
     std::fs::create_dir(&certs).unwrap();
-    support::make_fleet_certificates(&certs, &["robot0", "robot1", "robot2"]).unwrap();
+    support::make_fleet_certificates(&bin("agent"), &certs, &["robot0", "robot1", "robot2"])
+        .unwrap();
     let sc = scenario(dir.path(), 16.0);
     let out = dir.path().join("tls");
     let cfgs = configs(&sc, &out, &["--transport", "zenoh", "--realtime", "2"]);

@@ -13,6 +13,7 @@
 //! * [`faults`]: [`FaultyTransport`], seeded loss and added delay for fault tests.
 
 pub mod faults;
+pub mod fleet_certs;
 pub mod iceoryx2;
 pub mod inproc;
 pub mod settings;
