@@ -48,6 +48,7 @@ fn args(scenario: &Path, seed: u64, variant: Variant, out: &Path) -> RunArgs {
         out: out.to_path_buf(),
         fleet_id: Some(format!("bench-{}-{seed}", variant.name())),
         zenoh_config: "loopback".into(),
+        tls: false,
         derived_delay_s: 3.0,
         agent_bin: None,
         dry_run: false,

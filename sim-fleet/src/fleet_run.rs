@@ -13,7 +13,9 @@ use agent::config::{
 };
 use agent::node::{run_node, NodeReport, RobotSetup};
 use agent::runner::{write_run_outputs, Variant};
-use agent::transport::{InprocHub, TransportKind, ZenohSettings};
+use agent::transport::fleet_certs::{issue, Member, Request};
+use agent::transport::zenoh_acl::RobotCertificates;
+use agent::transport::{InprocHub, TransportKind, ZenohSettings, ZENOH_BUILTIN_CONFIGS};
 use anyhow::{bail, Context, Result};
 use common::summary::{MetricSet, RobotSummary, RunSummary};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -66,6 +68,12 @@ pub struct RunArgs {
     /// and connects to all the others.
     #[arg(long, default_value = "loopback")]
     pub zenoh_config: String,
+    /// Zenoh over mutual TLS on loopback, robot ids bound to the certificates
+    /// (`robot_certificates`): a CA and a certificate per robot are made in
+    /// `OUT/tls/` (as `agent certs` makes them) and each agent gets the built-in `tls`
+    /// configuration with its own files.
+    #[arg(long, conflicts_with = "zenoh_config")]
+    pub tls: bool,
     /// Start of each derived copy relative to the previous copy, s.
     #[arg(long, default_value_t = 3.0)]
     pub derived_delay_s: f64,
@@ -111,6 +119,54 @@ fn free_ports(n: usize) -> Result<Vec<u16>> {
     common::loopback_ports::free_loopback_ports(n).context("finding free loopback ports")
 }
 
+/// Certificates for robots `0..n` on loopback in `dir` (made anew: a previous run's
+/// are removed), each robot's copy of the built-in `tls` configuration pointing at
+/// its files, and the binding of the ids to the certificates.
+fn fleet_tls(dir: &Path, n: usize) -> Result<(Vec<PathBuf>, RobotCertificates)> {
+    if dir.exists() {
+        std::fs::remove_dir_all(dir).with_context(|| format!("removing {}", dir.display()))?;
+    }
+    let certs = RobotCertificates {
+        robots: (0..n as u32).collect(),
+        common_name: "robot{id}".to_owned(),
+        trusted_routers: Vec::new(),
+    };
+    let request = Request {
+        ca_name: "fleet-ca".to_owned(),
+        ca_days: 30,
+        days: 30,
+        members: (certs.robots.iter())
+            .map(|&id| Member {
+                name: certs.name_of(id),
+                hosts: vec!["127.0.0.1".to_owned()],
+            })
+            .collect(),
+    };
+    issue(dir, &request)?;
+    let shipped = ZENOH_BUILTIN_CONFIGS
+        .iter()
+        .find(|(name, _)| *name == "tls")
+        .map(|(_, text)| *text)
+        .context("the built-in `tls` Zenoh configuration is missing")?;
+    let mut configs = Vec::with_capacity(n);
+    for &id in &certs.robots {
+        let name = certs.name_of(id);
+        let text = shipped
+            .replace(
+                "/etc/fleet-vio/tls/ca.pem",
+                &dir.join("ca.pem").display().to_string(),
+            )
+            .replace(
+                "/etc/fleet-vio/tls/robot-",
+                &format!("{}/{name}-", dir.display()),
+            );
+        let path = dir.join(format!("{name}.json5"));
+        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+        configs.push(path);
+    }
+    Ok((configs, certs))
+}
+
 /// Every agent's configuration for a run.
 pub fn agent_configs(
     args: &RunArgs,
@@ -132,6 +188,12 @@ pub fn agent_configs(
     } else {
         Vec::new()
     };
+    let tls = match (args.tls, kind) {
+        (false, _) => None,
+        (true, TransportKind::Zenoh) => Some(fleet_tls(&out.join("tls"), n)?),
+        (true, _) => bail!("--tls needs --transport zenoh"),
+    };
+    let scheme = if tls.is_some() { "tls" } else { "tcp" };
     let clock = |me: u32| ClockConfig {
         mode: if args.realtime.is_some() {
             ClockMode::Realtime
@@ -146,18 +208,21 @@ pub fn agent_configs(
         .map(|i| {
             let me = i as u32;
             let zenoh = ZenohSettings {
-                config: args.zenoh_config.clone(),
+                config: match &tls {
+                    Some((configs, _)) => configs[i].display().to_string(),
+                    None => args.zenoh_config.clone(),
+                },
                 listen: ports
                     .get(i)
-                    .map(|p| vec![format!("tcp/127.0.0.1:{p}")])
+                    .map(|p| vec![format!("{scheme}/127.0.0.1:{p}")])
                     .unwrap_or_default(),
                 connect: ports
                     .iter()
                     .enumerate()
                     .filter(|(j, _)| *j != i)
-                    .map(|(_, p)| format!("tcp/127.0.0.1:{p}"))
+                    .map(|(_, p)| format!("{scheme}/127.0.0.1:{p}"))
                     .collect(),
-                robot_certificates: None,
+                robot_certificates: tls.as_ref().map(|(_, certs)| certs.clone()),
             };
             AgentConfig {
                 robot_id: me,

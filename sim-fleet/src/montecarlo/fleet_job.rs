@@ -35,6 +35,7 @@ pub fn run(
         out: dir.to_path_buf(),
         fleet_id: Some(format!("mc-{}-{seed}", variant.name())),
         zenoh_config: "loopback".into(),
+        tls: false,
         derived_delay_s: 3.0,
         agent_bin: None,
         dry_run: false,
