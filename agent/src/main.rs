@@ -76,6 +76,10 @@ struct CertsArgs {
     /// A new CA's common name.
     #[arg(long, default_value = "fleet-ca")]
     ca_name: String,
+    /// Also write `<name>.json5` per member: the built-in `tls` Zenoh configuration
+    /// pointing at the files in `--out` (for agents on this machine).
+    #[arg(long)]
+    zenoh_configs: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -184,7 +188,7 @@ fn run_main() -> Result<()> {
 }
 
 fn make_certs(args: &CertsArgs) -> Result<()> {
-    use agent::transport::fleet_certs::{issue, Member, Request};
+    use agent::transport::fleet_certs::{issue, write_zenoh_configs, Member, Request};
     let split = |spec: &str| -> Result<(String, Vec<String>)> {
         let (name, hosts) = spec
             .split_once('=')
@@ -217,7 +221,12 @@ fn make_certs(args: &CertsArgs) -> Result<()> {
     if !issued.new_ca {
         println!("signed with the CA already in {}", args.out.display());
     }
-    for f in &issued.files {
+    let mut files = issued.files;
+    if args.zenoh_configs {
+        let names: Vec<String> = request.members.into_iter().map(|m| m.name).collect();
+        files.extend(write_zenoh_configs(&args.out, &names)?);
+    }
+    for f in &files {
         println!("{}", f.display());
     }
     Ok(())

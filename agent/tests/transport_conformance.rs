@@ -695,24 +695,53 @@ fn heard_by_robot_2(
         ready[1] = appeared.contains(&1);
         std::thread::sleep(Duration::from_millis(10));
     }
-    endpoints[0].publish(MessageKind::Heartbeat, b"robot 1")?;
-    endpoints[2].publish(MessageKind::Heartbeat, b"robot 2 as robot 1")?;
-    endpoints[3].publish(MessageKind::Heartbeat, b"robot 3, not in the fleet")?;
-    endpoints[1].publish(MessageKind::Heartbeat, b"robot 2")?;
-    let mut heard = heard_within_a_second(endpoints[1].as_mut())?;
+    let others: [(usize, &[u8]); 2] = [
+        (2, b"robot 2 as robot 1"),
+        (3, b"robot 3, not in the fleet"),
+    ];
+    let heard = exchange(&mut endpoints, (0, b"robot 1"), 1, &others)?;
     note(endpoints[1].as_mut(), &mut appeared);
-    let at_robot_1: Vec<Vec<u8>> = (receive_rest(endpoints[0].as_mut())?.into_iter())
-        .filter(|m| m.from_robot == 2)
-        .map(|m| m.bytes)
-        .collect();
-    assert_eq!(
-        at_robot_1,
-        vec![b"robot 2".to_vec()],
-        "robot 1 must hear robot 2"
-    );
+    // Robot 1 hears robot 2 (`exchange` fails if it never does).
+    exchange(&mut endpoints, (1, b"robot 2"), 0, &[])?;
     close_all(&mut endpoints)?;
-    heard.sort();
     Ok((heard, appeared))
+}
+
+/// What endpoint `to` hears, without repeats: first `genuine.1` from endpoint
+/// `genuine.0`, sent until `to` has it (so the routes between them are up, however
+/// long the links and routers take), then each of `others` (endpoint, payload) sent
+/// ten times 50 ms apart, then a second of quiet.
+fn exchange(
+    endpoints: &mut [Box<dyn Transport>],
+    genuine: (usize, &[u8]),
+    to: usize,
+    others: &[(usize, &[u8])],
+) -> Result<Messages, Box<dyn std::error::Error>> {
+    let mut heard = Vec::new();
+    let listen = |t: &mut dyn Transport, heard: &mut Messages| -> Result<(), TransportError> {
+        while let Some(m) = t.receive(Duration::from_millis(50))? {
+            heard.push((m.from_robot, m.bytes));
+        }
+        Ok(())
+    };
+    let start = Instant::now();
+    while !heard.iter().any(|(_, bytes)| bytes == genuine.1) {
+        if start.elapsed() > PATIENCE {
+            return Err(format!("endpoint {to} never heard endpoint {}", genuine.0).into());
+        }
+        endpoints[genuine.0].publish(MessageKind::Heartbeat, genuine.1)?;
+        listen(endpoints[to].as_mut(), &mut heard)?;
+    }
+    for _ in 0..10 {
+        for (i, payload) in others {
+            endpoints[*i].publish(MessageKind::Heartbeat, payload)?;
+        }
+        listen(endpoints[to].as_mut(), &mut heard)?;
+    }
+    heard.extend(heard_within_a_second(endpoints[to].as_mut())?);
+    heard.sort();
+    heard.dedup();
+    Ok(heard)
 }
 
 /// `robot_certificates`: with robot ids bound to certificate names, a fleet member
@@ -823,18 +852,17 @@ fn heard_across_sites(
         wait_until_present(endpoints[i].as_mut(), &BTreeSet::from([2]))?;
     }
     wait_until_present(endpoints[1].as_mut(), &BTreeSet::from([1]))?;
-    endpoints[0].publish(MessageKind::Heartbeat, b"robot 1")?;
-    endpoints[2].publish(MessageKind::Heartbeat, b"robot 2 as robot 1")?;
-    endpoints[1].publish(MessageKind::Heartbeat, b"robot 2")?;
-    let mut heard = heard_within_a_second(endpoints[1].as_mut())?;
-    let at_robot_1 = receive_n(endpoints[0].as_mut(), 1)?;
-    let first = (at_robot_1[0].from_robot, &at_robot_1[0].bytes[..]);
-    assert_eq!(first, (2, &b"robot 2"[..]));
+    let heard = exchange(
+        &mut endpoints,
+        (0, b"robot 1"),
+        1,
+        &[(2, b"robot 2 as robot 1")],
+    )?;
+    exchange(&mut endpoints, (1, b"robot 2"), 0, &[])?;
     close_all(&mut endpoints)?;
     for router in [router_b, router_a] {
         ::zenoh::Wait::wait(router.close()).map_err(|e| e.to_string())?;
     }
-    heard.sort();
     Ok(heard)
 }
 

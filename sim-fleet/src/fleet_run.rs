@@ -13,9 +13,9 @@ use agent::config::{
 };
 use agent::node::{run_node, NodeReport, RobotSetup};
 use agent::runner::{write_run_outputs, Variant};
-use agent::transport::fleet_certs::{issue, Member, Request};
+use agent::transport::fleet_certs::{issue, write_zenoh_configs, Member, Request};
 use agent::transport::zenoh_acl::RobotCertificates;
-use agent::transport::{InprocHub, TransportKind, ZenohSettings, ZENOH_BUILTIN_CONFIGS};
+use agent::transport::{InprocHub, TransportKind, ZenohSettings};
 use anyhow::{bail, Context, Result};
 use common::summary::{MetricSet, RobotSummary, RunSummary};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -143,27 +143,8 @@ fn fleet_tls(dir: &Path, n: usize) -> Result<(Vec<PathBuf>, RobotCertificates)> 
             .collect(),
     };
     issue(dir, &request)?;
-    let shipped = ZENOH_BUILTIN_CONFIGS
-        .iter()
-        .find(|(name, _)| *name == "tls")
-        .map(|(_, text)| *text)
-        .context("the built-in `tls` Zenoh configuration is missing")?;
-    let mut configs = Vec::with_capacity(n);
-    for &id in &certs.robots {
-        let name = certs.name_of(id);
-        let text = shipped
-            .replace(
-                "/etc/fleet-vio/tls/ca.pem",
-                &dir.join("ca.pem").display().to_string(),
-            )
-            .replace(
-                "/etc/fleet-vio/tls/robot-",
-                &format!("{}/{name}-", dir.display()),
-            );
-        let path = dir.join(format!("{name}.json5"));
-        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
-        configs.push(path);
-    }
+    let names: Vec<String> = request.members.into_iter().map(|m| m.name).collect();
+    let configs = write_zenoh_configs(dir, &names)?;
     Ok((configs, certs))
 }
 

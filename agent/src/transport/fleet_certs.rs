@@ -158,6 +158,33 @@ pub fn issue(dir: &Path, request: &Request) -> Result<Issued, CertError> {
     Ok(Issued { new_ca, files })
 }
 
+/// Writes `<name>.json5` in `dir` for each of `names`: the built-in `tls` Zenoh
+/// configuration with its certificate paths pointing at the CA and that member's
+/// files in `dir`, for agents run on this machine (on a robot, the built-in `tls`
+/// reads them from `/etc/fleet-vio/tls/`). Returns the files.
+pub fn write_zenoh_configs(dir: &Path, names: &[String]) -> Result<Vec<PathBuf>, CertError> {
+    let shipped = (super::ZENOH_BUILTIN_CONFIGS.iter())
+        .find(|(name, _)| *name == "tls")
+        .map(|(_, text)| *text)
+        .ok_or_else(|| CertError::Invalid("no built-in `tls` Zenoh configuration".into()))?;
+    let mut files = Vec::with_capacity(names.len());
+    for name in names {
+        let text = shipped
+            .replace(
+                "/etc/fleet-vio/tls/ca.pem",
+                &dir.join("ca.pem").display().to_string(),
+            )
+            .replace(
+                "/etc/fleet-vio/tls/robot-",
+                &format!("{}/{name}-", dir.display()),
+            );
+        let path = dir.join(format!("{name}.json5"));
+        std::fs::write(&path, text).map_err(io(&path))?;
+        files.push(path);
+    }
+    Ok(files)
+}
+
 fn validate(request: &Request) -> Result<(), CertError> {
     let invalid = |s: String| Err(CertError::Invalid(s));
     let name_ok = |n: &str| {

@@ -3,9 +3,9 @@
 
 /// In `dir`: a fleet CA (`ca.pem`) and, for each name, a key and certificate with
 /// that common name (`<name>-key.pem`, `<name>-cert.pem`, for 127.0.0.1 and
-/// localhost), made by `agent certs` (the binary at `agent`), and `<name>.json5`:
-/// `broker-free-config/zenoh-tls.json5` as shipped with only its certificate paths
-/// changed to these files.
+/// localhost), and `<name>.json5`: `broker-free-config/zenoh-tls.json5` as shipped
+/// with only its certificate paths changed to these files; all made by `agent certs
+/// --zenoh-configs` (the binary at `agent`).
 pub fn make_fleet_certificates(
     agent: &std::path::Path,
     dir: &std::path::Path,
@@ -20,7 +20,9 @@ fn make(
     names: &[&str],
 ) -> Result<(), Box<dyn std::error::Error>> {
     let mut certs = std::process::Command::new(agent);
-    certs.args(["certs", "--days", "2", "--out"]).arg(dir);
+    certs
+        .args(["certs", "--zenoh-configs", "--days", "2", "--out"])
+        .arg(dir);
     for name in names {
         certs
             .arg("--named")
@@ -29,22 +31,6 @@ fn make(
     let made = certs.output()?;
     if !made.status.success() {
         return Err(format!("agent certs: {}", String::from_utf8_lossy(&made.stderr)).into());
-    }
-    let shipped = std::fs::read_to_string(
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../broker-free-config/zenoh-tls.json5"),
-    )?;
-    for name in names {
-        let config = shipped
-            .replace(
-                "/etc/fleet-vio/tls/ca.pem",
-                &dir.join("ca.pem").display().to_string(),
-            )
-            .replace(
-                "/etc/fleet-vio/tls/robot-",
-                &format!("{}/{name}-", dir.display()),
-            );
-        std::fs::write(dir.join(format!("{name}.json5")), config)?;
     }
     Ok(())
 }
