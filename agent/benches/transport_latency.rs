@@ -4,9 +4,9 @@
 //! `cargo bench -p agent --bench transport_latency [-- MESSAGES [RATE_HZ]]`
 //! (default 2000 messages at 500 Hz, the first 100 not counted). Prints p50, p99 and
 //! the maximum in microseconds for inproc, zenoh (loopback TCP), zenoh over mutual TLS
-//! without and with robot ids bound to the certificates (`robot_certificates`, Zenoh
-//! access control; certificates made by `agent certs`) and
-//! iceoryx2.
+//! and over QUIC, each without and with robot ids bound to the certificates
+//! (`robot_certificates`, Zenoh access control; certificates made by `agent certs`),
+//! and iceoryx2.
 use agent::transport::zenoh_acl::RobotCertificates;
 use agent::transport::{
     open, Iceoryx2Settings, InprocHub, Transport, TransportKind, TransportSettings, ZenohSettings,
@@ -32,25 +32,27 @@ fn main() -> anyhow::Result<()> {
         "{:<14} {:>10} {:>10} {:>10}",
         "transport", "p50 us", "p99 us", "max us"
     );
-    let certificates = tempfile::tempdir()?;
-    let tls = match support::make_fleet_certificates(
-        std::path::Path::new(env!("CARGO_BIN_EXE_agent")),
-        certificates.path(),
-        &["robot1", "robot2"],
-    ) {
-        Ok(()) => Some(certificates.path()),
-        Err(e) => {
-            eprintln!("no TLS rows: {e}");
-            None
-        }
-    };
     let mut setups = vec![
         Setup::plain(TransportKind::Inproc),
         Setup::plain(TransportKind::Zenoh),
     ];
-    if let Some(dir) = tls {
-        setups.push(Setup::tls(dir, false));
-        setups.push(Setup::tls(dir, true));
+    // One folder of certificates and configurations per secure link.
+    let mut folders = Vec::new();
+    for link in ["tls", "quic"] {
+        let certificates = tempfile::tempdir()?;
+        match support::make_fleet_certificates(
+            std::path::Path::new(env!("CARGO_BIN_EXE_agent")),
+            certificates.path(),
+            &["robot1", "robot2"],
+            link,
+        ) {
+            Ok(()) => {
+                setups.push(Setup::secure(link, certificates.path(), false));
+                setups.push(Setup::secure(link, certificates.path(), true));
+                folders.push(certificates);
+            }
+            Err(e) => eprintln!("no {link} rows: {e}"),
+        }
     }
     setups.push(Setup::plain(TransportKind::Iceoryx2));
     for (n, setup) in setups.iter().enumerate() {
@@ -73,8 +75,9 @@ fn main() -> anyhow::Result<()> {
 struct Setup {
     label: String,
     kind: TransportKind,
-    /// `None`: the built-in `loopback` over TCP; else the folder of the TLS files.
-    tls: Option<std::path::PathBuf>,
+    /// `None`: the built-in `loopback` over TCP; else the secure link's scheme and
+    /// the folder of its files.
+    secure: Option<(&'static str, std::path::PathBuf)>,
     bind_ids: bool,
 }
 
@@ -84,31 +87,26 @@ impl Setup {
         Self {
             label,
             kind,
-            tls: None,
+            secure: None,
             bind_ids: false,
         }
     }
 
-    fn tls(dir: &std::path::Path, bind_ids: bool) -> Self {
+    fn secure(link: &'static str, dir: &std::path::Path, bind_ids: bool) -> Self {
         Self {
-            label: if bind_ids {
-                "zenoh-tls+ids"
-            } else {
-                "zenoh-tls"
-            }
-            .to_owned(),
+            label: format!("zenoh-{link}{}", if bind_ids { "+ids" } else { "" }),
             kind: TransportKind::Zenoh,
-            tls: Some(dir.to_owned()),
+            secure: Some((link, dir.to_owned())),
             bind_ids,
         }
     }
 
     /// Endpoint `i` (robot `i + 1`) of two, on `ports`.
     fn settings(&self, fleet_id: &str, ports: &[u16], i: usize) -> TransportSettings {
-        let scheme = if self.tls.is_some() { "tls" } else { "tcp" };
+        let scheme = self.secure.as_ref().map_or("tcp", |(link, _)| *link);
         let endpoint = |p: u16| format!("{scheme}/127.0.0.1:{p}");
-        let config = match &self.tls {
-            Some(dir) => dir
+        let config = match &self.secure {
+            Some((_, dir)) => dir
                 .join(format!("robot{}.json5", i + 1))
                 .display()
                 .to_string(),

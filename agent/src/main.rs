@@ -76,10 +76,13 @@ struct CertsArgs {
     /// A new CA's common name.
     #[arg(long, default_value = "fleet-ca")]
     ca_name: String,
-    /// Also write `<name>.json5` per member: the built-in `tls` Zenoh configuration
-    /// pointing at the files in `--out` (for agents on this machine).
+    /// Also write `<name>.json5` per member: the built-in Zenoh configuration of
+    /// `--link` pointing at the files in `--out` (for agents on this machine).
     #[arg(long)]
     zenoh_configs: bool,
+    /// The secure link the `--zenoh-configs` files use: `tls` (TCP) or `quic` (UDP).
+    #[arg(long, value_enum, default_value = "tls", requires = "zenoh_configs")]
+    link: agent::transport::fleet_certs::SecureLink,
 }
 
 #[derive(clap::Args, Debug)]
@@ -224,7 +227,7 @@ fn make_certs(args: &CertsArgs) -> Result<()> {
     let mut files = issued.files;
     if args.zenoh_configs {
         let names: Vec<String> = request.members.into_iter().map(|m| m.name).collect();
-        files.extend(write_zenoh_configs(&args.out, &names)?);
+        files.extend(write_zenoh_configs(&args.out, &names, args.link)?);
     }
     for f in &files {
         println!("{}", f.display());

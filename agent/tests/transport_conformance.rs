@@ -435,7 +435,7 @@ fn every_zenoh_file_in_broker_free_config_loads() -> TestResult {
             loaded += 1;
         }
     }
-    assert_eq!(loaded, 4, "loopback, lan, explicit-peers, tls");
+    assert_eq!(loaded, 5, "loopback, lan, explicit-peers, tls, quic");
     Ok(())
 }
 
@@ -569,17 +569,18 @@ fn iceoryx2_reports_a_killed_peer_vanished_and_cleans_it_up() -> TestResult {
     Ok(())
 }
 
-/// Endpoint `index` of `net` over TLS with the files `make_fleet_certificates` made
-/// for `certificate`, claiming `robot_id`, checking `bind` if given.
-fn join_over_tls(
+/// Endpoint `index` of `net` over the secure `link` (`tls` or `quic`) with the files
+/// `make_fleet_certificates` made for `certificate`, claiming `robot_id`, checking
+/// `bind` if given.
+fn join_secure(
     net: &Net,
-    dir: &std::path::Path,
+    (dir, link): (&std::path::Path, &str),
     index: usize,
     robot_id: u32,
     certificate: &str,
     bind: Option<RobotCertificates>,
 ) -> Result<Box<dyn Transport>, TransportError> {
-    let tls = |port: &u16| format!("tls/127.0.0.1:{port}");
+    let tls = |port: &u16| format!("{link}/127.0.0.1:{port}");
     let mut settings = settings_for(Backend::Zenoh, &net.fleet_id, &net.ports, index, robot_id);
     settings.zenoh = ZenohSettings {
         config: dir
@@ -596,19 +597,19 @@ fn join_over_tls(
     open(&settings, None)
 }
 
-/// `broker-free-config/zenoh-tls.json5` as shipped (only the certificate paths
-/// changed): two peers with certificates of one CA talk over mutual TLS.
-#[test]
-fn zenoh_tls_config_connects_peers_with_mutual_certificates() -> TestResult {
+/// `broker-free-config/zenoh-<link>.json5` as shipped (only the certificate paths
+/// changed): two peers with certificates of one CA talk over mutual TLS, on TCP
+/// (`tls`) or inside QUIC (`quic`), and a burst arrives whole and in order.
+fn secure_config_connects_peers_with_mutual_certificates(link: &str) -> TestResult {
     let dir = tempfile::tempdir()?;
-    make_fleet_certificates(agent_bin(), dir.path(), &["robot1", "robot2"])?;
-    let net = Net::new(Backend::Zenoh, "tls", 2)?;
+    make_fleet_certificates(agent_bin(), dir.path(), &["robot1", "robot2"], link)?;
+    let net = Net::new(Backend::Zenoh, link, 2)?;
     let mut endpoints = Vec::new();
     for i in 0..2 {
         let name = format!("robot{}", i + 1);
-        endpoints.push(join_over_tls(
+        endpoints.push(join_secure(
             &net,
-            dir.path(),
+            (dir.path(), link),
             i,
             i as u32 + 1,
             &name,
@@ -617,11 +618,28 @@ fn zenoh_tls_config_connects_peers_with_mutual_certificates() -> TestResult {
     }
     wait_until_present(endpoints[0].as_mut(), &BTreeSet::from([2]))?;
     wait_until_present(endpoints[1].as_mut(), &BTreeSet::from([1]))?;
-    endpoints[0].publish(MessageKind::Heartbeat, b"over tls")?;
+    endpoints[0].publish(MessageKind::Heartbeat, link.as_bytes())?;
     let got = receive_n(endpoints[1].as_mut(), 1)?;
-    assert_eq!(got[0].bytes, b"over tls");
+    assert_eq!(got[0].bytes, link.as_bytes());
+    let burst = 300;
+    for i in 0u32..burst {
+        endpoints[1].publish(MessageKind::Tracks, &i.to_le_bytes())?;
+    }
+    let got = receive_n(endpoints[0].as_mut(), burst as usize)?;
+    let order: Vec<Vec<u8>> = (0u32..burst).map(|i| i.to_le_bytes().to_vec()).collect();
+    assert_eq!(got.into_iter().map(|m| m.bytes).collect::<Vec<_>>(), order);
     close_all(&mut endpoints)?;
     Ok(())
+}
+
+#[test]
+fn zenoh_tls_config_connects_peers_with_mutual_certificates() -> TestResult {
+    secure_config_connects_peers_with_mutual_certificates("tls")
+}
+
+#[test]
+fn zenoh_quic_config_connects_peers_with_mutual_certificates() -> TestResult {
+    secure_config_connects_peers_with_mutual_certificates("quic")
 }
 
 /// Messages heard: the sender's id as the key says, the payload.
@@ -646,7 +664,7 @@ type Heard = (Messages, BTreeSet<u32>);
 /// bind the ids 1 and 2 to their certificates (the forgers never check anything).
 /// Robot 1 must hear robot 2 either way.
 fn heard_by_robot_2(
-    dir: &std::path::Path,
+    files: (&std::path::Path, &str),
     bind: bool,
 ) -> Result<Heard, Box<dyn std::error::Error>> {
     let certs = RobotCertificates {
@@ -665,7 +683,7 @@ fn heard_by_robot_2(
     let mut endpoints = Vec::new();
     for (i, (id, cert, checks)) in cast.into_iter().enumerate() {
         let binding = checks.then(|| certs.clone());
-        endpoints.push(join_over_tls(&net, dir, i, id, cert, binding)?);
+        endpoints.push(join_secure(&net, files, i, id, cert, binding)?);
     }
     let mut appeared = BTreeSet::new();
     let note = |t: &mut dyn Transport, appeared: &mut BTreeSet<u32>| {
@@ -748,12 +766,12 @@ fn exchange(
 /// cannot send as another robot, and a certificate of the fleet's CA that the fleet
 /// does not list can neither send nor appear. The same run without the binding shows
 /// what it stops: both forgeries arrive.
-#[test]
-fn zenoh_robot_certificates_stop_a_peer_sending_as_another_robot() -> TestResult {
+fn robot_certificates_stop_a_peer_sending_as_another_robot(link: &str) -> TestResult {
     let dir = tempfile::tempdir()?;
-    make_fleet_certificates(agent_bin(), dir.path(), &["robot1", "robot2", "robot3"])?;
+    let names = ["robot1", "robot2", "robot3"];
+    make_fleet_certificates(agent_bin(), dir.path(), &names, link)?;
 
-    let (heard, appeared) = heard_by_robot_2(dir.path(), false)?;
+    let (heard, appeared) = heard_by_robot_2((dir.path(), link), false)?;
     let forged = (1, b"robot 2 as robot 1".to_vec());
     let outsider = (3, b"robot 3, not in the fleet".to_vec());
     assert!(
@@ -762,10 +780,22 @@ fn zenoh_robot_certificates_stop_a_peer_sending_as_another_robot() -> TestResult
     );
     assert!(appeared.contains(&3), "{appeared:?}");
 
-    let (heard, appeared) = heard_by_robot_2(dir.path(), true)?;
+    let (heard, appeared) = heard_by_robot_2((dir.path(), link), true)?;
     assert_eq!(heard, vec![(1, b"robot 1".to_vec())]);
     assert_eq!(appeared, BTreeSet::from([1]));
     Ok(())
+}
+
+#[test]
+fn zenoh_robot_certificates_stop_a_peer_sending_as_another_robot() -> TestResult {
+    robot_certificates_stop_a_peer_sending_as_another_robot("tls")
+}
+
+/// The same binding over QUIC: Zenoh's QUIC link names the peer's certificate to the
+/// access control as its TLS link does.
+#[test]
+fn zenoh_robot_certificates_over_quic_stop_a_peer_sending_as_another_robot() -> TestResult {
+    robot_certificates_stop_a_peer_sending_as_another_robot("quic")
 }
 
 /// A Zenoh router in router mode, as `zenohd` would run it, in this process: TLS with
@@ -875,6 +905,7 @@ fn routers_with_agent_acl_stop_a_forged_robot_id_between_sites() -> TestResult {
         agent_bin(),
         dir.path(),
         &["robot1", "robot2", "router1", "router2"],
+        "tls",
     )?;
     let genuine = (1, b"robot 1".to_vec());
     let forged = (1, b"robot 2 as robot 1".to_vec());

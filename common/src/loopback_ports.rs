@@ -1,4 +1,5 @@
-//! Free TCP ports on 127.0.0.1 for Zenoh peers that must know each other's
+//! Free ports on 127.0.0.1, for TCP and UDP alike (`tcp/`, `tls/` and `quic/`
+//! endpoints), for Zenoh peers that must know each other's
 //! listen address before they start (the fleet launcher, tests, benches).
 //!
 //! Why not bind port 0 and release it: the kernel hands out port-0 binds and the
@@ -10,7 +11,7 @@
 //! twice in one process.
 
 use std::collections::BTreeSet;
-use std::net::TcpListener;
+use std::net::{TcpListener, UdpSocket};
 use std::sync::Mutex;
 
 /// Where Linux keeps the ephemeral range.
@@ -48,8 +49,12 @@ pub fn free_loopback_ports(n: usize) -> std::io::Result<Vec<u16>> {
         if handed.contains(&port) {
             continue;
         }
-        if let Ok(listener) = TcpListener::bind(("127.0.0.1", port)) {
-            held.push(listener);
+        // Free for both protocols, so the caller may listen with either.
+        if let (Ok(listener), Ok(socket)) = (
+            TcpListener::bind(("127.0.0.1", port)),
+            UdpSocket::bind(("127.0.0.1", port)),
+        ) {
+            held.push((listener, socket));
             ports.push(port);
         }
     }
@@ -131,6 +136,7 @@ mod tests {
         }
         for p in all {
             drop(TcpListener::bind(("127.0.0.1", p))?);
+            drop(UdpSocket::bind(("127.0.0.1", p))?);
         }
         Ok(())
     }

@@ -49,6 +49,7 @@ fn args(scenario: &Path, seed: u64, variant: Variant, out: &Path) -> RunArgs {
         fleet_id: Some(format!("bench-{}-{seed}", variant.name())),
         zenoh_config: "loopback".into(),
         tls: false,
+        quic: false,
         derived_delay_s: 3.0,
         agent_bin: None,
         dry_run: false,

@@ -13,7 +13,7 @@ use agent::config::{
 };
 use agent::node::{run_node, NodeReport, RobotSetup};
 use agent::runner::{write_run_outputs, Variant};
-use agent::transport::fleet_certs::{issue, write_zenoh_configs, Member, Request};
+use agent::transport::fleet_certs::{issue, write_zenoh_configs, Member, Request, SecureLink};
 use agent::transport::zenoh_acl::RobotCertificates;
 use agent::transport::{InprocHub, TransportKind, ZenohSettings};
 use anyhow::{bail, Context, Result};
@@ -74,6 +74,10 @@ pub struct RunArgs {
     /// configuration with its own files.
     #[arg(long, conflicts_with = "zenoh_config")]
     pub tls: bool,
+    /// As `--tls`, over QUIC (UDP) with the built-in `quic` configuration: the same
+    /// certificates and binding, without the TLS link's message loss under load.
+    #[arg(long, conflicts_with_all = ["zenoh_config", "tls"])]
+    pub quic: bool,
     /// Start of each derived copy relative to the previous copy, s.
     #[arg(long, default_value_t = 3.0)]
     pub derived_delay_s: f64,
@@ -120,9 +124,9 @@ fn free_ports(n: usize) -> Result<Vec<u16>> {
 }
 
 /// Certificates for robots `0..n` on loopback in `dir` (made anew: a previous run's
-/// are removed), each robot's copy of the built-in `tls` configuration pointing at
-/// its files, and the binding of the ids to the certificates.
-fn fleet_tls(dir: &Path, n: usize) -> Result<(Vec<PathBuf>, RobotCertificates)> {
+/// are removed), each robot's copy of the built-in configuration of `link` pointing
+/// at its files, and the binding of the ids to the certificates.
+fn fleet_tls(dir: &Path, n: usize, link: SecureLink) -> Result<(Vec<PathBuf>, RobotCertificates)> {
     if dir.exists() {
         std::fs::remove_dir_all(dir).with_context(|| format!("removing {}", dir.display()))?;
     }
@@ -144,7 +148,7 @@ fn fleet_tls(dir: &Path, n: usize) -> Result<(Vec<PathBuf>, RobotCertificates)> 
     };
     issue(dir, &request)?;
     let names: Vec<String> = request.members.into_iter().map(|m| m.name).collect();
-    let configs = write_zenoh_configs(dir, &names)?;
+    let configs = write_zenoh_configs(dir, &names, link)?;
     Ok((configs, certs))
 }
 
@@ -169,12 +173,17 @@ pub fn agent_configs(
     } else {
         Vec::new()
     };
-    let tls = match (args.tls, kind) {
-        (false, _) => None,
-        (true, TransportKind::Zenoh) => Some(fleet_tls(&out.join("tls"), n)?),
-        (true, _) => bail!("--tls needs --transport zenoh"),
+    let link = match (args.tls, args.quic) {
+        (true, _) => Some(SecureLink::Tls),
+        (_, true) => Some(SecureLink::Quic),
+        _ => None,
     };
-    let scheme = if tls.is_some() { "tls" } else { "tcp" };
+    let tls = match (link, kind) {
+        (None, _) => None,
+        (Some(link), TransportKind::Zenoh) => Some(fleet_tls(&out.join("tls"), n, link)?),
+        (Some(link), _) => bail!("--{} needs --transport zenoh", link.scheme()),
+    };
+    let scheme = link.map_or("tcp", SecureLink::scheme);
     let clock = |me: u32| ClockConfig {
         mode: if args.realtime.is_some() {
             ClockMode::Realtime

@@ -294,22 +294,22 @@ fn malformed_and_foreign_messages_are_dropped_and_counted() {
     assert!(s["robots"][0]["frames"].as_u64().unwrap() > 100);
 }
 
-/// Three agents over mutual TLS (`broker-free-config/zenoh-tls.json5` with the test's
-/// certificates) with their robot ids bound to the certificates: each hears the
-/// others' messages of every kind, and a probe holding robot 1's certificate that
-/// sends as robot 999 reaches nobody (`malformed_and_foreign_messages_are_dropped_and_counted`
-/// is the same probe without TLS, where the payloads arrive and are counted). Not
-/// every message: under load Zenoh 1.10.2's TLS link drops and loses some (upstream
-/// eclipse-zenoh/zenoh#2557, deploy/README.md), and the tests run in parallel.
-#[test]
-fn agents_over_mutual_tls_with_bound_ids_hear_each_other_and_not_an_impostor() {
+/// Three agents over mutual TLS on the secure `link` (`tls`: TCP, `quic`: UDP;
+/// `broker-free-config/zenoh-<link>.json5` with the test's certificates) with their
+/// robot ids bound to the certificates: each hears the others' messages of every
+/// kind, and a probe holding robot 1's certificate that sends as robot 999 reaches
+/// nobody (`malformed_and_foreign_messages_are_dropped_and_counted` is the same probe
+/// without TLS, where the payloads arrive and are counted). Not every message: under
+/// load Zenoh 1.10.2's TLS link drops and loses some (upstream eclipse-zenoh/zenoh#2557,
+/// deploy/README.md), and the tests run in parallel.
+fn agents_over_secure_link_with_bound_ids_hear_each_other_and_not_an_impostor(link: &str) {
     let dir = tempfile::tempdir().unwrap();
     let certs = dir.path().join("certs");
     std::fs::create_dir(&certs).unwrap();
-    support::make_fleet_certificates(&bin("agent"), &certs, &["robot0", "robot1", "robot2"])
+    support::make_fleet_certificates(&bin("agent"), &certs, &["robot0", "robot1", "robot2"], link)
         .unwrap();
     let sc = scenario(dir.path(), 16.0);
-    let out = dir.path().join("tls");
+    let out = dir.path().join(link);
     let cfgs = configs(&sc, &out, &["--transport", "zenoh", "--realtime", "2"]);
     let over_tls = |i: usize, bound: bool| {
         let text = std::fs::read_to_string(&cfgs[i]).unwrap();
@@ -325,7 +325,7 @@ fn agents_over_mutual_tls_with_bound_ids_hear_each_other_and_not_an_impostor() {
                     "robot_certificates: null"
                 },
             )
-            .replace("tcp/127.0.0.1", "tls/127.0.0.1");
+            .replace("tcp/127.0.0.1", &format!("{link}/127.0.0.1"));
         assert!(text.contains(&file.display().to_string()), "{text}");
         assert_eq!(text.contains("robots: [0, 1, 2]"), bound, "{text}");
         text
@@ -357,6 +357,47 @@ fn agents_over_mutual_tls_with_bound_ids_hear_each_other_and_not_an_impostor() {
             "{said}{net}"
         );
         assert!(net["received_from"].get("999").is_none(), "{net}");
+    }
+}
+
+#[test]
+fn agents_over_mutual_tls_with_bound_ids_hear_each_other_and_not_an_impostor() {
+    agents_over_secure_link_with_bound_ids_hear_each_other_and_not_an_impostor("tls");
+}
+
+#[test]
+fn agents_over_quic_with_bound_ids_hear_each_other_and_not_an_impostor() {
+    agents_over_secure_link_with_bound_ids_hear_each_other_and_not_an_impostor("quic");
+}
+
+/// `sim-fleet run --quic`: lockstep over QUIC with mutual TLS and robot ids bound, the
+/// load under which Zenoh's TLS link loses messages (deploy/README.md). Every message
+/// of every kind arrives, and the estimates are plain TCP's, bit for bit.
+#[test]
+fn lockstep_over_quic_with_bound_ids_delivers_everything_as_tcp_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 12.0);
+    let run = |name: &str, extra: &[&str]| {
+        let fleet = format!("det-{name}");
+        let mut args = vec!["--transport", "zenoh", "--seed", "5", "--fleet-id", &fleet];
+        args.extend(extra);
+        sim_fleet_run(&sc, &dir.path().join(name), &args)
+    };
+    let quic = run("q", &["--quic"]);
+    let tcp = run("t", &[]);
+    let config = std::fs::read_to_string(dir.path().join("q/robot0/config.yaml")).unwrap();
+    assert!(
+        config.contains("quic/127.0.0.1") && config.contains("robots:"),
+        "{config}"
+    );
+    assert_complete_delivery(&dir.path().join("q"), 3);
+    assert_eq!(deterministic_part(&quic), deterministic_part(&tcp));
+    for i in 0..3 {
+        let est = |run: &str| {
+            std::fs::read_to_string(dir.path().join(run).join(format!("robot{i}/estimate.txt")))
+                .unwrap()
+        };
+        assert_eq!(est("q"), est("t"));
     }
 }
 

@@ -158,15 +158,48 @@ pub fn issue(dir: &Path, request: &Request) -> Result<Issued, CertError> {
     Ok(Issued { new_ca, files })
 }
 
-/// Writes `<name>.json5` in `dir` for each of `names`: the built-in `tls` Zenoh
-/// configuration with its certificate paths pointing at the CA and that member's
-/// files in `dir`, for agents run on this machine (on a robot, the built-in `tls`
-/// reads them from `/etc/fleet-vio/tls/`). Returns the files.
-pub fn write_zenoh_configs(dir: &Path, names: &[String]) -> Result<Vec<PathBuf>, CertError> {
+/// The secure Zenoh links a fleet's certificates serve: each is a built-in
+/// configuration of the same name reading the same `tls:` section.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum SecureLink {
+    /// TLS over TCP (built-in `tls`): gets through where only TCP does, but Zenoh
+    /// 1.10's TLS link loses messages under load (eclipse-zenoh/zenoh#2557).
+    #[default]
+    Tls,
+    /// QUIC over UDP (built-in `quic`): separate send and receive streams, no loss
+    /// in the same runs.
+    Quic,
+}
+
+impl SecureLink {
+    /// The endpoint scheme and the built-in configuration's name.
+    pub fn scheme(self) -> &'static str {
+        match self {
+            SecureLink::Tls => "tls",
+            SecureLink::Quic => "quic",
+        }
+    }
+}
+
+/// Writes `<name>.json5` in `dir` for each of `names`: the built-in Zenoh
+/// configuration of `link` (`tls` or `quic`) with its certificate paths pointing at
+/// the CA and that member's files in `dir`, for agents run on this machine (on a
+/// robot, the built-in configurations read them from `/etc/fleet-vio/tls/`).
+/// Returns the files.
+pub fn write_zenoh_configs(
+    dir: &Path,
+    names: &[String],
+    link: SecureLink,
+) -> Result<Vec<PathBuf>, CertError> {
     let shipped = (super::ZENOH_BUILTIN_CONFIGS.iter())
-        .find(|(name, _)| *name == "tls")
+        .find(|(name, _)| *name == link.scheme())
         .map(|(_, text)| *text)
-        .ok_or_else(|| CertError::Invalid("no built-in `tls` Zenoh configuration".into()))?;
+        .ok_or_else(|| {
+            CertError::Invalid(format!(
+                "no built-in `{}` Zenoh configuration",
+                link.scheme()
+            ))
+        })?;
     let mut files = Vec::with_capacity(names.len());
     for name in names {
         let text = shipped
@@ -341,5 +374,28 @@ mod tests {
             }
         }
         assert!(!dir.exists());
+    }
+
+    #[test]
+    fn each_link_gets_its_own_configuration_pointing_at_the_members_files(
+    ) -> Result<(), Box<dyn std::error::Error>> {
+        let dir = tempfile::tempdir()?;
+        issue(dir.path(), &request(&["robot0"]))?;
+        for link in [SecureLink::Tls, SecureLink::Quic] {
+            let files = write_zenoh_configs(dir.path(), &["robot0".to_owned()], link)?;
+            let settings = crate::transport::ZenohSettings {
+                config: files[0].display().to_string(),
+                ..Default::default()
+            };
+            let config = crate::transport::zenoh::load_config(&settings)?;
+            let get = |key: &str| config.get_json(key).map_err(|e| e.to_string());
+            let protocols = get("transport/link/protocols")?;
+            assert_eq!(protocols, format!("[\"{}\"]", link.scheme()));
+            let key = get("transport/link/tls/connect_private_key")?;
+            let expected = dir.path().join("robot0-key.pem");
+            assert!(key.contains(&*expected.display().to_string()), "{key}");
+            assert!(std::fs::read_to_string(&files[0])?.contains(&format!("{}/", link.scheme())));
+        }
+        Ok(())
     }
 }

@@ -64,7 +64,7 @@ pub struct TransportSettings {
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ZenohSettings {
-    /// A built-in configuration name (`loopback`, `lan`, `explicit-peers`, `tls`: the
+    /// A built-in configuration name (`loopback`, `lan`, `explicit-peers`, `tls`, `quic`: the
     /// files of `broker-free-config/`, compiled into the binary) or the path of a json5
     /// Zenoh configuration file. Default `loopback`.
     #[serde(default = "default_zenoh_config")]
@@ -78,7 +78,7 @@ pub struct ZenohSettings {
     #[serde(default)]
     pub connect: Vec<String>,
     /// Bind robot ids to TLS certificates (needs a configuration with mutual TLS,
-    /// such as `tls`): robot N's messages and presence are let in only from the peer
+    /// such as `tls` or `quic`): robot N's messages and presence are let in only from the peer
     /// whose certificate is named for N. `None` (default): any peer the link lets in
     /// may send under any robot id.
     #[serde(default)]
@@ -147,7 +147,7 @@ fn default_max_message_bytes() -> usize {
 
 /// The Zenoh configurations compiled into the binary, by name, so that a deployed
 /// agent needs no repository: `(name, json5 text)`.
-pub const ZENOH_BUILTIN_CONFIGS: [(&str, &str); 4] = [
+pub const ZENOH_BUILTIN_CONFIGS: [(&str, &str); 5] = [
     (
         "loopback",
         include_str!("../../../broker-free-config/zenoh-loopback.json5"),
@@ -163,6 +163,10 @@ pub const ZENOH_BUILTIN_CONFIGS: [(&str, &str); 4] = [
     (
         "tls",
         include_str!("../../../broker-free-config/zenoh-tls.json5"),
+    ),
+    (
+        "quic",
+        include_str!("../../../broker-free-config/zenoh-quic.json5"),
     ),
 ];
 

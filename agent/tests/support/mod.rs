@@ -3,25 +3,28 @@
 
 /// In `dir`: a fleet CA (`ca.pem`) and, for each name, a key and certificate with
 /// that common name (`<name>-key.pem`, `<name>-cert.pem`, for 127.0.0.1 and
-/// localhost), and `<name>.json5`: `broker-free-config/zenoh-tls.json5` as shipped
-/// with only its certificate paths changed to these files; all made by `agent certs
-/// --zenoh-configs` (the binary at `agent`).
+/// localhost), and `<name>.json5`: `broker-free-config/zenoh-<link>.json5` as
+/// shipped (`link` is `tls` or `quic`) with only its certificate paths changed to
+/// these files; all made by `agent certs --zenoh-configs` (the binary at `agent`).
 pub fn make_fleet_certificates(
     agent: &std::path::Path,
     dir: &std::path::Path,
     names: &[&str],
+    link: &str,
 ) -> Result<(), String> {
-    make(agent, dir, names).map_err(|e| format!("making the fleet's certificates: {e}"))
+    make(agent, dir, names, link).map_err(|e| format!("making the fleet's certificates: {e}"))
 }
 
 fn make(
     agent: &std::path::Path,
     dir: &std::path::Path,
     names: &[&str],
+    link: &str,
 ) -> Result<(), Box<dyn std::error::Error>> {
     let mut certs = std::process::Command::new(agent);
     certs
-        .args(["certs", "--zenoh-configs", "--days", "2", "--out"])
+        .args(["certs", "--zenoh-configs", "--link", link])
+        .args(["--days", "2", "--out"])
         .arg(dir);
     for name in names {
         certs

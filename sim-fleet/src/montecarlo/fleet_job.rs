@@ -36,6 +36,7 @@ pub fn run(
         fleet_id: Some(format!("mc-{}-{seed}", variant.name())),
         zenoh_config: "loopback".into(),
         tls: false,
+        quic: false,
         derived_delay_s: 3.0,
         agent_bin: None,
         dry_run: false,
