@@ -798,12 +798,13 @@ fn zenoh_robot_certificates_over_quic_stop_a_peer_sending_as_another_robot() -> 
     robot_certificates_stop_a_peer_sending_as_another_robot("quic")
 }
 
-/// A Zenoh router in router mode, as `zenohd` would run it, in this process: TLS with
-/// `name`'s certificate from `make_fleet_certificates`, listening on `port`,
-/// connecting to `connect`; with `check`, enforcing the block `agent acl` prints for
-/// `fleet_id` with robots 1 and 2 and the routers `router1` and `router2`.
+/// A Zenoh router in router mode, as `zenohd` would run it, in this process: mutual
+/// TLS over `link` (`tls` or `quic`) with `name`'s certificate from
+/// `make_fleet_certificates`, listening on `port`, connecting to `connect`; with
+/// `check`, enforcing the block `agent acl` prints for `fleet_id` with robots 1 and 2
+/// and the routers `router1` and `router2`.
 fn start_router(
-    dir: &std::path::Path,
+    (dir, link): (&std::path::Path, &str),
     name: &str,
     fleet_id: &str,
     (port, connect): (u16, Option<u16>),
@@ -818,10 +819,10 @@ fn start_router(
     let config = format!(
         r#"{{
           mode: "router",
-          listen: {{ endpoints: ["tls/127.0.0.1:{port}"] }},
+          listen: {{ endpoints: ["{link}/127.0.0.1:{port}"] }},
           connect: {{ endpoints: [{connect}] }},
           scouting: {{ multicast: {{ enabled: false }} }},
-          transport: {{ link: {{ protocols: ["tls"], tls: {{
+          transport: {{ unicast: {{ open_timeout: 1000 }}, link: {{ protocols: ["{link}"], tls: {{
             root_ca_certificate: "{ca}",
             listen_private_key: "{key}", listen_certificate: "{cert}",
             connect_private_key: "{key}", connect_certificate: "{cert}",
@@ -829,7 +830,7 @@ fn start_router(
           }} }} }},
           access_control: {acl},
         }}"#,
-        connect = connect.map_or(String::new(), |p| format!("\"tls/127.0.0.1:{p}\"")),
+        connect = connect.map_or(String::new(), |p| format!("\"{link}/127.0.0.1:{p}\"")),
         ca = file("ca.pem".into()),
         key = file(format!("{name}-key.pem")),
         cert = file(format!("{name}-cert.pem")),
@@ -848,19 +849,26 @@ fn start_router(
 /// per site; the agents trust what the routers forward (`trusted_routers`). What
 /// robot 2 hears, with the routers checking (`check`) or not.
 fn heard_across_sites(
-    d: &std::path::Path,
+    (d, link): (&std::path::Path, &str),
     check: bool,
 ) -> Result<Messages, Box<dyn std::error::Error>> {
     let net = Net::new(Backend::Zenoh, "sites", 5)?;
     let (port_a, port_b) = (net.ports[3], net.ports[4]);
-    let router_a = start_router(d, "router1", &net.fleet_id, (port_a, None), check)?;
-    let router_b = start_router(d, "router2", &net.fleet_id, (port_b, Some(port_a)), check)?;
+    let files = (d, link);
+    let router_a = start_router(files, "router1", &net.fleet_id, (port_a, None), check)?;
+    let router_b = start_router(
+        files,
+        "router2",
+        &net.fleet_id,
+        (port_b, Some(port_a)),
+        check,
+    )?;
     let certs = RobotCertificates {
         robots: vec![1, 2],
         common_name: "robot{id}".to_owned(),
         trusted_routers: vec!["router1".to_owned(), "router2".to_owned()],
     };
-    let tls = |port: &u16| format!("tls/127.0.0.1:{port}");
+    let tls = |port: &u16| format!("{link}/127.0.0.1:{port}");
     let mut endpoints = Vec::new();
     // (robot id it claims, certificate it holds, whether it binds ids, its router)
     let cast = [
@@ -898,21 +906,30 @@ fn heard_across_sites(
 
 /// The routers enforce what `agent acl` prints: robot 2 hears robot 1 across sites,
 /// not the forger at robot 1's site. Routers that do not check forward both.
-#[test]
-fn routers_with_agent_acl_stop_a_forged_robot_id_between_sites() -> TestResult {
+fn routers_with_agent_acl_stop_a_forged_robot_id(link: &str) -> TestResult {
     let dir = tempfile::tempdir()?;
     make_fleet_certificates(
         agent_bin(),
         dir.path(),
         &["robot1", "robot2", "router1", "router2"],
-        "tls",
+        link,
     )?;
     let genuine = (1, b"robot 1".to_vec());
     let forged = (1, b"robot 2 as robot 1".to_vec());
     assert_eq!(
-        heard_across_sites(dir.path(), false)?,
+        heard_across_sites((dir.path(), link), false)?,
         vec![genuine.clone(), forged]
     );
-    assert_eq!(heard_across_sites(dir.path(), true)?, vec![genuine]);
+    assert_eq!(heard_across_sites((dir.path(), link), true)?, vec![genuine]);
     Ok(())
+}
+
+#[test]
+fn routers_with_agent_acl_stop_a_forged_robot_id_between_sites() -> TestResult {
+    routers_with_agent_acl_stop_a_forged_robot_id("tls")
+}
+
+#[test]
+fn routers_over_quic_with_agent_acl_stop_a_forged_robot_id_between_sites() -> TestResult {
+    routers_with_agent_acl_stop_a_forged_robot_id("quic")
 }
