@@ -150,14 +150,20 @@ fn lockstep_runs_are_identical_across_runs_and_transports() {
     );
     assert_eq!(deterministic_part(&a), deterministic_part(&b));
     assert_eq!(deterministic_part(&a), deterministic_part(&c));
-    // The estimates themselves, bit for bit.
-    for i in 0..3 {
-        let est = |run: &str| {
-            std::fs::read_to_string(dir.path().join(run).join(format!("robot{i}/estimate.txt")))
-                .unwrap()
-        };
-        assert_eq!(est("a"), est("b"));
-        assert_eq!(est("a"), est("c"));
+    assert_same_estimates(&dir.path().join("a"), &dir.path().join("b"), 3);
+    assert_same_estimates(&dir.path().join("a"), &dir.path().join("c"), 3);
+}
+
+/// The robots' estimates of two runs, bit for bit.
+fn assert_same_estimates(a: &Path, b: &Path, robots: usize) {
+    for i in 0..robots {
+        let est = |run: &Path| std::fs::read(run.join(format!("robot{i}/estimate.txt"))).unwrap();
+        assert!(
+            est(a) == est(b),
+            "robot {i}: {} and {} differ",
+            a.display(),
+            b.display()
+        );
     }
 }
 
@@ -392,13 +398,7 @@ fn lockstep_over_quic_with_bound_ids_delivers_everything_as_tcp_does() {
     );
     assert_complete_delivery(&dir.path().join("q"), 3);
     assert_eq!(deterministic_part(&quic), deterministic_part(&tcp));
-    for i in 0..3 {
-        let est = |run: &str| {
-            std::fs::read_to_string(dir.path().join(run).join(format!("robot{i}/estimate.txt")))
-                .unwrap()
-        };
-        assert_eq!(est("q"), est("t"));
-    }
+    assert_same_estimates(&dir.path().join("q"), &dir.path().join("t"), 3);
 }
 
 #[test]
