@@ -63,7 +63,7 @@ pub struct RunArgs {
     /// Fleet id (default: `fleet-<process id>`, so concurrent runs never mix).
     #[arg(long)]
     pub fleet_id: Option<String>,
-    /// Zenoh configuration: a built-in name (loopback, lan, explicit-peers, tls)
+    /// Zenoh configuration: a built-in name (loopback, lan, explicit-peers, tls, quic)
     /// or a json5 file. With `loopback`, each agent gets its own 127.0.0.1 port
     /// and connects to all the others.
     #[arg(long, default_value = "loopback")]
