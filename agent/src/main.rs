@@ -46,7 +46,7 @@ enum Command {
     /// names (JSON), for a Zenoh router between sites. Agents in peer mode make
     /// their own from `transport: zenoh: robot_certificates:`.
     Acl(AclArgs),
-    /// Make the fleet's TLS certificates for the `tls` Zenoh configuration: a CA
+    /// Make the fleet's TLS certificates for the `quic` and `tls` Zenoh configurations: a CA
     /// (reused if the folder has one) and a key and certificate per robot or router.
     Certs(CertsArgs),
 }

@@ -786,6 +786,31 @@ fn robot_certificates_stop_a_peer_sending_as_another_robot(link: &str) -> TestRe
     Ok(())
 }
 
+/// An agent given another robot's certificate with its ids bound would be refused by
+/// every peer: it does not open, and says which names differ.
+#[test]
+fn an_agent_with_another_robots_certificate_does_not_open() -> TestResult {
+    let dir = tempfile::tempdir()?;
+    make_fleet_certificates(agent_bin(), dir.path(), &["robot1", "robot2"], "quic")?;
+    let net = Net::new(Backend::Zenoh, "wrong-cert", 1)?;
+    let certs = RobotCertificates {
+        robots: vec![1, 2],
+        common_name: "robot{id}".to_owned(),
+        trusted_routers: Vec::new(),
+    };
+    match join_secure(&net, (dir.path(), "quic"), 0, 1, "robot2", Some(certs)) {
+        Err(TransportError::Config { reason, .. }) => {
+            assert!(
+                reason.contains("\"robot2\"") && reason.contains("\"robot1\""),
+                "{reason}"
+            )
+        }
+        Err(e) => return Err(e.into()),
+        Ok(_) => return Err("robot 1 opened with robot 2's certificate".into()),
+    }
+    Ok(())
+}
+
 #[test]
 fn zenoh_robot_certificates_stop_a_peer_sending_as_another_robot() -> TestResult {
     robot_certificates_stop_a_peer_sending_as_another_robot("tls")

@@ -16,6 +16,7 @@ pub mod faults;
 pub mod fleet_certs;
 pub mod iceoryx2;
 pub mod inproc;
+pub mod own_certificates;
 pub mod settings;
 pub mod zenoh;
 pub mod zenoh_acl;

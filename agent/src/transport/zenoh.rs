@@ -8,6 +8,7 @@
 //! peers already present are reported too; a killed peer vanishes at once, a frozen
 //! or cut-off one after the lease (1 s in the built-in configurations).
 
+use super::own_certificates::{self, Finding};
 use super::settings::{ZenohSettings, ZENOH_BUILTIN_CONFIGS};
 use super::zenoh_acl::{access_control, AclRole, RobotCertificates};
 use super::{PresenceEvent, Received, Transport, TransportError};
@@ -77,6 +78,7 @@ impl ZenohTransport {
         if let Some(certs) = &settings.robot_certificates {
             bind_robot_ids(&mut config, settings, fleet_id, robot_id, certs)?;
         }
+        check_own_certificates(&config, settings, robot_id)?;
         let session = zenoh::open(config).wait().map_err(open_error)?;
         let mut publishers = Vec::with_capacity(MessageKind::ALL.len());
         for kind in MessageKind::ALL {
@@ -334,6 +336,31 @@ fn bind_robot_ids(
     config
         .insert_json5("access_control", &acl.to_string())
         .map_err(|e| config_error(format!("access_control: {e}")))
+}
+
+/// Says at start what would otherwise fail in silence: this robot's certificate
+/// named for another robot (refused), or a certificate outside its validity period
+/// by this machine's clock (logged; the links come up once the clock is right).
+fn check_own_certificates(
+    config: &Config,
+    settings: &ZenohSettings,
+    robot_id: u32,
+) -> Result<(), TransportError> {
+    let bind = settings.robot_certificates.as_ref().map(|c| (c, robot_id));
+    let findings =
+        own_certificates::check(config, bind, std::time::SystemTime::now()).map_err(|reason| {
+            TransportError::Config {
+                path: settings.config.clone(),
+                reason,
+            }
+        })?;
+    for finding in findings {
+        match finding {
+            Finding::Error(e) => tracing::error!("{e}"),
+            Finding::Warning(w) => tracing::warn!("{w}"),
+        }
+    }
+    Ok(())
 }
 
 fn builtin_names() -> String {
