@@ -5,9 +5,9 @@
 //!   Zenoh only logs it in its listener; the agent would run alone. Robots without a
 //!   real-time clock often boot in 1970 or with yesterday's time, so a certificate
 //!   "not yet valid" names this machine's clock. That is logged as an error and the
-//!   agent goes on: its own estimator still runs, and the links come up by
-//!   themselves once the clock is set (Zenoh keeps retrying). A certificate that
-//!   expires within [`EXPIRY_WARNING_DAYS`] days is a warning.
+//!   agent goes on: its own estimator still runs, and Zenoh keeps retrying its
+//!   `connect` endpoints, so the links can come up once the clock is set. A
+//!   certificate that expires within [`EXPIRY_WARNING_DAYS`] days is a warning.
 //! - **The wrong robot's certificate.** With `robot_certificates`, peers accept robot
 //!   N's messages only from the certificate named for N; an agent started with
 //!   another robot's files would be refused by everyone. That is a configuration
