@@ -6,7 +6,8 @@
 //!   real-time clock often boot in 1970 or with yesterday's time, so a certificate
 //!   "not yet valid" names this machine's clock. That is logged as an error and the
 //!   agent goes on: its own estimator still runs, and Zenoh keeps retrying its
-//!   `connect` endpoints, so the links can come up once the clock is set. A
+//!   `connect` endpoints, so the links come up once the clock is set (tried with
+//!   libfaketime: 3 s after, deploy/README.md section 5). A
 //!   certificate that expires within [`EXPIRY_WARNING_DAYS`] days is a warning.
 //! - **The wrong robot's certificate.** With `robot_certificates`, peers accept robot
 //!   N's messages only from the certificate named for N; an agent started with
