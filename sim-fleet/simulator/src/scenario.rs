@@ -36,7 +36,11 @@ pub enum ScenarioError {
         source: serde_yaml::Error,
     },
     /// A referenced trajectory file does not exist.
-    #[error("scenario {path}: robot {robot}: trajectory file {trajectory} not found")]
+    #[error(
+        "scenario {path}: robot {robot}: trajectory file {trajectory} not found (a relative \
+         path is taken from the scenario file's folder; the example scenarios read the \
+         project's data folder `shared/` beside the repository)"
+    )]
     MissingTrajectory {
         /// The scenario file.
         path: PathBuf,
