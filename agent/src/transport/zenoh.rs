@@ -79,6 +79,7 @@ impl ZenohTransport {
             bind_robot_ids(&mut config, settings, fleet_id, robot_id, certs)?;
         }
         check_own_certificates(&config, settings, robot_id)?;
+        warn_if_tls_link(&config);
         let session = zenoh::open(config).wait().map_err(open_error)?;
         let mut publishers = Vec::with_capacity(MessageKind::ALL.len());
         for kind in MessageKind::ALL {
@@ -363,6 +364,33 @@ fn check_own_certificates(
     Ok(())
 }
 
+/// Zenoh 1.10.2's TLS link reads and writes one rustls stream from two tasks at
+/// once (eclipse-zenoh/zenoh#2557): under load it loses messages, and it has aborted
+/// a process with corrupted memory (deploy/README.md, section 5). Said once at start
+/// by any agent whose configuration uses it; `quic` carries the same mutual TLS.
+fn warn_if_tls_link(config: &Config) {
+    if uses_tls_link(config) {
+        tracing::warn!(
+            "this Zenoh configuration uses TLS links, which in Zenoh 1.10.2 lose messages \
+             under load and can corrupt memory (eclipse-zenoh/zenoh#2557); the built-in \
+             `quic` configuration carries the same mutual TLS and certificates without \
+             that fault (deploy/README.md, section 5)"
+        );
+    }
+}
+
+/// Whether the configuration's endpoints or allowed protocols name the TLS link.
+fn uses_tls_link(config: &Config) -> bool {
+    const KEYS: [&str; 3] = [
+        "listen/endpoints",
+        "connect/endpoints",
+        "transport/link/protocols",
+    ];
+    (KEYS.iter())
+        .filter_map(|key| config.get_json(key).ok())
+        .any(|json| json.contains("tls/") || json.contains("\"tls\""))
+}
+
 fn builtin_names() -> String {
     ZENOH_BUILTIN_CONFIGS
         .iter()
@@ -418,6 +446,28 @@ mod tests {
             "{connect}"
         );
         assert!(!connect.contains("7448"), "{connect}");
+        Ok(())
+    }
+
+    #[test]
+    fn only_configurations_with_tls_links_get_the_tls_warning() -> Result<(), TransportError> {
+        for (name, tls) in [
+            ("loopback", false),
+            ("lan", false),
+            ("tls", true),
+            ("quic", false),
+        ] {
+            let settings = ZenohSettings {
+                config: name.to_owned(),
+                ..ZenohSettings::default()
+            };
+            assert_eq!(uses_tls_link(&load_config(&settings)?), tls, "{name}");
+        }
+        let over_tls = ZenohSettings {
+            connect: vec!["tls/127.0.0.1:17004".to_owned()],
+            ..ZenohSettings::default()
+        };
+        assert!(uses_tls_link(&load_config(&over_tls)?));
         Ok(())
     }
 
