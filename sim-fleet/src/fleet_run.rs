@@ -71,7 +71,9 @@ pub struct RunArgs {
     /// Zenoh over mutual TLS on loopback, robot ids bound to the certificates
     /// (`robot_certificates`): a CA and a certificate per robot are made in
     /// `OUT/tls/` (as `agent certs` makes them) and each agent gets the built-in `tls`
-    /// configuration with its own files.
+    /// configuration with its own files. Zenoh 1.10.2's TLS link loses messages under
+    /// load (eclipse-zenoh/zenoh#2557; every lockstep run measured lost some): prefer
+    /// `--quic`.
     #[arg(long, conflicts_with = "zenoh_config")]
     pub tls: bool,
     /// As `--tls`, over QUIC (UDP) with the built-in `quic` configuration: the same
