@@ -433,9 +433,15 @@ impl Default for PublishConfig {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct HistoryConfig {
-    /// Memory bound per peer, MiB: the oldest keyframe windows are dropped first.
+    /// Memory bound per peer, MiB: beyond it keyframe windows are dropped, as
+    /// `retention` says.
     #[serde(default = "default_history_mib")]
     pub max_mib_per_peer: f64,
+    /// Which keyframe windows go first: `oldest` (default) or `informed` (the
+    /// least certain window of a place seen more than once, then the least
+    /// certain overall; see `history_retention`).
+    #[serde(default)]
+    pub retention: crate::history_retention::Retention,
     /// Recent (non-keyframe) track frames kept per peer, s.
     #[serde(default = "default_recent_s")]
     pub recent_tracks_s: f64,
@@ -467,6 +473,7 @@ impl Default for HistoryConfig {
     fn default() -> Self {
         Self {
             max_mib_per_peer: default_history_mib(),
+            retention: Default::default(),
             recent_tracks_s: default_recent_s(),
             max_peers: default_max_peers(),
             max_peer_mib_per_s: default_max_peer_mib_per_s(),
@@ -594,6 +601,7 @@ impl AgentConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::history_retention::Retention;
 
     const MINIMAL: &str =
         "robot_id: 1\noutput_dir: out\ninput:\n  source: simulator\n  scenario: s.yaml\n";
@@ -653,5 +661,21 @@ mod tests {
         std::fs::write(&p, format!("{MINIMAL}clock:\n  peers: [1]\n")).unwrap();
         let e = AgentConfig::load(&p).unwrap_err().to_string();
         assert!(e.contains("own robot_id"), "{e}");
+        std::fs::write(&p, format!("{MINIMAL}history:\n  retention: newest\n")).unwrap();
+        let e = AgentConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("newest") && e.contains("informed"), "{e}");
+    }
+
+    #[test]
+    fn history_retention_is_oldest_unless_asked() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.yaml");
+        std::fs::write(&p, MINIMAL).unwrap();
+        let c = AgentConfig::load(&p).unwrap();
+        assert_eq!(c.history.retention, Retention::Oldest);
+        std::fs::write(&p, format!("{MINIMAL}history:\n  retention: informed\n")).unwrap();
+        let c = AgentConfig::load(&p).unwrap();
+        assert_eq!(c.history.retention, Retention::Informed);
+        assert_eq!(c.history.max_mib_per_peer, 64.0);
     }
 }

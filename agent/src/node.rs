@@ -505,6 +505,7 @@ pub fn run_node(
         limits: HistoryLimits {
             max_bytes: (cfg.history.max_mib_per_peer * 1024.0 * 1024.0) as usize,
             recent_s: cfg.history.recent_tracks_s,
+            retention: cfg.history.retention,
         },
         report: NodeReport {
             scenario: fleet.scenario.name.clone(),

@@ -8,13 +8,15 @@
 //! * **history**: every keyframe window (non-overlapping windows, about 1 Hz), kept
 //!   with the track measurements made inside it (normalized coordinates only) and
 //!   the keyframe's descriptors; historical states are never updated;
-//! * **bound**: when a peer's history exceeds `max_mib_per_peer`, its oldest
-//!   keyframe windows are dropped first (counted), so memory per peer is bounded
-//!   whatever the mission length. The recent frames and the recent descriptors
+//! * **bound**: when a peer's history exceeds `max_mib_per_peer`, keyframe windows
+//!   are dropped (counted), so memory per peer is bounded whatever the mission
+//!   length: by default the oldest, or the least certain window of a place seen
+//!   more than once ([`crate::history_retention`]). The recent frames and the recent descriptors
 //!   each get an eighth of that bound on top ([`RECENT_SHARE`]), which a peer
 //!   that sends at its own pace never reaches (20 frames in 2 s) and a peer that
 //!   floods cannot exceed.
 
+use crate::history_retention::{self, Place, Retention};
 use common::messages::{DescriptorBatch, DescriptorEntry, StateSnapshot, TrackFrame};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 
@@ -45,9 +47,28 @@ pub struct KeyframeWindow {
     pub frames: Vec<HistoricalFrame>,
     /// The keyframe's descriptors (for the peer's vocabulary database).
     pub descriptors: Vec<DescriptorEntry>,
+    /// Where its newest camera was and looked (`None` without a finite pose).
+    pub place: Option<Place>,
+    /// Sum of its cameras' position variances, m²: how certain the peer was.
+    pub position_variance_m2: f64,
 }
 
 impl KeyframeWindow {
+    /// The window of `snapshot` with the measurements and descriptors kept of it.
+    pub fn new(
+        snapshot: StateSnapshot,
+        frames: Vec<HistoricalFrame>,
+        descriptors: Vec<DescriptorEntry>,
+    ) -> Self {
+        Self {
+            place: history_retention::place_of(&snapshot),
+            position_variance_m2: history_retention::position_variance_m2(&snapshot),
+            snapshot,
+            frames,
+            descriptors,
+        }
+    }
+
     /// Approximate heap bytes held.
     pub fn bytes(&self) -> usize {
         let s = &self.snapshot;
@@ -117,10 +138,12 @@ pub fn time_key(t_s: f64) -> u64 {
 /// Limits of a [`PeerHistory`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct HistoryLimits {
-    /// History bytes per peer before the oldest keyframes are dropped.
+    /// History bytes per peer before keyframe windows are dropped.
     pub max_bytes: usize,
     /// How long recent track frames and descriptors are kept, s.
     pub recent_s: f64,
+    /// Which keyframe windows are dropped.
+    pub retention: Retention,
 }
 
 impl PeerHistory {
@@ -224,11 +247,7 @@ impl PeerHistory {
                 .pending_keyframe_descriptors
                 .remove(&snap.frame_index)
                 .unwrap_or_default();
-            let kf = KeyframeWindow {
-                snapshot: snap.clone(),
-                frames,
-                descriptors,
-            };
+            let kf = KeyframeWindow::new(snap.clone(), frames, descriptors);
             self.history_bytes += kf.bytes();
             self.stored_keyframes += 1;
             let key = time_key(snap.clones.last().map_or(snap.t_s, |c| c.t_s));
@@ -236,7 +255,9 @@ impl PeerHistory {
                 self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
             }
             while self.history_bytes > limits.max_bytes {
-                let Some((_, old)) = self.keyframes.pop_first() else {
+                let Some(old) = history_retention::victim(&self.keyframes, limits.retention)
+                    .and_then(|k| self.keyframes.remove(&k))
+                else {
                     break;
                 };
                 self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
@@ -321,6 +342,7 @@ mod tests {
         HistoryLimits {
             max_bytes,
             recent_s: 2.0,
+            retention: Retention::Oldest,
         }
     }
 
@@ -376,6 +398,39 @@ mod tests {
         assert!(h.history_bytes <= l.max_bytes);
         let oldest = h.keyframes.values().next().unwrap().snapshot.t_s;
         assert!((oldest - 1.2 * 16.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn informed_retention_keeps_the_most_certain_windows() {
+        // Twenty windows, one place each (10 m apart), each less certain than
+        // the one before: the bound keeps five, the first five.
+        let window = |k: usize| {
+            let mut s = snapshot(1.2 * k as f64, true);
+            let pose = s.clones[10];
+            let pos = Vector3::new(10.0 * k as f64, 0.0, 1.0);
+            s.clones = vec![CameraPose::new(pose.t_s, &Matrix3::identity(), &pos)];
+            s.covariance =
+                PackedCovariance::from_dmatrix(&(DMatrix::identity(6, 6) * (k as f64 * 1e-4)))
+                    .unwrap();
+            s
+        };
+        let one = {
+            let mut probe = PeerHistory::default();
+            probe.add_snapshot(window(1), &limits(usize::MAX));
+            probe.history_bytes
+        };
+        let l = HistoryLimits {
+            retention: Retention::Informed,
+            ..limits(one * 5 + one / 2)
+        };
+        let mut h = PeerHistory::default();
+        for k in 1..=20 {
+            h.add_snapshot(window(k), &l);
+        }
+        assert_eq!(h.keyframes.len(), 5);
+        assert_eq!(h.dropped_keyframes, 15);
+        let kept: Vec<f64> = h.keyframes.values().map(|w| w.snapshot.t_s).collect();
+        assert_eq!(kept, (1..=5).map(|k| 1.2 * k as f64).collect::<Vec<_>>());
     }
 
     #[test]

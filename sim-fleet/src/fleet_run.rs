@@ -11,6 +11,7 @@ use agent::config::{
     AgentConfig, ClockConfig, ClockMode, EstimatorSection, HistoryConfig, InputConfig, InputSource,
     PublishConfig, TransportSection,
 };
+use agent::history_retention::Retention;
 use agent::node::{run_node, NodeReport, RobotSetup};
 use agent::runner::{write_run_outputs, Variant};
 use agent::transport::fleet_certs::{issue, write_zenoh_configs, Member, Request, SecureLink};
@@ -90,6 +91,35 @@ pub struct RunArgs {
     /// commands that would run them.
     #[arg(long)]
     pub dry_run: bool,
+    /// What the agents keep of their peers.
+    #[command(flatten)]
+    pub history: HistoryArgs,
+}
+
+/// The agents' history settings a run may override (`history:` of an agent's
+/// configuration).
+#[derive(clap::Args, Debug, Clone, Copy, Default)]
+pub struct HistoryArgs {
+    /// Memory bound of each agent's history of one peer, MiB (default: the
+    /// agent's, 64).
+    #[arg(long, value_name = "MIB")]
+    pub history_mib_per_peer: Option<f64>,
+    /// Which keyframe windows a full history drops first: `oldest` (the agent's
+    /// default) or `informed` (the least certain view of a place seen more than
+    /// once, then the least certain window).
+    #[arg(long, value_name = "POLICY")]
+    pub history_retention: Option<Retention>,
+}
+
+impl HistoryArgs {
+    /// `base` with these overrides.
+    pub fn apply(&self, base: HistoryConfig) -> HistoryConfig {
+        HistoryConfig {
+            max_mib_per_peer: self.history_mib_per_peer.unwrap_or(base.max_mib_per_peer),
+            retention: self.history_retention.unwrap_or(base.retention),
+            ..base
+        }
+    }
 }
 
 /// The scenario with `n` robots: the first `n` of the list, then copies of
@@ -240,7 +270,7 @@ pub fn agent_configs(
                 publish: PublishConfig::default(),
                 history: {
                     // Room for every robot of the fleet, however large.
-                    let h = HistoryConfig::default();
+                    let h = args.history.apply(HistoryConfig::default());
                     HistoryConfig {
                         max_peers: h.max_peers.max(n),
                         ..h

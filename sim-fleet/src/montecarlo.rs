@@ -59,6 +59,9 @@ pub struct MontecarloArgs {
     /// ratios of their means with 95 % intervals follow the table.
     #[arg(long)]
     pub baseline: Option<Variant>,
+    /// What the cooperative variants' agents keep of their peers.
+    #[command(flatten)]
+    pub history: crate::fleet_run::HistoryArgs,
 }
 
 /// Why a Monte-Carlo study could not run or write its results.
@@ -159,6 +162,7 @@ struct Study<'a> {
     scenario_path: &'a Path,
     seeds: &'a [u64],
     variants: &'a [Variant],
+    history: crate::fleet_run::HistoryArgs,
     out: &'a Path,
     slots: Vec<SeedSlot>,
     abort: AtomicBool,
@@ -272,7 +276,13 @@ impl Study<'_> {
         if let Err(e) = create_dir(&dir) {
             return JobResult::Fatal(e);
         }
-        match fleet_job::run(self.scenario_path, self.scenario, seed, variant, &dir) {
+        match fleet_job::run(
+            self.scenario_path,
+            self.scenario,
+            seed,
+            (variant, self.history),
+            &dir,
+        ) {
             Ok((robots, sim_s)) => JobResult::Done { robots, sim_s },
             Err(e) => JobResult::Failed(e),
         }
@@ -431,6 +441,7 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<(StudySummary, String), Monte
         scenario_path: &args.scenario,
         seeds: &seeds,
         variants,
+        history: args.history,
         out: &args.out,
         slots: seeds
             .iter()

@@ -167,7 +167,7 @@ impl Cooperation {
                         })
                         .count();
                     if count >= 2 {
-                        historical.push((link.peer, position_variance(&kf.snapshot), *link));
+                        historical.push((link.peer, kf.position_variance_m2, *link));
                     }
                 }
             }
@@ -227,14 +227,6 @@ fn busiest_windows(chosen: &[(u64, bool, Vec<Link>)], cap: usize) -> BTreeSet<(u
         .take(cap.max(1))
         .map(|(w, _)| w)
         .collect()
-}
-
-/// Sum of the position variances of a window's camera poses, m².
-fn position_variance(snap: &common::messages::StateSnapshot) -> f64 {
-    (0..snap.clones.len())
-        .flat_map(|i| (3..6).map(move |j| 6 * i + j))
-        .filter_map(|d| snap.covariance.get(d, d))
-        .sum()
 }
 
 /// The participant behind `link`: its index in `ev.participants` (added now if

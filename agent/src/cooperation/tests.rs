@@ -71,6 +71,7 @@ fn peer_history(w: &World, rng: &mut ChaCha8Rng) -> PeerHistory {
     let limits = HistoryLimits {
         max_bytes: usize::MAX,
         recent_s: 5.0,
+        retention: Default::default(),
     };
     let mut clones = Vec::new();
     for k in 0..11 {
@@ -299,6 +300,7 @@ fn the_keyframe_database_forgets_what_the_history_bound_dropped() {
     let limits = HistoryLimits {
         max_bytes: 40 * 1500,
         recent_s: 2.0,
+        retention: Default::default(),
     };
     let mut largest = 0;
     for k in 0..600u64 {

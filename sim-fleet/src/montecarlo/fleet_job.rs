@@ -4,7 +4,7 @@
 //! bit-identical to Zenoh and iceoryx2); each robot's outputs land in
 //! `DIR/robot<i>/`.
 
-use crate::fleet_run::{agent_configs, run_inproc, RunArgs};
+use crate::fleet_run::{agent_configs, run_inproc, HistoryArgs, RunArgs};
 use agent::runner::Variant;
 use common::summary::MetricSet;
 use simulator::Scenario;
@@ -12,13 +12,13 @@ use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
-/// Runs `variant` on the fleet of `seed`; each robot's metrics and the
-/// simulated seconds, or why it failed.
+/// Runs `variant` on the fleet of `seed` (the agents' histories as `history`
+/// says); each robot's metrics and the simulated seconds, or why it failed.
 pub fn run(
     scenario_path: &Path,
     scenario: &Scenario,
     seed: u64,
-    variant: Variant,
+    (variant, history): (Variant, HistoryArgs),
     dir: &Path,
 ) -> Result<(Vec<(usize, MetricSet)>, f64), String> {
     if variant.centralized() {
@@ -40,6 +40,7 @@ pub fn run(
         derived_delay_s: 3.0,
         agent_bin: None,
         dry_run: false,
+        history,
     };
     let n = scenario.robots.len();
     let mut configs = agent_configs(&args, scenario_path, n, dir).map_err(|e| format!("{e:#}"))?;
