@@ -287,3 +287,69 @@ fn cooperative_variants_run_whole_fleets_and_aggregate_per_robot() {
     );
     assert_eq!(means_without_timing(&one), means_without_timing(&two));
 }
+
+/// `--history-mib-per-peer` and `--history-retention` reach every agent of a
+/// cooperative study: with a bound of a few windows each agent drops most of its
+/// peer's keyframe windows and keeps within the bound; without, it drops none.
+#[test]
+fn a_history_bound_given_to_a_study_bounds_every_agents_history() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    write_loop_trajectory(&dir.path().join("loop.txt"), 24.0)?;
+    let scenario = dir.path().join("two.yaml");
+    std::fs::write(
+        &scenario,
+        "name: two\nrobots:\n  - trajectory: loop.txt\n  - trajectory: loop.txt\n    start_time_s: 3.0\nestimator:\n  max_slam_features: 5\n",
+    )?;
+    let bound_mib = 0.05;
+    let histories = |name: &str, extra: &[&str]| -> Result<Vec<Value>> {
+        let out = dir.path().join(name);
+        let output = Command::new(bin("sim-fleet"))
+            .arg("montecarlo")
+            .arg(&scenario)
+            .args(["--runs", "1", "--variants", "dc-full-history"])
+            .args(extra)
+            .arg("--out")
+            .arg(&out)
+            .output()?;
+        assert!(
+            output.status.success(),
+            "montecarlo failed: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        (0..2)
+            .map(|r| {
+                let stats = read_json(&out.join(format!(
+                    "runs/dc-full-history/seed1/robot{r}/transport_stats.json"
+                )));
+                Ok(stats["histories"][(1 - r).to_string()].clone())
+            })
+            .collect()
+    };
+    for h in histories("free", &[])? {
+        assert!(h["stored"].as_u64().unwrap_or(0) > 5, "{h}");
+        assert_eq!(h["dropped"], 0, "{h}");
+    }
+    let bound = bound_mib.to_string();
+    for retention in ["oldest", "informed"] {
+        let args = [
+            "--history-mib-per-peer",
+            bound.as_str(),
+            "--history-retention",
+            retention,
+        ];
+        for h in histories(retention, &args)? {
+            let (kept, dropped) = (h["keyframes"].as_u64(), h["dropped"].as_u64());
+            assert!(
+                kept.is_some_and(|k| k > 0) && dropped.is_some_and(|d| d > kept.unwrap_or(0)),
+                "{retention}: {h}"
+            );
+            // History windows within the bound; recent frames may add an eighth.
+            let bytes = h["bytes"].as_f64().unwrap_or(f64::INFINITY);
+            assert!(
+                bytes <= bound_mib * 1024.0 * 1024.0 * 1.25,
+                "{retention}: {h}"
+            );
+        }
+    }
+    Ok(())
+}
