@@ -23,13 +23,14 @@ pub struct HistoryReport {
     pub bytes: usize,
     /// Fleet time spanned by the held keyframe windows, s.
     pub span_s: f64,
-    /// Memory growth: history bytes per hour of the peer's fleet time.
+    /// Memory growth: history bytes per hour of the peer's fleet time, over
+    /// every window stored (those the bound dropped too).
     pub bytes_per_peer_hour: Option<f64>,
     /// Bytes of the peer's bag-of-words keyframe database at the end (it holds
     /// the windows the history holds, and one list per vocabulary word).
     pub keyframe_db_bytes: usize,
     /// Its growth per hour of the peer's fleet time: bytes per window it holds
-    /// times the history's windows per hour.
+    /// times the windows the history stored per hour.
     pub keyframe_db_bytes_per_peer_hour: Option<f64>,
 }
 
@@ -68,7 +69,6 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted[i.min(sorted.len() - 1)]
 }
 
-/// History statistics of one peer.
 /// History statistics of one peer, whose keyframe database holds `db.0`
 /// bytes, `db.1` per window.
 pub fn history_report(h: &crate::peer_history::PeerHistory, db: (usize, f64)) -> HistoryReport {
@@ -86,16 +86,19 @@ pub fn history_report(h: &crate::peer_history::PeerHistory, db: (usize, f64)) ->
         (Some(a), Some(b)) => (b - a).max(0.0),
         _ => 0.0,
     };
+    let stored_s = h.stored_span_s();
     HistoryReport {
         keyframes: h.keyframes.len(),
         stored: h.stored_keyframes,
         dropped: h.dropped_keyframes,
         bytes: h.bytes(),
         span_s,
-        bytes_per_peer_hour: (span_s > 1.0).then(|| h.history_bytes as f64 / span_s * 3600.0),
+        // Over everything stored: held bytes over the held span would understate
+        // the growth once the bound has dropped windows out of order.
+        bytes_per_peer_hour: (stored_s > 1.0).then(|| h.stored_bytes as f64 / stored_s * 3600.0),
         keyframe_db_bytes: db.0,
-        keyframe_db_bytes_per_peer_hour: (span_s > 1.0)
-            .then(|| db.1 * h.keyframes.len() as f64 / span_s * 3600.0),
+        keyframe_db_bytes_per_peer_hour: (stored_s > 1.0)
+            .then(|| db.1 * h.stored_keyframes as f64 / stored_s * 3600.0),
     }
 }
 

@@ -12,7 +12,9 @@
 //!   are dropped (counted), so memory per peer is bounded whatever the mission
 //!   length: by default the oldest, or the least certain window of a place seen
 //!   more than once ([`crate::history_retention`]). The recent frames and the recent descriptors
-//!   each get an eighth of that bound on top ([`RECENT_SHARE`]), which a peer
+//!   each get an eighth of that bound on top ([`RECENT_SHARE`], never less than
+//!   [`MIN_RECENT_BYTES`], or a small bound would store windows without their
+//!   measurements), which a peer
 //!   that sends at its own pace never reaches (20 frames in 2 s) and a peer that
 //!   floods cannot exceed.
 
@@ -92,6 +94,19 @@ impl KeyframeWindow {
 /// descriptors, may hold beyond the keyframe history: 1 / `RECENT_SHARE`.
 pub const RECENT_SHARE: usize = 8;
 
+/// The least room the recent frames, and again the recent descriptors, get:
+/// 2 s of frames at 10 Hz with up to 270 tracks each. A keyframe window takes
+/// its measurements from the recent frames; below this, a small history bound
+/// would store windows without them (measured: a fifth of the bytes missing at
+/// 0.15 MiB per peer with 100 tracks per frame).
+pub const MIN_RECENT_BYTES: usize = 128 * 1024;
+
+/// The bytes the recent frames, and again the recent descriptors, may hold
+/// with a history bound of `max_bytes`.
+pub fn recent_budget(max_bytes: usize) -> usize {
+    (max_bytes / RECENT_SHARE).max(MIN_RECENT_BYTES)
+}
+
 /// Bytes one recent track frame holds.
 fn frame_bytes(f: &TrackFrame) -> usize {
     std::mem::size_of::<TrackFrame>()
@@ -123,6 +138,12 @@ pub struct PeerHistory {
     pub dropped_keyframes: u64,
     /// Keyframe windows stored in total.
     pub stored_keyframes: u64,
+    /// Bytes of every keyframe window stored (dropped ones too): with
+    /// [`PeerHistory::stored_span_s`], how fast a peer's history grows whatever
+    /// the bound kept.
+    pub stored_bytes: usize,
+    /// Fleet time from the oldest to the newest clone of every window stored, s.
+    pub stored_span: Option<(f64, f64)>,
 }
 
 /// A sortable key of a fleet time (monotonic for finite times).
@@ -166,7 +187,7 @@ impl PeerHistory {
         let newest = frame.t_s;
         self.recent_bytes += frame_bytes(&frame);
         self.recent.push_back(frame);
-        let budget = limits.max_bytes / RECENT_SHARE;
+        let budget = recent_budget(limits.max_bytes);
         while let Some(f) = self.recent.front() {
             if f.t_s >= newest - limits.recent_s && self.recent_bytes <= budget {
                 break;
@@ -181,7 +202,7 @@ impl PeerHistory {
     /// Keeps the recent descriptors within their share of the memory bound:
     /// past it, the older half goes (all of them if they share one time).
     fn bound_recent_descriptors(&mut self, limits: &HistoryLimits) {
-        let cap = limits.max_bytes / RECENT_SHARE / DESCRIPTOR_BYTES;
+        let cap = recent_budget(limits.max_bytes) / DESCRIPTOR_BYTES;
         if self.recent_descriptors.len() <= cap {
             return;
         }
@@ -249,7 +270,12 @@ impl PeerHistory {
                 .unwrap_or_default();
             let kf = KeyframeWindow::new(snap.clone(), frames, descriptors);
             self.history_bytes += kf.bytes();
+            self.stored_bytes += kf.bytes();
             self.stored_keyframes += 1;
+            if let (Some(a), Some(b)) = (snap.clones.first(), snap.clones.last()) {
+                let (lo, hi) = self.stored_span.unwrap_or((a.t_s, b.t_s));
+                self.stored_span = Some((lo.min(a.t_s), hi.max(b.t_s)));
+            }
             let key = time_key(snap.clones.last().map_or(snap.t_s, |c| c.t_s));
             if let Some(old) = self.keyframes.insert(key, kf) {
                 self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
@@ -267,6 +293,11 @@ impl PeerHistory {
         if self.latest.as_ref().is_none_or(|l| l.t_s <= snap.t_s) {
             self.latest = Some(snap);
         }
+    }
+
+    /// Fleet time spanned by every keyframe window stored, s (0 before any).
+    pub fn stored_span_s(&self) -> f64 {
+        self.stored_span.map_or(0.0, |(a, b)| (b - a).max(0.0))
     }
 
     /// Approximate bytes held for this peer (history and recent data).
@@ -396,6 +427,9 @@ mod tests {
         assert_eq!(h.dropped_keyframes, 15);
         assert_eq!(h.stored_keyframes, 20);
         assert!(h.history_bytes <= l.max_bytes);
+        // The growth counts what was stored, not what is left.
+        assert_eq!(h.stored_bytes, 20 * one);
+        assert!((h.stored_span_s() - (1.2 * 20.0 - 0.2)).abs() < 1e-9);
         let oldest = h.keyframes.values().next().unwrap().snapshot.t_s;
         assert!((oldest - 1.2 * 16.0).abs() < 1e-9);
     }
@@ -441,14 +475,14 @@ mod tests {
         for _ in 0..2000 {
             h.add_tracks(tracks(5.0, 100), &l);
         }
-        assert!(h.recent_bytes <= l.max_bytes / RECENT_SHARE);
+        assert!(h.recent_bytes <= recent_budget(l.max_bytes));
         assert!(!h.recent().is_empty());
         assert_eq!(
             h.recent_bytes,
             h.recent().iter().map(frame_bytes).sum::<usize>()
         );
         // New-track descriptors of ever new ids, no frames to age them out.
-        let cap = l.max_bytes / RECENT_SHARE / DESCRIPTOR_BYTES;
+        let cap = recent_budget(l.max_bytes) / DESCRIPTOR_BYTES;
         for k in 0..100u64 {
             let batch = DescriptorBatch {
                 frame_index: k,
@@ -466,7 +500,7 @@ mod tests {
         }
         // The newest stay.
         assert!(h.recent_descriptors.contains_key(&99_499));
-        assert!(h.bytes() <= 2 * l.max_bytes / RECENT_SHARE + 4096);
+        assert!(h.bytes() <= 2 * recent_budget(l.max_bytes) + 4096);
     }
 
     #[test]
