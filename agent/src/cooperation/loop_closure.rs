@@ -19,6 +19,13 @@ use vocabulary::{
 /// tick after the window).
 const INDEX_LOOKBACK: usize = 4;
 
+/// Older keyframe windows indexed per frame beyond the newest ones: the windows a
+/// peer stored before our first frame (a robot that starts late, or an agent
+/// restarted) are indexed over the following frames, a few at a time, so no
+/// frame pays for a whole history at once (an hour of a peer, about 3 600
+/// windows, takes 450 frames: 45 s).
+const INDEX_BACKLOG_PER_FRAME: usize = 8;
+
 /// The keyframe database of one peer.
 #[derive(Debug)]
 pub struct KeyframeDb {
@@ -31,6 +38,10 @@ pub struct KeyframeDb {
     indexed: BTreeSet<u64>,
     /// The history's count of dropped windows when last looked at.
     seen_dropped: u64,
+    /// The history's count of stored windows when the backlog was last found
+    /// empty (`None`: not yet): while it is unchanged there is nothing older to
+    /// index.
+    backlog_clear_at: Option<u64>,
     /// Entries whose window the history may have dropped since the last prune
     /// (an upper bound: not every dropped window was indexed).
     maybe_dead: usize,
@@ -77,6 +88,7 @@ impl KeyframeDb {
             descriptors: Vec::new(),
             indexed: BTreeSet::new(),
             seen_dropped: 0,
+            backlog_clear_at: None,
             maybe_dead: 0,
         }
     }
@@ -112,26 +124,52 @@ impl KeyframeDb {
     }
 
     /// Adds the peer's newest keyframe windows that have descriptors and are not
-    /// indexed yet.
-    /// Then drops the windows the history's memory bound dropped, so the
+    /// indexed yet, and up to [`INDEX_BACKLOG_PER_FRAME`] older ones (newest
+    /// first) that are not either: a window stored before we looked is found
+    /// later, not never. An older window without descriptors will not get them
+    /// (they come within a tick of it) and is passed over for good.
+    /// First drops the windows the history's memory bound dropped, so the
     /// database stays within that bound too.
     pub fn index_new(&mut self, history: &PeerHistory) {
         self.prune(history);
         for (key, kf) in history.keyframes.iter().rev().take(INDEX_LOOKBACK) {
-            if kf.descriptors.is_empty() || self.indexed.contains(key) {
+            if !kf.descriptors.is_empty() && !self.indexed.contains(key) {
+                self.add(*key, kf);
+            }
+        }
+        if self.backlog_clear_at == Some(history.stored_keyframes) {
+            return;
+        }
+        let mut budget = INDEX_BACKLOG_PER_FRAME;
+        for (key, kf) in history.keyframes.iter().rev().skip(INDEX_LOOKBACK) {
+            if self.indexed.contains(key) {
                 continue;
             }
-            let list: Vec<(u64, Descriptor)> = kf
-                .descriptors
-                .iter()
-                .map(|e| (e.id, e.descriptor()))
-                .collect();
-            let desc: Vec<Descriptor> = list.iter().map(|(_, d)| *d).collect();
-            self.db.add(&desc);
-            self.keys.push(*key);
-            self.descriptors.push(list);
-            self.indexed.insert(*key);
+            if budget == 0 {
+                return;
+            }
+            if kf.descriptors.is_empty() {
+                self.indexed.insert(*key);
+            } else {
+                self.add(*key, kf);
+                budget -= 1;
+            }
         }
+        self.backlog_clear_at = Some(history.stored_keyframes);
+    }
+
+    /// Indexes keyframe window `key`.
+    fn add(&mut self, key: u64, kf: &KeyframeWindow) {
+        let list: Vec<(u64, Descriptor)> = kf
+            .descriptors
+            .iter()
+            .map(|e| (e.id, e.descriptor()))
+            .collect();
+        let desc: Vec<Descriptor> = list.iter().map(|(_, d)| *d).collect();
+        self.db.add(&desc);
+        self.keys.push(key);
+        self.descriptors.push(list);
+        self.indexed.insert(key);
     }
 
     /// Rebuilds the database without the windows the history no longer holds,
@@ -179,6 +217,8 @@ impl KeyframeDb {
         self.db = db;
         self.keys = keys;
         self.descriptors = descriptors;
+        // Windows passed over for lack of descriptors are forgotten with the rest.
+        self.indexed.retain(|k| history.keyframes.contains_key(k));
     }
 
     /// The best `n` keyframes for `bow` scoring at least `min_score`:

@@ -350,3 +350,56 @@ fn the_keyframe_database_forgets_what_the_history_bound_dropped() {
         db.len()
     );
 }
+
+/// A peer's windows stored before our first frame (we started late, or were
+/// restarted) are all indexed, a few per frame on top of the newest ones; an
+/// old window whose descriptors never came is passed over, not waited for.
+#[test]
+fn windows_stored_before_we_looked_are_indexed_over_the_next_frames() {
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let Some(voc) = builtin_vocabulary() else {
+        panic!("no built-in vocabulary");
+    };
+    let limits = HistoryLimits {
+        max_bytes: usize::MAX,
+        recent_s: 2.0,
+        retention: Default::default(),
+    };
+    let mut h = PeerHistory::default();
+    for k in 0..50u64 {
+        let t = k as f64;
+        // Window 10's descriptors were lost.
+        if k != 10 {
+            let entries = (0..30)
+                .map(|i| DescriptorEntry::new(k * 100 + i, Descriptor(rng.random())))
+                .collect();
+            let batch = DescriptorBatch {
+                frame_index: k,
+                t_s: t,
+                keyframe: true,
+                entries,
+            };
+            h.add_descriptors(batch, &limits);
+        }
+        let snap = StateSnapshot {
+            frame_index: k,
+            t_s: t,
+            keyframe: true,
+            camera: CameraModelWire::default(),
+            covariance: PackedCovariance::from_dmatrix(&(DMatrix::identity(6, 6) * 1e-4))
+                .unwrap_or_default(),
+            clones: vec![CameraPose::new(t, &Matrix3::identity(), &Vector3::zeros())],
+            landmarks: Vec::new(),
+        };
+        h.add_snapshot(snap, &limits);
+    }
+    let mut db = loop_closure::KeyframeDb::new(voc);
+    // The newest 4 and 8 older ones per frame: 12, 20, 28, 36, 44, then the last
+    // 5 of the 49 that have descriptors.
+    let mut sizes = Vec::new();
+    for _ in 0..7 {
+        db.index_new(&h);
+        sizes.push(db.len());
+    }
+    assert_eq!(sizes, vec![12, 20, 28, 36, 44, 49, 49]);
+}
