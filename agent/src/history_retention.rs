@@ -167,15 +167,13 @@ mod tests {
     /// A one-clone window at `pos` looking along `dir` (camera z) with position
     /// variance `var` per axis.
     fn window(pos: [f64; 3], dir: Vector3<f64>, var: f64) -> KeyframeWindow {
-        let z = dir.normalize();
-        let helper = if z.z.abs() < 0.9 {
+        // Camera z along `dir`; any up that is not parallel to it.
+        let up = if dir.normalize().z.abs() < 0.9 {
             Vector3::z()
         } else {
             Vector3::x()
         };
-        let x = helper.cross(&z).normalize();
-        let y = z.cross(&x);
-        let rot = Matrix3::from_columns(&[x, y, z]);
+        let rot: Matrix3<f64> = nalgebra::Rotation3::face_towards(&dir, &up).into_inner();
         let mut cov = DMatrix::identity(6, 6) * 1e-4;
         for j in 3..6 {
             cov[(j, j)] = var;

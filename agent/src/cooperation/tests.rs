@@ -288,6 +288,22 @@ fn a_frames_update_takes_at_most_the_busiest_participants() {
     }
 }
 
+/// Keyframe snapshot `k` (frame `k`, time `k` s) of a window of one clone at the
+/// origin.
+fn one_clone_keyframe(k: u64) -> StateSnapshot {
+    let t = k as f64;
+    StateSnapshot {
+        frame_index: k,
+        t_s: t,
+        keyframe: true,
+        camera: CameraModelWire::default(),
+        covariance: PackedCovariance::from_dmatrix(&(DMatrix::identity(6, 6) * 1e-4))
+            .unwrap_or_default(),
+        clones: vec![CameraPose::new(t, &Matrix3::identity(), &Vector3::zeros())],
+        landmarks: Vec::new(),
+    }
+}
+
 #[test]
 fn the_keyframe_database_forgets_what_the_history_bound_dropped() {
     let mut rng = ChaCha8Rng::seed_from_u64(5);
@@ -317,19 +333,7 @@ fn the_keyframe_database_forgets_what_the_history_bound_dropped() {
             },
             &limits,
         );
-        h.add_snapshot(
-            StateSnapshot {
-                frame_index: k,
-                t_s: t,
-                keyframe: true,
-                camera: CameraModelWire::default(),
-                covariance: PackedCovariance::from_dmatrix(&(DMatrix::identity(6, 6) * 1e-4))
-                    .unwrap_or_default(),
-                clones: vec![CameraPose::new(t, &Matrix3::identity(), &Vector3::zeros())],
-                landmarks: Vec::new(),
-            },
-            &limits,
-        );
+        h.add_snapshot(one_clone_keyframe(k), &limits);
         db.index_new(&h);
         largest = largest.max(db.len());
     }
@@ -381,17 +385,7 @@ fn windows_stored_before_we_looked_are_indexed_over_the_next_frames() {
             };
             h.add_descriptors(batch, &limits);
         }
-        let snap = StateSnapshot {
-            frame_index: k,
-            t_s: t,
-            keyframe: true,
-            camera: CameraModelWire::default(),
-            covariance: PackedCovariance::from_dmatrix(&(DMatrix::identity(6, 6) * 1e-4))
-                .unwrap_or_default(),
-            clones: vec![CameraPose::new(t, &Matrix3::identity(), &Vector3::zeros())],
-            landmarks: Vec::new(),
-        };
-        h.add_snapshot(snap, &limits);
+        h.add_snapshot(one_clone_keyframe(k), &limits);
     }
     let mut db = loop_closure::KeyframeDb::new(voc);
     // The newest 4 and 8 older ones per frame: 12, 20, 28, 36, 44, then the last
