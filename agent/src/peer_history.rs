@@ -11,12 +11,12 @@
 //! * **bound**: when a peer's history exceeds `max_mib_per_peer`, keyframe windows
 //!   are dropped (counted), so memory per peer is bounded whatever the mission
 //!   length: by default the oldest, or the least certain window of a place seen
-//!   more than once ([`crate::history_retention`]). The recent frames and the recent descriptors
-//!   each get an eighth of that bound on top ([`RECENT_SHARE`], never less than
-//!   [`MIN_RECENT_BYTES`], or a small bound would store windows without their
-//!   measurements), which a peer
-//!   that sends at its own pace never reaches (20 frames in 2 s) and a peer that
-//!   floods cannot exceed.
+//!   more than once ([`crate::history_retention`]). The recent frames and the
+//!   recent descriptors each get an eighth of that bound on top
+//!   ([`RECENT_SHARE`], never less than [`MIN_RECENT_BYTES`], or a small bound
+//!   would store windows without their measurements), which a peer that sends
+//!   at its own pace never reaches (20 frames in 2 s) and a peer that floods
+//!   cannot exceed.
 
 use crate::history_retention::{self, Place, Retention};
 use common::messages::{DescriptorBatch, DescriptorEntry, StateSnapshot, TrackFrame};
