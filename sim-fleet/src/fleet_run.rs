@@ -226,7 +226,7 @@ pub fn agent_configs(
         peers: (0..n as u32).filter(|p| *p != me).collect(),
         ..ClockConfig::default()
     };
-    Ok((0..n)
+    let configs: Vec<AgentConfig> = (0..n)
         .map(|i| {
             let me = i as u32;
             let zenoh = ZenohSettings {
@@ -280,7 +280,14 @@ pub fn agent_configs(
                 images: Default::default(),
             }
         })
-        .collect())
+        .collect();
+    // The checks `agent --config` makes: in-process runs start no agent binary,
+    // and a bad flag (a negative history bound) must not run unnoticed.
+    for (i, c) in configs.iter().enumerate() {
+        c.validate()
+            .map_err(|e| anyhow::anyhow!("agent {i}'s configuration: {e}"))?;
+    }
+    Ok(configs)
 }
 
 fn agent_binary(args: &RunArgs) -> Result<PathBuf> {

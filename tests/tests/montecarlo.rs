@@ -358,5 +358,19 @@ fn a_history_bound_given_to_a_study_bounds_every_agents_history() -> Result<()> 
             );
         }
     }
+    // A bound no agent would accept is refused, not run.
+    let output = Command::new(bin("sim-fleet"))
+        .arg("montecarlo")
+        .arg(&scenario)
+        .args(["--runs", "1", "--variants", "dc-full-history"])
+        .arg("--history-mib-per-peer=-1")
+        .arg("--out")
+        .arg(dir.path().join("negative"))
+        .output()?;
+    let err = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        !output.status.success() && err.contains("history.max_mib_per_peer"),
+        "{err}"
+    );
     Ok(())
 }
