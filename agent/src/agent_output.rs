@@ -59,6 +59,15 @@ pub struct TransportReport<'a> {
     pub ticks: u64,
     /// Stopped by a signal.
     pub interrupted: bool,
+    /// History catch-up: requests, replays, windows recovered (`None`: off).
+    pub catch_up: Option<&'a crate::history_catchup::CatchUpStats>,
+    /// Bytes of this agent's archive of its own keyframe windows (what it
+    /// can send again).
+    pub own_archive_bytes: usize,
+    /// Keyframe windows in that archive.
+    pub own_archive_windows: usize,
+    /// Messages dropped by the injected outage (`faults.outage_fleet_s`).
+    pub outage_dropped: u64,
 }
 
 fn percentile(sorted: &[f64], q: f64) -> f64 {
@@ -148,6 +157,10 @@ pub fn write_outputs(
         max_lag_s: report.max_lag_s,
         ticks: report.ticks,
         interrupted: report.interrupted,
+        catch_up: report.catch_up.as_ref(),
+        own_archive_bytes: report.own_archive_bytes,
+        own_archive_windows: report.own_archive_windows,
+        outage_dropped: report.outage_dropped,
     };
     let json = serde_json::to_string_pretty(&transport_report).map_err(std::io::Error::other)?;
     std::fs::write(dir.join("transport_stats.json"), json)?;

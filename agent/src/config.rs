@@ -76,6 +76,31 @@ pub struct AgentConfig {
     /// Camera images (rendered or real): the frontend and their logging.
     #[serde(default)]
     pub images: ImagesConfig,
+    /// Injected faults, for drills and tests (none by default).
+    #[serde(default)]
+    pub faults: FaultsConfig,
+}
+
+/// Faults injected on purpose, to see what the agent does about them.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FaultsConfig {
+    /// A link outage `[from, to)` in fleet seconds: every message a peer sent
+    /// in it is dropped on arrival. In lockstep runs the heartbeats still pass
+    /// (the fleet clock needs them; without them the peers would be released
+    /// as silent), so the outage takes all the data and none of the clock.
+    pub outage_fleet_s: Option<[f64; 2]>,
+}
+
+impl FaultsConfig {
+    /// Whether a message of `kind` stamped `stamp_s` is lost to the outage.
+    pub fn drops(&self, kind: common::messages::MessageKind, stamp_s: f64, lockstep: bool) -> bool {
+        let Some([from, to]) = self.outage_fleet_s else {
+            return false;
+        };
+        let clock = kind == common::messages::MessageKind::Heartbeat && lockstep;
+        !clock && stamp_s >= from && stamp_s < to
+    }
 }
 
 /// What an agent does with camera images.
@@ -454,6 +479,28 @@ pub struct HistoryConfig {
     /// 0.03 MiB/s of fleet time; lockstep runs some 30x faster than real time.
     #[serde(default = "default_max_peer_mib_per_s")]
     pub max_peer_mib_per_s: f64,
+    /// History catch-up: ask peers again for the keyframe windows a late
+    /// start, a link outage or lost messages kept from us, and answer their
+    /// requests from an archive of our own windows (held within
+    /// `max_mib_per_peer`). On by default.
+    #[serde(default = "yes")]
+    pub catch_up: bool,
+    /// Windows sent again to peers, KiB per second of fleet time (with a
+    /// one-second burst): a catch-up must not crowd out the live messages,
+    /// about 33 KiB/s. An hour of history takes about 3 min at the default.
+    #[serde(default = "default_replay_kib_per_s")]
+    pub replay_kib_per_s: f64,
+    /// Fleet seconds without a replay from a peer before our open requests to
+    /// it are given up.
+    #[serde(default = "default_catch_up_timeout_s")]
+    pub catch_up_timeout_s: f64,
+}
+
+fn default_replay_kib_per_s() -> f64 {
+    512.0
+}
+fn default_catch_up_timeout_s() -> f64 {
+    60.0
 }
 
 fn default_history_mib() -> f64 {
@@ -477,6 +524,9 @@ impl Default for HistoryConfig {
             recent_tracks_s: default_recent_s(),
             max_peers: default_max_peers(),
             max_peer_mib_per_s: default_max_peer_mib_per_s(),
+            catch_up: true,
+            replay_kib_per_s: default_replay_kib_per_s(),
+            catch_up_timeout_s: default_catch_up_timeout_s(),
         }
     }
 }
@@ -557,9 +607,21 @@ impl AgentConfig {
                 "history.max_peer_mib_per_s",
                 self.history.max_peer_mib_per_s,
             ),
+            ("history.replay_kib_per_s", self.history.replay_kib_per_s),
+            (
+                "history.catch_up_timeout_s",
+                self.history.catch_up_timeout_s,
+            ),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} must be a finite number >= 0 (got {v})"));
+            }
+        }
+        if let Some([from, to]) = self.faults.outage_fleet_s {
+            if !(from.is_finite() && to.is_finite() && from < to) {
+                return Err(format!(
+                    "faults.outage_fleet_s must be [from, to] with from < to (got [{from}, {to}])"
+                ));
             }
         }
         if self.publish.snapshot_every_frames == 0 {

@@ -262,6 +262,7 @@ mod tests {
                 frames_done: 3,
                 last_frame_index: Some(2),
                 last_t_s: Some(1.0),
+                newest_window_end_s: None,
             }),
         })
         .unwrap()

@@ -23,6 +23,7 @@ pub mod dataset_run;
 pub mod estimator;
 pub mod fleet_clock;
 pub mod frontend;
+pub mod history_catchup;
 pub mod history_retention;
 pub mod hybrid;
 #[cfg(feature = "vision")]

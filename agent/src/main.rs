@@ -363,6 +363,7 @@ fn probe(args: &ProbeArgs) -> Result<()> {
                 frames_done: 0,
                 last_frame_index: None,
                 last_t_s: None,
+                newest_window_end_s: None,
             }),
         };
         t.publish(MessageKind::Heartbeat, &encode(&env)?)?;

@@ -12,9 +12,10 @@
 //! still run, so nothing they send is lost.
 
 use crate::agent_log_views::PeerPose;
-use crate::config::{AgentConfig, ClockMode, InputSource};
+use crate::config::{AgentConfig, ClockMode, FaultsConfig, InputSource};
 use crate::estimator::{Estimator, FrameOutput};
 use crate::fleet_clock::{Lockstep, Pacer, TickGrid};
+use crate::history_catchup::{CatchUp, CatchUpStats, Replayer};
 use crate::inbox::{DropReason, Inbox, NetStats, PeerRates};
 use crate::node_images::ImageFrames;
 use crate::outbox::Outbox;
@@ -110,6 +111,15 @@ pub struct NodeReport {
     pub variant: String,
     /// Robot name (trajectory).
     pub robot_name: String,
+    /// History catch-up counters, asking and answering (`None`: switched off).
+    pub catch_up: Option<CatchUpStats>,
+    /// Bytes of this agent's archive of its own keyframe windows.
+    pub own_archive_bytes: usize,
+    /// Keyframe windows in that archive (what peers hold of this agent when
+    /// they missed nothing).
+    pub own_archive_windows: usize,
+    /// Messages dropped by the injected outage (`faults.outage_fleet_s`).
+    pub outage_dropped: u64,
 }
 
 /// The robot this agent is: its simulated (or recorded) sensors and its
@@ -208,6 +218,13 @@ struct Node {
     log: Option<crate::agent_log::AgentLog>,
     /// Peers' newest camera poses, for the logged scene.
     peer_poses: BTreeMap<u32, PeerPose>,
+    /// History catch-up, asking and answering (`None`: switched off).
+    catch_up: Option<(CatchUp, Replayer)>,
+    faults: FaultsConfig,
+    lockstep_mode: bool,
+    /// Newest send time of any peer message accepted, s: the fleet clock as
+    /// the peers see it, which goes on after our own data end.
+    peer_clock_s: f64,
 }
 
 impl Node {
@@ -226,25 +243,70 @@ impl Node {
 
     /// Publishes `envelopes`; a failure is counted and logged, never fatal.
     fn publish(&mut self, envelopes: Vec<Envelope>) {
-        for mut env in envelopes {
-            env.sent_wall_ns = wall_ns();
-            let kind = env.kind();
-            let bytes = match encode(&env) {
-                Ok(b) => b,
-                Err(e) => {
-                    tracing::warn!("not sending {kind:?}: {e}");
-                    self.report.publish_errors += 1;
-                    continue;
+        for env in envelopes {
+            if let Some((_, replayer)) = self.catch_up.as_mut() {
+                replayer.published(&env.body);
+            }
+            self.publish_one(env);
+        }
+    }
+
+    /// Publishes one envelope; returns its encoded size (0 if it was not sent).
+    fn publish_one(&mut self, mut env: Envelope) -> usize {
+        env.sent_wall_ns = wall_ns();
+        let kind = env.kind();
+        let bytes = match encode(&env) {
+            Ok(b) => b,
+            Err(e) => {
+                tracing::warn!("not sending {kind:?}: {e}");
+                self.report.publish_errors += 1;
+                return 0;
+            }
+        };
+        match self.transport.publish(kind, &bytes) {
+            Ok(()) => {
+                self.report.net.sent(kind, bytes.len());
+                bytes.len()
+            }
+            Err(e) => {
+                self.report.publish_errors += 1;
+                if self.report.publish_errors <= 10 {
+                    tracing::warn!("{e}");
                 }
-            };
-            match self.transport.publish(kind, &bytes) {
-                Ok(()) => self.report.net.sent(kind, bytes.len()),
-                Err(e) => {
-                    self.report.publish_errors += 1;
-                    if self.report.publish_errors <= 10 {
-                        tracing::warn!("{e}");
-                    }
-                }
+                0
+            }
+        }
+    }
+
+    /// End of our newest keyframe window, as peers would store it (`None`
+    /// before the first, or with catch-up off: peers then cannot tell).
+    fn newest_window_end_s(&self) -> Option<f64> {
+        let (_, replayer) = self.catch_up.as_ref()?;
+        replayer.archive().stored_span.map(|(_, end)| end)
+    }
+
+    /// History catch-up at fleet time `now_s`: the requests due, then the
+    /// replays the budget allows.
+    fn catch_up(&mut self, now_s: f64) {
+        let Some((asking, replayer)) = self.catch_up.as_mut() else {
+            return;
+        };
+        let requests = asking.requests(now_s);
+        replayer.refill(now_s);
+        for r in requests {
+            let env = self.outbox.catch_up(now_s, Body::HistoryRequest(r));
+            self.publish_one(env);
+        }
+        while let Some(replay) = self.catch_up.as_mut().and_then(|(_, r)| r.next_replay()) {
+            let window = replay.window.is_some();
+            let env = self
+                .outbox
+                .catch_up(now_s, Body::HistoryReplay(Box::new(replay)));
+            // A replay that could not be sent still costs its turn: the
+            // budget must not let a failing publish spin.
+            let bytes = self.publish_one(env);
+            if let Some((_, r)) = self.catch_up.as_mut() {
+                r.sent(window, bytes.max(1));
             }
         }
     }
@@ -268,6 +330,11 @@ impl Node {
         }
         for ev in events {
             let e = self.report.peers.presence(ev, self.wall_s(), self.fleet_t);
+            if let (Some(e), Some((asking, _))) = (e.as_ref(), self.catch_up.as_mut()) {
+                if e.event == "reappeared" {
+                    asking.reappeared(e.peer, self.report.histories.get(&e.peer));
+                }
+            }
             self.note(e);
             if let crate::transport::PresenceEvent::Vanished(p) = ev {
                 if self.lockstep.release(p) {
@@ -307,6 +374,14 @@ impl Node {
             }
             return true;
         };
+        if self
+            .faults
+            .drops(env.kind(), env.stamp_s, self.lockstep_mode)
+        {
+            self.report.outage_dropped += 1;
+            return true;
+        }
+        self.peer_clock_s = self.peer_clock_s.max(env.stamp_s);
         let peer = env.robot_id;
         *self.pending_bytes.entry(peer).or_default() += size;
         let now = self.wall_s();
@@ -396,8 +471,18 @@ impl Node {
                 .then(a.seq.cmp(&b.seq))
         });
         let mut moved: BTreeMap<u32, f64> = BTreeMap::new();
+        // The fleet time of this delivery: after our own data end (lingering)
+        // the peers' clock goes on.
+        let now_s = if until_s.is_finite() {
+            until_s
+        } else {
+            self.fleet_t.unwrap_or(0.0).max(self.peer_clock_s)
+        };
         for env in now {
             let h = self.report.histories.entry(env.robot_id).or_default();
+            if let Some((asking, _)) = self.catch_up.as_mut() {
+                asking.delivered(&env, h);
+            }
             match env.body {
                 Body::Tracks(t) => h.add_tracks(t, &self.limits),
                 Body::Descriptors(d) => h.add_descriptors(d, &self.limits),
@@ -414,6 +499,16 @@ impl Node {
                     h.add_snapshot(s, &self.limits);
                 }
                 Body::Heartbeat(_) => {}
+                Body::HistoryRequest(r) => {
+                    if let Some((_, replayer)) = self.catch_up.as_mut() {
+                        replayer.request(env.robot_id, &r);
+                    }
+                }
+                Body::HistoryReplay(r) => {
+                    if let Some((asking, _)) = self.catch_up.as_mut() {
+                        asking.accept(env.robot_id, *r, now_s, h, &self.limits);
+                    }
+                }
             }
         }
         // One logged pose per peer and delivery (a tick): a peer that floods
@@ -518,7 +613,21 @@ pub fn run_node(
         fleet_t: None,
         log,
         peer_poses: BTreeMap::new(),
+        catch_up: None,
+        faults: cfg.faults.clone(),
+        lockstep_mode: cfg.clock.mode == ClockMode::Lockstep,
+        peer_clock_s: f64::NEG_INFINITY,
     };
+    if cfg.history.catch_up {
+        node.catch_up = Some((
+            CatchUp::new(cfg.robot_id, cfg.history.catch_up_timeout_s),
+            Replayer::new(
+                cfg.robot_id,
+                node.limits,
+                cfg.history.replay_kib_per_s * 1024.0,
+            ),
+        ));
+    }
     let mut images: Option<ImageFrames> = None;
 
     // Wait for the expected peers (their presence means their subscribers exist).
@@ -683,9 +792,11 @@ pub fn run_node(
                 AgentState::Running,
                 node.report.run.frames.len() as u64,
                 Some(tick),
+                node.newest_window_end_s(),
             );
             node.publish(vec![hb]);
         }
+        node.catch_up(t_end);
         tick += 1;
         node.report.ticks = tick;
         if tick % 10 == 0 || tick == setup.ticks_total {
@@ -709,9 +820,15 @@ pub fn run_node(
         AgentState::Finished,
         node.report.run.frames.len() as u64,
         tick.checked_sub(1),
+        node.newest_window_end_s(),
     );
     node.publish(vec![hb]);
-    let linger_until = Instant::now() + Duration::from_secs_f64(cfg.clock.linger_timeout_s);
+    let linger_start = Instant::now();
+    let linger_until = linger_start + Duration::from_secs_f64(cfg.clock.linger_timeout_s);
+    let rate = match cfg.clock.mode {
+        ClockMode::Realtime => cfg.clock.realtime_rate,
+        ClockMode::Lockstep => 1.0,
+    };
     while !Node::stopping(stop) && Instant::now() < linger_until {
         let alive = node.report.peers.alive();
         let running: Vec<u32> = alive
@@ -722,6 +839,11 @@ pub fn run_node(
             break;
         }
         node.pump(Duration::from_millis(20));
+        // Peers still running may ask for our windows (after an outage): our
+        // data are done, not our archive.
+        node.deliver(f64::INFINITY);
+        let own = t_last + linger_start.elapsed().as_secs_f64() * rate;
+        node.catch_up(own.max(node.peer_clock_s));
     }
     node.drain();
     node.deliver(f64::INFINITY);
@@ -734,6 +856,17 @@ pub fn run_node(
         .cooperation()
         .map(|c| c.keyframe_db_bytes())
         .unwrap_or_default();
+    if let Some((asking, replayer)) = node.catch_up.as_ref() {
+        let (a, r) = (&asking.stats, &replayer.stats);
+        node.report.catch_up = Some(CatchUpStats {
+            requests_answered: r.requests_answered,
+            windows_replayed: r.windows_replayed,
+            replay_bytes: r.replay_bytes,
+            ..a.clone()
+        });
+        node.report.own_archive_bytes = replayer.archive().bytes();
+        node.report.own_archive_windows = replayer.archive().keyframes.len();
+    }
     node.report.wall_s = node.wall_s();
     node.report.cpu_s = crate::runner::thread_cpu_s(cpu_start.as_ref());
     if let Some(log) = node.log.take() {

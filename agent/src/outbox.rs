@@ -177,13 +177,15 @@ impl Outbox {
         out
     }
 
-    /// A heartbeat: the agent's state and the last tick it finished.
+    /// A heartbeat: the agent's state, the last tick it finished and the end
+    /// of its newest keyframe window.
     pub fn heartbeat(
         &mut self,
         stamp_s: f64,
         state: AgentState,
         frames_done: u64,
         last_tick: Option<u64>,
+        newest_window_end_s: Option<f64>,
     ) -> Envelope {
         self.envelope(
             stamp_s,
@@ -192,8 +194,14 @@ impl Outbox {
                 frames_done,
                 last_frame_index: last_tick,
                 last_t_s: Some(stamp_s),
+                newest_window_end_s,
             }),
         )
+    }
+
+    /// A history catch-up message (a request, or a replay) stamped `stamp_s`.
+    pub fn catch_up(&mut self, stamp_s: f64, body: Body) -> Envelope {
+        self.envelope(stamp_s, body)
     }
 
     /// Messages sent so far, per kind.

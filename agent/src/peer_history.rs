@@ -19,26 +19,19 @@
 //!   cannot exceed.
 
 use crate::history_retention::{self, Place, Retention};
-use common::messages::{DescriptorBatch, DescriptorEntry, StateSnapshot, TrackFrame};
+use common::messages::{
+    DescriptorBatch, DescriptorEntry, HistoryWindow, StateSnapshot, TrackFrame, WindowFrame,
+    WindowObservation,
+};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 
-/// One track measurement kept in a history window (normalized coordinates).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct HistoricalObservation {
-    /// Peer's track id.
-    pub id: u64,
-    /// Undistorted normalized image coordinates.
-    pub xy_norm: [f32; 2],
-}
+/// One track measurement kept in a history window (normalized coordinates),
+/// as the wire carries it in a replayed window.
+pub type HistoricalObservation = WindowObservation;
 
-/// The measurements of one frame inside a keyframe window.
-#[derive(Clone, Debug, PartialEq)]
-pub struct HistoricalFrame {
-    /// Camera time, s (matches a clone of the window).
-    pub t_s: f64,
-    /// The measurements.
-    pub observations: Vec<HistoricalObservation>,
-}
+/// The measurements of one frame inside a keyframe window (its time matches
+/// a clone of the window).
+pub type HistoricalFrame = WindowFrame;
 
 /// A stored non-overlapping window of a peer.
 #[derive(Clone, Debug, PartialEq)]
@@ -69,6 +62,34 @@ impl KeyframeWindow {
             frames,
             descriptors,
         }
+    }
+
+    /// The window as a replay carries it.
+    pub fn to_wire(&self) -> HistoryWindow {
+        HistoryWindow {
+            snapshot: self.snapshot.clone(),
+            frames: self.frames.clone(),
+            descriptors: self.descriptors.clone(),
+        }
+    }
+
+    /// A replayed window, as stored.
+    pub fn from_wire(w: HistoryWindow) -> Self {
+        Self::new(w.snapshot, w.frames, w.descriptors)
+    }
+
+    /// The newest clone's time (the snapshot's time without clones), s.
+    pub fn end_s(&self) -> f64 {
+        self.snapshot
+            .clones
+            .last()
+            .map_or(self.snapshot.t_s, |c| c.t_s)
+    }
+
+    /// How much of the window arrived: frames with measurements, and whether
+    /// the descriptors did (a lost message leaves a window short of one).
+    pub fn completeness(&self) -> (usize, bool) {
+        (self.frames.len(), !self.descriptors.is_empty())
     }
 
     /// Approximate heap bytes held.
@@ -144,6 +165,9 @@ pub struct PeerHistory {
     pub stored_bytes: usize,
     /// Fleet time from the oldest to the newest clone of every window stored, s.
     pub stored_span: Option<(f64, f64)>,
+    /// Windows stored or replaced so far: a change means there may be windows
+    /// to index.
+    pub revision: u64,
 }
 
 /// A sortable key of a fleet time (monotonic for finite times).
@@ -154,6 +178,17 @@ pub fn time_key(t_s: f64) -> u64 {
     } else {
         b | (1 << 63)
     }
+}
+
+/// What [`PeerHistory::add_replayed`] did with a window.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Replayed {
+    /// It was missing: stored.
+    New,
+    /// A less complete copy was held: replaced.
+    Completed,
+    /// An equal or more complete copy is held: ignored.
+    AlreadyHeld,
 }
 
 /// Limits of a [`PeerHistory`].
@@ -268,31 +303,63 @@ impl PeerHistory {
                 .pending_keyframe_descriptors
                 .remove(&snap.frame_index)
                 .unwrap_or_default();
-            let kf = KeyframeWindow::new(snap.clone(), frames, descriptors);
-            self.history_bytes += kf.bytes();
-            self.stored_bytes += kf.bytes();
-            self.stored_keyframes += 1;
-            if let (Some(a), Some(b)) = (snap.clones.first(), snap.clones.last()) {
-                let (lo, hi) = self.stored_span.unwrap_or((a.t_s, b.t_s));
-                self.stored_span = Some((lo.min(a.t_s), hi.max(b.t_s)));
-            }
-            let key = time_key(snap.clones.last().map_or(snap.t_s, |c| c.t_s));
-            if let Some(old) = self.keyframes.insert(key, kf) {
-                self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
-            }
-            while self.history_bytes > limits.max_bytes {
-                let Some(old) = history_retention::victim(&self.keyframes, limits.retention)
-                    .and_then(|k| self.keyframes.remove(&k))
-                else {
-                    break;
-                };
-                self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
-                self.dropped_keyframes += 1;
-            }
+            self.store(
+                KeyframeWindow::new(snap.clone(), frames, descriptors),
+                limits,
+            );
         }
         if self.latest.as_ref().is_none_or(|l| l.t_s <= snap.t_s) {
             self.latest = Some(snap);
         }
+    }
+
+    /// Stores a keyframe window, then drops windows while the history exceeds
+    /// its bound.
+    fn store(&mut self, kf: KeyframeWindow, limits: &HistoryLimits) {
+        self.history_bytes += kf.bytes();
+        self.stored_bytes += kf.bytes();
+        self.stored_keyframes += 1;
+        self.revision += 1;
+        if let (Some(a), Some(b)) = (kf.snapshot.clones.first(), kf.snapshot.clones.last()) {
+            let (lo, hi) = self.stored_span.unwrap_or((a.t_s, b.t_s));
+            self.stored_span = Some((lo.min(a.t_s), hi.max(b.t_s)));
+        }
+        let key = time_key(kf.end_s());
+        if let Some(old) = self.keyframes.insert(key, kf) {
+            // A replaced window: counted once in what was stored.
+            self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
+            self.stored_bytes = self.stored_bytes.saturating_sub(old.bytes());
+            self.stored_keyframes -= 1;
+        }
+        while self.history_bytes > limits.max_bytes {
+            let Some(old) = history_retention::victim(&self.keyframes, limits.retention)
+                .and_then(|k| self.keyframes.remove(&k))
+            else {
+                break;
+            };
+            self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
+            self.dropped_keyframes += 1;
+        }
+    }
+
+    /// Stores a keyframe window sent again on request (history catch-up) when
+    /// it is missing, or more complete than the one held; says which.
+    pub fn add_replayed(&mut self, kf: KeyframeWindow, limits: &HistoryLimits) -> Replayed {
+        let outcome = match self.keyframes.get(&time_key(kf.end_s())) {
+            None => Replayed::New,
+            Some(held) if kf.completeness() > held.completeness() => Replayed::Completed,
+            Some(_) => return Replayed::AlreadyHeld,
+        };
+        self.store(kf, limits);
+        outcome
+    }
+
+    /// The newest stored window's end time, s.
+    pub fn newest_window_end_s(&self) -> Option<f64> {
+        self.keyframes
+            .values()
+            .next_back()
+            .map(KeyframeWindow::end_s)
     }
 
     /// Fleet time spanned by every keyframe window stored, s (0 before any).

@@ -191,10 +191,11 @@ fn delivers_every_kind_to_every_peer_with_the_senders_id(backend: Backend) -> Te
     }
     for (i, t) in endpoints.iter_mut().enumerate() {
         let me = i as u32 + 1;
-        let mut got: Vec<(u32, MessageKind, Vec<u8>)> = receive_n(t.as_mut(), 8)?
-            .into_iter()
-            .map(|m| (m.from_robot, m.kind, m.bytes))
-            .collect();
+        let mut got: Vec<(u32, MessageKind, Vec<u8>)> =
+            receive_n(t.as_mut(), 2 * MessageKind::ALL.len())?
+                .into_iter()
+                .map(|m| (m.from_robot, m.kind, m.bytes))
+                .collect();
         got.sort();
         let mut expected = Vec::new();
         for sender in (1..=3u32).filter(|r| *r != me) {
@@ -219,7 +220,10 @@ fn never_delivers_a_message_to_its_sender(backend: Backend) -> TestResult {
     for kind in MessageKind::ALL {
         endpoints[0].publish(kind, b"from robot 1")?;
     }
-    assert_eq!(receive_n(endpoints[1].as_mut(), 4)?.len(), 4);
+    assert_eq!(
+        receive_n(endpoints[1].as_mut(), MessageKind::ALL.len())?.len(),
+        MessageKind::ALL.len()
+    );
     assert!(receive_rest(endpoints[0].as_mut())?.is_empty());
     close_all(&mut endpoints)?;
     Ok(())
@@ -230,7 +234,7 @@ fn keeps_each_senders_order(backend: Backend) -> TestResult {
     let mut endpoints = net.join_all(3)?;
     const PER_SENDER: u32 = 200;
     for seq in 0..PER_SENDER {
-        let kind = MessageKind::ALL[(seq % 4) as usize];
+        let kind = MessageKind::ALL[seq as usize % MessageKind::ALL.len()];
         for sender in endpoints.iter_mut().take(2) {
             sender.publish(kind, &seq.to_le_bytes())?;
         }
@@ -249,7 +253,11 @@ fn keeps_each_senders_order(backend: Backend) -> TestResult {
             );
         }
     }
-    assert_eq!(last.len(), 8, "2 senders x 4 kinds");
+    assert_eq!(
+        last.len(),
+        2 * MessageKind::ALL.len(),
+        "2 senders x every kind"
+    );
     close_all(&mut endpoints)?;
     Ok(())
 }

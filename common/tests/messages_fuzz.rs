@@ -171,15 +171,19 @@ fn heartbeat() -> impl Strategy<Value = Body> {
         any::<u64>(),
         proptest::option::of(any::<u64>()),
         proptest::option::of(finite_f64()),
+        proptest::option::of(finite_f64()),
     )
-        .prop_map(|(state, frames_done, last_frame_index, last_t_s)| {
-            Body::Heartbeat(Heartbeat {
-                state,
-                frames_done,
-                last_frame_index,
-                last_t_s,
-            })
-        })
+        .prop_map(
+            |(state, frames_done, last_frame_index, last_t_s, newest_window_end_s)| {
+                Body::Heartbeat(Heartbeat {
+                    state,
+                    frames_done,
+                    last_frame_index,
+                    last_t_s,
+                    newest_window_end_s,
+                })
+            },
+        )
 }
 
 fn envelope() -> impl Strategy<Value = Envelope> {

@@ -182,6 +182,7 @@ fn heartbeat_round_trip() {
             frames_done: last_frame_index.map_or(0, |f: u64| f.saturating_add(1)),
             last_frame_index,
             last_t_s,
+            newest_window_end_s: last_t_s.map(|t| t - 0.5),
         }));
         assert_eq!(env.kind(), MessageKind::Heartbeat);
         let Body::Heartbeat(h) = round_trip(&env).body else {
@@ -198,6 +199,8 @@ fn kinds_match_key_segments() {
         samples::descriptors(0, 1, false),
         samples::snapshot(0, 1, 0, false),
         samples::heartbeat(0),
+        samples::history_request(0.0),
+        samples::history_replay(20, 1),
     ]
     .iter()
     .map(Envelope::kind)

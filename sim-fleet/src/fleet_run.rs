@@ -8,8 +8,8 @@
 //! agent's outputs in `robot<i>/`, and `summary.json`.
 
 use agent::config::{
-    AgentConfig, ClockConfig, ClockMode, EstimatorSection, HistoryConfig, InputConfig, InputSource,
-    PublishConfig, TransportSection,
+    AgentConfig, ClockConfig, ClockMode, EstimatorSection, FaultsConfig, HistoryConfig,
+    InputConfig, InputSource, PublishConfig, TransportSection,
 };
 use agent::history_retention::Retention;
 use agent::node::{run_node, NodeReport, RobotSetup};
@@ -109,6 +109,32 @@ pub struct HistoryArgs {
     /// once, then the least certain window).
     #[arg(long, value_name = "POLICY")]
     pub history_retention: Option<Retention>,
+    /// Switch history catch-up off: agents never ask again for the keyframe
+    /// windows a late start, an outage or lost messages kept from them.
+    #[arg(long)]
+    pub no_catch_up: bool,
+    /// A link outage over fleet seconds FROM:TO (e.g. `20:60`): every message
+    /// sent in it is dropped on arrival; in lockstep runs the heartbeats pass,
+    /// so the fleet clock runs on.
+    #[arg(long, value_name = "FROM:TO", value_parser = parse_outage)]
+    pub link_outage: Option<[f64; 2]>,
+}
+
+/// `FROM:TO` in seconds, `FROM < TO`.
+fn parse_outage(s: &str) -> std::result::Result<[f64; 2], String> {
+    let (a, b) = s
+        .split_once(':')
+        .ok_or_else(|| format!("`{s}`: expected FROM:TO in seconds, e.g. 20:60"))?;
+    let num = |v: &str| {
+        v.trim()
+            .parse::<f64>()
+            .map_err(|e| format!("`{v}` in `{s}`: {e}"))
+    };
+    let (from, to) = (num(a)?, num(b)?);
+    if !(from.is_finite() && to.is_finite() && from < to) {
+        return Err(format!("`{s}`: FROM must be below TO, both finite"));
+    }
+    Ok([from, to])
 }
 
 impl HistoryArgs {
@@ -117,7 +143,15 @@ impl HistoryArgs {
         HistoryConfig {
             max_mib_per_peer: self.history_mib_per_peer.unwrap_or(base.max_mib_per_peer),
             retention: self.history_retention.unwrap_or(base.retention),
+            catch_up: base.catch_up && !self.no_catch_up,
             ..base
+        }
+    }
+
+    /// The faults these flags inject.
+    pub fn faults(&self) -> FaultsConfig {
+        FaultsConfig {
+            outage_fleet_s: self.link_outage,
         }
     }
 }
@@ -278,6 +312,7 @@ pub fn agent_configs(
                 },
                 mcap_log: true,
                 images: Default::default(),
+                faults: args.history.faults(),
             }
         })
         .collect();

@@ -97,3 +97,66 @@ fn the_centralized_estimator_runs_the_fleet_in_one_process() {
         assert!(out.join(format!("robot{r}/estimate.txt")).is_file());
     }
 }
+
+/// `transport_stats.json` of robot `r` of the run in `out`.
+fn stats(out: &Path, r: usize) -> Value {
+    integration_tests::read_json(&out.join(format!("robot{r}/transport_stats.json")))
+}
+
+/// Keyframe windows robot `r` holds of robot `p`.
+fn held(out: &Path, r: usize, p: usize) -> u64 {
+    stats(out, r)["histories"][p.to_string()]["keyframes"]
+        .as_u64()
+        .unwrap_or(0)
+}
+
+/// A link outage over fleet seconds 4-20 (every data message sent in it is
+/// lost; lockstep heartbeats pass) costs the third robot most of the others'
+/// flights. With history catch-up every agent gets the missed keyframe windows
+/// back from their authors once the link returns, and ends with the whole
+/// history of every peer; without it the windows of the outage stay lost.
+#[test]
+fn after_a_link_outage_agents_catch_up_on_their_peers_histories_over_zenoh() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path());
+    let common = [
+        "--transport",
+        "zenoh",
+        "--variant",
+        "dc-full-history",
+        "--seed",
+        "2",
+        "--link-outage",
+        "4:20",
+    ];
+    let on = dir.path().join("catch-up");
+    let summary = sim_fleet_run(&sc, &on, &common);
+    assert_cooperates(&summary);
+    let off = dir.path().join("no-catch-up");
+    sim_fleet_run(&sc, &off, &[&common[..], &["--no-catch-up"]].concat());
+    for r in 0..3 {
+        let s = stats(&on, r);
+        assert!(s["outage_dropped"].as_u64().unwrap_or(0) > 100, "{s}");
+        for p in (0..3).filter(|p| *p != r) {
+            let whole = stats(&on, p)["own_archive_windows"].as_u64().unwrap_or(0);
+            assert!(whole > 15, "robot {p} made {whole} windows");
+            assert_eq!(
+                held(&on, r, p),
+                whole,
+                "robot {r} holds {} of robot {p}'s {whole} windows after catching up",
+                held(&on, r, p)
+            );
+        }
+        let c = &s["catch_up"];
+        assert!(c["windows_stored"].as_u64().unwrap_or(0) > 10, "{c}");
+        assert_eq!(c["requests_expired"], 0, "{c}");
+    }
+    // Without catch-up the outage's windows stay lost.
+    let lost = held(&off, 2, 0);
+    let whole = stats(&on, 0)["own_archive_windows"].as_u64().unwrap_or(0);
+    assert!(
+        lost + 10 < whole,
+        "without catch-up robot 2 holds {lost} of robot 0's {whole} windows"
+    );
+    assert_eq!(stats(&off, 2)["catch_up"], Value::Null);
+}

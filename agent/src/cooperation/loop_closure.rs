@@ -36,10 +36,14 @@ pub struct KeyframeDb {
     /// Descriptors of each entry, in the order the direct index refers to.
     descriptors: Vec<Vec<(u64, Descriptor)>>,
     indexed: BTreeSet<u64>,
+    /// Windows passed over for lack of descriptors (also in `indexed`): a
+    /// replayed copy with descriptors replaces such a window (history catch-up),
+    /// and is indexed then.
+    passed_over: BTreeSet<u64>,
     /// The history's count of dropped windows when last looked at.
     seen_dropped: u64,
-    /// The history's count of stored windows when the backlog was last found
-    /// empty (`None`: not yet): while it is unchanged there is nothing older to
+    /// The history's revision (windows stored or replaced) when the backlog was
+    /// last found empty (`None`: not yet): while it is unchanged there is nothing older to
     /// index.
     backlog_clear_at: Option<u64>,
     /// Entries whose window the history may have dropped since the last prune
@@ -87,6 +91,7 @@ impl KeyframeDb {
             keys: Vec::new(),
             descriptors: Vec::new(),
             indexed: BTreeSet::new(),
+            passed_over: BTreeSet::new(),
             seen_dropped: 0,
             backlog_clear_at: None,
             maybe_dead: 0,
@@ -133,16 +138,16 @@ impl KeyframeDb {
     pub fn index_new(&mut self, history: &PeerHistory) {
         self.prune(history);
         for (key, kf) in history.keyframes.iter().rev().take(INDEX_LOOKBACK) {
-            if !kf.descriptors.is_empty() && !self.indexed.contains(key) {
+            if !kf.descriptors.is_empty() && self.wants(key) {
                 self.add(*key, kf);
             }
         }
-        if self.backlog_clear_at == Some(history.stored_keyframes) {
+        if self.backlog_clear_at == Some(history.revision) {
             return;
         }
         let mut budget = INDEX_BACKLOG_PER_FRAME;
         for (key, kf) in history.keyframes.iter().rev().skip(INDEX_LOOKBACK) {
-            if self.indexed.contains(key) {
+            if !self.wants(key) || (kf.descriptors.is_empty() && self.passed_over.contains(key)) {
                 continue;
             }
             if budget == 0 {
@@ -150,16 +155,24 @@ impl KeyframeDb {
             }
             if kf.descriptors.is_empty() {
                 self.indexed.insert(*key);
+                self.passed_over.insert(*key);
             } else {
                 self.add(*key, kf);
                 budget -= 1;
             }
         }
-        self.backlog_clear_at = Some(history.stored_keyframes);
+        self.backlog_clear_at = Some(history.revision);
+    }
+
+    /// Whether window `key` is still to be indexed: never looked at, or passed
+    /// over for lack of descriptors (they may have come with a replayed copy).
+    fn wants(&self, key: &u64) -> bool {
+        !self.indexed.contains(key) || self.passed_over.contains(key)
     }
 
     /// Indexes keyframe window `key`.
     fn add(&mut self, key: u64, kf: &KeyframeWindow) {
+        self.passed_over.remove(&key);
         let list: Vec<(u64, Descriptor)> = kf
             .descriptors
             .iter()
@@ -219,6 +232,8 @@ impl KeyframeDb {
         self.descriptors = descriptors;
         // Windows passed over for lack of descriptors are forgotten with the rest.
         self.indexed.retain(|k| history.keyframes.contains_key(k));
+        self.passed_over
+            .retain(|k| history.keyframes.contains_key(k));
     }
 
     /// The best `n` keyframes for `bow` scoring at least `min_score`:

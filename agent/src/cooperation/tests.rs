@@ -396,4 +396,17 @@ fn windows_stored_before_we_looked_are_indexed_over_the_next_frames() {
         sizes.push(db.len());
     }
     assert_eq!(sizes, vec![12, 20, 28, 36, 44, 49, 49]);
+
+    // History catch-up brings window 10 again, with its descriptors: it is
+    // indexed at the next frame.
+    let mut complete = h.keyframes.values().nth(10).cloned().expect("window 10");
+    complete.descriptors = (0..30)
+        .map(|i| DescriptorEntry::new(1000 + i, Descriptor(rng.random())))
+        .collect();
+    assert_eq!(
+        h.add_replayed(complete, &limits),
+        crate::peer_history::Replayed::Completed
+    );
+    db.index_new(&h);
+    assert_eq!(db.len(), 50);
 }

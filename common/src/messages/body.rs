@@ -1,9 +1,10 @@
-//! The four message bodies and their parts.
+//! The message bodies and their parts.
 
 use nalgebra::{Matrix3, Vector2, Vector3, Vector4};
 use serde::{Deserialize, Serialize};
 
 use super::bounded_vec;
+use super::history::{HistoryReplay, HistoryRequest};
 use super::packed_cov::PackedCovariance;
 use super::MessageKind;
 use crate::calibration::CameraCalibration;
@@ -23,6 +24,10 @@ pub enum Body {
     Snapshot(StateSnapshot),
     /// Presence and progress.
     Heartbeat(Heartbeat),
+    /// A request for a peer's keyframe windows (history catch-up).
+    HistoryRequest(HistoryRequest),
+    /// A keyframe window sent again on request (boxed: far larger than the rest).
+    HistoryReplay(Box<HistoryReplay>),
 }
 
 impl Body {
@@ -33,6 +38,8 @@ impl Body {
             Body::Descriptors(_) => MessageKind::Descriptors,
             Body::Snapshot(_) => MessageKind::Snapshot,
             Body::Heartbeat(_) => MessageKind::Heartbeat,
+            Body::HistoryRequest(_) => MessageKind::HistoryRequest,
+            Body::HistoryReplay(_) => MessageKind::HistoryReplay,
         }
     }
 }
@@ -407,6 +414,10 @@ pub struct Heartbeat {
     pub last_frame_index: Option<u64>,
     /// Camera timestamp of the last processed frame in seconds, if any.
     pub last_t_s: Option<f64>,
+    /// End time (newest clone) of the newest keyframe window the agent has
+    /// published, s: a peer that holds nothing that recent has lost windows,
+    /// even when no later message shows a gap (history catch-up).
+    pub newest_window_end_s: Option<f64>,
 }
 
 #[cfg(test)]

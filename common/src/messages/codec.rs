@@ -16,7 +16,9 @@ pub const MAGIC: [u8; 4] = *b"FVIO";
 
 /// The wire version this build writes. Version 2: a snapshot's covariance may
 /// end with the sender's camera intrinsics (version 1 peers would misread it).
-pub const WIRE_VERSION: u16 = 2;
+/// Version 3: heartbeats carry the newest keyframe window's end time, and the
+/// history catch-up messages exist (version 2 peers would misread heartbeats).
+pub const WIRE_VERSION: u16 = 3;
 
 /// The wire versions this build reads.
 pub const SUPPORTED_VERSIONS: &[u16] = &[WIRE_VERSION];

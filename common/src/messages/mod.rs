@@ -5,7 +5,8 @@
 //!
 //! * [`Envelope`]: fleet id, robot id, sequence number, send time and a [`Body`]:
 //!   [`TrackFrame`] (every frame), [`DescriptorBatch`] (new tracks, keyframes),
-//!   [`StateSnapshot`] (the sliding window with covariance) or [`Heartbeat`].
+//!   [`StateSnapshot`] (the sliding window with covariance), [`Heartbeat`], and
+//!   for history catch-up [`HistoryRequest`] and [`HistoryReplay`] ([`history`]).
 //! * [`encode`] / [`decode`] ([`decode_with`] for other [`Limits`]): the wire
 //!   format, `b"FVIO"`, a little-endian `u16` [`WIRE_VERSION`], then bincode 2
 //!   (serde, standard configuration). Decoding is bounded and validates the
@@ -45,6 +46,7 @@ mod body;
 mod bounded_vec;
 mod codec;
 mod envelope;
+pub mod history;
 mod packed_cov;
 pub mod samples;
 mod validate;
@@ -58,10 +60,14 @@ pub use codec::{
     HEADER_LEN, MAGIC, SUPPORTED_VERSIONS, WIRE_VERSION,
 };
 pub use envelope::Envelope;
+pub use history::{
+    HistoryReplay, HistoryRequest, HistoryWindow, RequestRef, TimeRange, WindowFrame,
+    WindowObservation,
+};
 pub use packed_cov::PackedCovariance;
 pub use validate::{
     Limits, ValidationError, FLEET_ID_FORBIDDEN_CHARS, INTRINSICS_DIM, MAX_FLEET_ID_BYTES,
-    QUATERNION_NORM_TOLERANCE,
+    MAX_REPLAY_ROBOTS, MAX_REQUEST_RANGES, QUATERNION_NORM_TOLERANCE,
 };
 
 use serde::{Deserialize, Serialize};
@@ -78,15 +84,21 @@ pub enum MessageKind {
     Snapshot,
     /// Presence and progress (the fleet clock in lockstep runs).
     Heartbeat,
+    /// A request for a peer's keyframe windows (history catch-up).
+    HistoryRequest,
+    /// Keyframe windows sent again on request.
+    HistoryReplay,
 }
 
 impl MessageKind {
     /// Every kind, in wire order.
-    pub const ALL: [MessageKind; 4] = [
+    pub const ALL: [MessageKind; 6] = [
         MessageKind::Tracks,
         MessageKind::Descriptors,
         MessageKind::Snapshot,
         MessageKind::Heartbeat,
+        MessageKind::HistoryRequest,
+        MessageKind::HistoryReplay,
     ];
 
     /// The key-expression segment of this kind.
@@ -96,6 +108,8 @@ impl MessageKind {
             MessageKind::Descriptors => "descriptors",
             MessageKind::Snapshot => "snapshot",
             MessageKind::Heartbeat => "heartbeat",
+            MessageKind::HistoryRequest => "history_request",
+            MessageKind::HistoryReplay => "history",
         }
     }
 

@@ -12,7 +12,8 @@ use nalgebra::{DMatrix, Matrix3, Vector2, Vector3};
 
 use super::{
     AgentState, Body, CameraModelWire, CameraPose, DescriptorBatch, DescriptorEntry, Envelope,
-    Heartbeat, Landmark, PackedCovariance, StateSnapshot, TrackFrame, TrackPoint,
+    Heartbeat, HistoryReplay, HistoryRequest, HistoryWindow, Landmark, PackedCovariance,
+    RequestRef, StateSnapshot, TimeRange, TrackFrame, TrackPoint, WindowFrame, WindowObservation,
 };
 use crate::camera::CameraModel;
 use crate::descriptor::Descriptor;
@@ -35,6 +36,13 @@ pub const SNAPSHOT_11_50_BUDGET_BYTES: usize = 13_000;
 
 /// Budget of an encoded [`Heartbeat`].
 pub const HEARTBEAT_BUDGET_BYTES: usize = 128;
+
+/// Budget of an encoded [`HistoryRequest`] of one range.
+pub const HISTORY_REQUEST_BUDGET_BYTES: usize = 128;
+
+/// Budget of an encoded [`HistoryReplay`] of an 11-clone keyframe window with
+/// 50 landmarks and 100 tracks measured in each frame.
+pub const HISTORY_REPLAY_11_100_BUDGET_BYTES: usize = 33_000;
 
 /// Frame rate of the samples, in Hz.
 pub const FRAME_RATE_HZ: f64 = 10.0;
@@ -92,12 +100,7 @@ pub fn tracks(frame_index: u64, n: usize) -> Envelope {
 
 /// A descriptor batch of `n` entries.
 pub fn descriptors(frame_index: u64, n: usize, keyframe: bool) -> Envelope {
-    let entries = (0..n as u64)
-        .map(|k| {
-            let words = [1, 2, 3, 4].map(|s| unit(k, 10 + s).to_bits());
-            DescriptorEntry::new(FIRST_ID + 3 * k, Descriptor(words))
-        })
-        .collect();
+    let entries = descriptor_entries(n);
     let t_s = frame_time(frame_index);
     envelope(
         1,
@@ -112,10 +115,32 @@ pub fn descriptors(frame_index: u64, n: usize, keyframe: bool) -> Envelope {
     )
 }
 
+/// Descriptors of the first `n` sample tracks.
+fn descriptor_entries(n: usize) -> Vec<DescriptorEntry> {
+    (0..n as u64)
+        .map(|k| {
+            let words = [1, 2, 3, 4].map(|s| unit(k, 10 + s).to_bits());
+            DescriptorEntry::new(FIRST_ID + 3 * k, Descriptor(words))
+        })
+        .collect()
+}
+
 /// A snapshot of a window of `clones` camera poses (one frame apart, the newest
 /// at `frame_index`) with a dense, positive-definite covariance and `landmarks`
 /// SLAM landmarks.
 pub fn snapshot(frame_index: u64, clones: usize, landmarks: usize, keyframe: bool) -> Envelope {
+    let t_s = frame_time(frame_index);
+    let body = snapshot_body(frame_index, clones, landmarks, keyframe);
+    envelope(1, frame_index / 5, t_s + 0.02, Body::Snapshot(body))
+}
+
+/// The body of [`snapshot`].
+fn snapshot_body(
+    frame_index: u64,
+    clones: usize,
+    landmarks: usize,
+    keyframe: bool,
+) -> StateSnapshot {
     let first = frame_index.saturating_sub(clones.saturating_sub(1) as u64);
     let poses: Vec<CameraPose> = (0..clones as u64)
         .map(|k| {
@@ -148,20 +173,72 @@ pub fn snapshot(frame_index: u64, clones: usize, landmarks: usize, keyframe: boo
             Landmark::new(FIRST_ID + 7 * k, &pos, &cov)
         })
         .collect();
-    let t_s = frame_time(frame_index);
+    StateSnapshot {
+        frame_index,
+        t_s: frame_time(frame_index),
+        keyframe,
+        camera: CameraModelWire::from(&CameraModel::euroc_cam0()),
+        clones: poses,
+        covariance,
+        landmarks: lms,
+    }
+}
+
+/// A request for the keyframe windows ending after `after_s`.
+pub fn history_request(after_s: f64) -> Envelope {
     envelope(
         1,
-        frame_index / 5,
-        t_s + 0.02,
-        Body::Snapshot(StateSnapshot {
-            frame_index,
-            t_s,
-            keyframe,
-            camera: CameraModelWire::from(&CameraModel::euroc_cam0()),
-            clones: poses,
-            covariance,
-            landmarks: lms,
+        0,
+        after_s + 30.0,
+        Body::HistoryRequest(HistoryRequest {
+            to_robot: 2,
+            request_id: 3,
+            ranges: vec![TimeRange {
+                after_s: Some(after_s),
+                up_to_s: None,
+            }],
         }),
+    )
+}
+
+/// A replayed keyframe window ending at `frame_index`: the 11-clone keyframe
+/// snapshot with 50 landmarks, `n` tracks measured in each of its frames and
+/// their descriptors, completing one request.
+pub fn history_replay(frame_index: u64, n: usize) -> Envelope {
+    let snapshot = snapshot_body(frame_index, 11, 50, true);
+    let frames = snapshot
+        .clones
+        .iter()
+        .enumerate()
+        .map(|(k, c)| WindowFrame {
+            t_s: c.t_s,
+            observations: (0..n as u64)
+                .map(|i| WindowObservation {
+                    id: FIRST_ID + 3 * i + k as u64 / 4,
+                    xy_norm: [
+                        0.4 * unit(i, 30 + k as u64) as f32,
+                        0.3 * unit(i, 50) as f32,
+                    ],
+                })
+                .collect(),
+        })
+        .collect();
+    envelope(
+        1,
+        0,
+        frame_time(frame_index) + 120.0,
+        Body::HistoryReplay(Box::new(HistoryReplay {
+            for_robots: vec![2],
+            window: Some(HistoryWindow {
+                snapshot,
+                frames,
+                descriptors: descriptor_entries(n),
+            }),
+            completes: vec![RequestRef {
+                robot: 2,
+                request_id: 3,
+            }],
+        })),
     )
 }
 
@@ -177,6 +254,7 @@ pub fn heartbeat(frame_index: u64) -> Envelope {
             frames_done: frame_index + 1,
             last_frame_index: Some(frame_index),
             last_t_s: Some(t_s),
+            newest_window_end_s: None,
         }),
     )
 }
@@ -201,6 +279,8 @@ mod tests {
         assert!(size(&snapshot(f, 11, 0, false)) < SNAPSHOT_11_BUDGET_BYTES);
         assert!(size(&snapshot(f, 11, 50, true)) < SNAPSHOT_11_50_BUDGET_BYTES);
         assert!(size(&heartbeat(f)) < HEARTBEAT_BUDGET_BYTES);
+        assert!(size(&history_request(100.0)) < HISTORY_REQUEST_BUDGET_BYTES);
+        assert!(size(&history_replay(f, 100)) < HISTORY_REPLAY_11_100_BUDGET_BYTES);
     }
 
     /// The same message with a 64-byte fleet id and ids just below 2³².
@@ -211,7 +291,16 @@ mod tests {
             Body::Tracks(t) => t.features.iter_mut().for_each(|f| big(&mut f.id)),
             Body::Descriptors(d) => d.entries.iter_mut().for_each(|e| big(&mut e.id)),
             Body::Snapshot(s) => s.landmarks.iter_mut().for_each(|l| big(&mut l.id)),
-            Body::Heartbeat(_) => {}
+            Body::Heartbeat(_) | Body::HistoryRequest(_) => {}
+            Body::HistoryReplay(r) => {
+                if let Some(w) = r.window.as_mut() {
+                    w.snapshot.landmarks.iter_mut().for_each(|l| big(&mut l.id));
+                    w.descriptors.iter_mut().for_each(|e| big(&mut e.id));
+                    for f in &mut w.frames {
+                        f.observations.iter_mut().for_each(|o| big(&mut o.id));
+                    }
+                }
+            }
         }
         env
     }
@@ -225,6 +314,8 @@ mod tests {
         assert!(size(&worst_case(snapshot(f, 11, 0, false))) < SNAPSHOT_11_BUDGET_BYTES);
         assert!(size(&worst_case(snapshot(f, 11, 50, true))) < SNAPSHOT_11_50_BUDGET_BYTES);
         assert!(size(&worst_case(heartbeat(f))) < HEARTBEAT_BUDGET_BYTES);
+        assert!(size(&worst_case(history_request(1e4))) < HISTORY_REQUEST_BUDGET_BYTES);
+        assert!(size(&worst_case(history_replay(f, 100))) < HISTORY_REPLAY_11_100_BUDGET_BYTES);
     }
 
     #[test]

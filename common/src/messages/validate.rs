@@ -5,6 +5,7 @@ use thiserror::Error;
 
 use super::body::{Body, CameraPose, DescriptorBatch, Heartbeat, StateSnapshot, TrackFrame};
 use super::envelope::Envelope;
+use super::history::{HistoryReplay, HistoryRequest, HistoryWindow};
 use super::packed_cov::PackedCovariance;
 use crate::camera::{CameraError, CameraModel};
 
@@ -151,7 +152,37 @@ pub enum ValidationError {
     /// The snapshot's camera model is unusable.
     #[error("snapshot.camera: {0}")]
     Camera(#[from] CameraError),
+    /// A requested time range is empty (its start is not before its end).
+    #[error("history_request.ranges[{index}] is empty: after {after_s} s, up to {up_to_s} s")]
+    EmptyRange {
+        /// Index of the range.
+        index: usize,
+        /// Its start.
+        after_s: f64,
+        /// Its end.
+        up_to_s: f64,
+    },
+    /// A replayed window's snapshot is not a keyframe snapshot.
+    #[error("history.window.snapshot is not a keyframe snapshot")]
+    ReplayNotKeyframe,
+    /// A replayed window's frame is not at one of its clone times, or out of order.
+    #[error(
+        "history.window.frames[{index}].t_s = {t_s} is not the time of a later clone \
+         of the window"
+    )]
+    ReplayFrameTime {
+        /// Index of the frame.
+        index: usize,
+        /// Its time.
+        t_s: f64,
+    },
 }
+
+/// Most ranges in one [`HistoryRequest`].
+pub const MAX_REQUEST_RANGES: usize = 64;
+
+/// Most robots a [`HistoryReplay`] names (as asking, or as answered).
+pub const MAX_REPLAY_ROBOTS: usize = 1024;
 
 /// `Ok` if `value` is finite, else a [`ValidationError::NonFinite`] naming it
 /// (the name is only built on failure).
@@ -207,6 +238,8 @@ impl Envelope {
             Body::Descriptors(d) => validate_descriptors(d, limits),
             Body::Snapshot(s) => validate_snapshot(s, limits),
             Body::Heartbeat(h) => validate_heartbeat(h),
+            Body::HistoryRequest(r) => validate_history_request(r),
+            Body::HistoryReplay(r) => validate_history_replay(r, limits),
         }
     }
 }
@@ -334,6 +367,82 @@ fn validate_snapshot(s: &StateSnapshot, limits: &Limits) -> Result<(), Validatio
 fn validate_heartbeat(h: &Heartbeat) -> Result<(), ValidationError> {
     if let Some(t) = h.last_t_s {
         finite(t, || "heartbeat.last_t_s".into())?;
+    }
+    if let Some(t) = h.newest_window_end_s {
+        finite(t, || "heartbeat.newest_window_end_s".into())?;
+    }
+    Ok(())
+}
+
+fn validate_history_request(r: &HistoryRequest) -> Result<(), ValidationError> {
+    count("history_request.ranges", r.ranges.len(), MAX_REQUEST_RANGES)?;
+    for (i, range) in r.ranges.iter().enumerate() {
+        if let Some(a) = range.after_s {
+            finite(a, || format!("history_request.ranges[{i}].after_s"))?;
+        }
+        if let Some(b) = range.up_to_s {
+            finite(b, || format!("history_request.ranges[{i}].up_to_s"))?;
+        }
+        if let (Some(after_s), Some(up_to_s)) = (range.after_s, range.up_to_s) {
+            if after_s >= up_to_s {
+                return Err(ValidationError::EmptyRange {
+                    index: i,
+                    after_s,
+                    up_to_s,
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+fn validate_history_replay(r: &HistoryReplay, limits: &Limits) -> Result<(), ValidationError> {
+    count("history.for_robots", r.for_robots.len(), MAX_REPLAY_ROBOTS)?;
+    count("history.completes", r.completes.len(), MAX_REPLAY_ROBOTS)?;
+    match &r.window {
+        Some(w) => validate_history_window(w, limits),
+        None => Ok(()),
+    }
+}
+
+/// A replayed window: a valid keyframe snapshot, and at most one frame per
+/// clone, each at a clone's time, oldest first.
+fn validate_history_window(w: &HistoryWindow, limits: &Limits) -> Result<(), ValidationError> {
+    validate_snapshot(&w.snapshot, limits)?;
+    if !w.snapshot.keyframe {
+        return Err(ValidationError::ReplayNotKeyframe);
+    }
+    count(
+        "history.window.frames",
+        w.frames.len(),
+        w.snapshot.clones.len(),
+    )?;
+    count(
+        "history.window.descriptors",
+        w.descriptors.len(),
+        limits.max_descriptor_entries,
+    )?;
+    // Clones are oldest first (checked above): each frame must take a later
+    // clone than the frame before it.
+    let mut clones = w.snapshot.clones.iter();
+    for (i, f) in w.frames.iter().enumerate() {
+        finite(f.t_s, || format!("history.window.frames[{i}].t_s"))?;
+        if !clones.any(|c| c.t_s == f.t_s) {
+            return Err(ValidationError::ReplayFrameTime {
+                index: i,
+                t_s: f.t_s,
+            });
+        }
+        count(
+            "history.window.frames.observations",
+            f.observations.len(),
+            limits.max_features,
+        )?;
+        for (k, o) in f.observations.iter().enumerate() {
+            all_finite(&o.xy_norm, || {
+                format!("history.window.frames[{i}].observations[{k}].xy_norm")
+            })?;
+        }
     }
     Ok(())
 }

@@ -1,0 +1,907 @@
+//! History catch-up: getting back the keyframe windows of a peer that a link
+//! outage, lost messages or a late start kept from us.
+//!
+//! Publish/subscribe does not replay what was published while a link was
+//! down, and a window we never stored can never give a historical loop closure
+//! (thesis Section 5.3.5). Two state machines, free of transport and I/O:
+//!
+//! * [`CatchUp`] (asking): watches what is delivered from each peer and asks
+//!   for the windows it must have missed: everything when a peer is first
+//!   heard, everything after the newest window held when a peer comes back
+//!   after vanishing, and the windows around a gap in a peer's sequence
+//!   numbers. It stores a replayed window only when it asked for it and the
+//!   window is missing or more complete than the copy held.
+//! * [`Replayer`] (answering): keeps an archive of this agent's own keyframe
+//!   windows, built from what it published exactly as peers build theirs, and
+//!   answers requests from it, oldest window first, at a bounded rate of fleet
+//!   time so a catch-up never crowds out the live messages.
+
+use crate::peer_history::{HistoryLimits, KeyframeWindow, PeerHistory, Replayed};
+use common::messages::{
+    Body, Envelope, HistoryReplay, HistoryRequest, MessageKind, RequestRef, TimeRange,
+    MAX_REPLAY_ROBOTS, MAX_REQUEST_RANGES,
+};
+use serde::Serialize;
+use std::collections::{BTreeMap, BTreeSet};
+
+/// Seconds added before a sequence gap's first lost message: a keyframe
+/// window ends a little before its snapshot is sent.
+const GAP_SLACK_S: f64 = 1.0;
+
+/// Fleet seconds without any reply to an open request before it is sent
+/// again (the request, or its replies, may have been lost).
+const RETRY_AFTER_S: f64 = 5.0;
+
+/// A peer's window span assumed before its first snapshot, s.
+const DEFAULT_WINDOW_SPAN_S: f64 = 2.0;
+
+/// Catch-up counters of one agent.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct CatchUpStats {
+    /// Requests sent.
+    pub requests_sent: u64,
+    /// Requests answered in full.
+    pub requests_completed: u64,
+    /// Requests given up: no replay from the peer for the timeout.
+    pub requests_expired: u64,
+    /// Requests sent again: no reply for [`RETRY_AFTER_S`] after asking.
+    pub requests_retried: u64,
+    /// Sequence gaps seen in peers' data messages (each asked about).
+    pub gaps_seen: u64,
+    /// Times a peer's heartbeat claimed a window we lacked one heartbeat
+    /// later, with no gap to explain it (each asked about).
+    pub windows_missing: u64,
+    /// Replayed windows received that were for us.
+    pub windows_received: u64,
+    /// Of those, missing windows stored.
+    pub windows_stored: u64,
+    /// Of those, held windows replaced by a more complete copy.
+    pub windows_completed: u64,
+    /// Requests from peers answered by this agent.
+    pub requests_answered: u64,
+    /// Windows this agent sent again.
+    pub windows_replayed: u64,
+    /// Encoded bytes of those replays.
+    pub replay_bytes: u64,
+}
+
+/// A request waiting for its replays.
+#[derive(Clone, Debug)]
+struct OpenRequest {
+    ranges: Vec<TimeRange>,
+}
+
+/// What is known of one peer's stream.
+#[derive(Clone, Debug, Default)]
+struct PeerStream {
+    /// Per data kind: the last delivered sequence number and stamp.
+    last: BTreeMap<MessageKind, (u64, f64)>,
+    /// Requests sent and not yet answered in full.
+    open: BTreeMap<u64, OpenRequest>,
+    /// Ranges to ask for, each with the fleet time after which to ask (the
+    /// windows it covers must exist by then).
+    wanted: Vec<(TimeRange, f64)>,
+    /// Fleet time of the last replay from this peer (or of the oldest open
+    /// request when none came since).
+    last_progress_s: f64,
+    /// Fleet time of our last request to it.
+    last_ask_s: f64,
+    /// The peer's window span (newest minus oldest clone), s.
+    window_span_s: Option<f64>,
+    /// The newest window end its last heartbeat claimed, s.
+    claimed_end_s: Option<f64>,
+}
+
+impl PeerStream {
+    /// Adds a range to ask for after `ask_after`; a range it overlaps is
+    /// merged in and asked for at the later of the two times, so one outage
+    /// seen as gaps in three streams makes one request.
+    /// A range an open request already covers is not asked again.
+    fn want(&mut self, range: TimeRange, ask_after: f64) {
+        let asked = self
+            .open
+            .values()
+            .flat_map(|r| &r.ranges)
+            .any(|r| lo(r) <= lo(&range) && hi(&range) <= hi(r));
+        if asked {
+            return;
+        }
+        let (mut range, mut ask_after) = (range, ask_after);
+        self.wanted.retain(|(r, t)| {
+            let Some(u) = union(r, &range) else {
+                return true;
+            };
+            range = u;
+            ask_after = ask_after.max(*t);
+            false
+        });
+        self.wanted.push((range, ask_after));
+    }
+}
+
+fn lo(r: &TimeRange) -> f64 {
+    r.after_s.unwrap_or(f64::NEG_INFINITY)
+}
+
+fn hi(r: &TimeRange) -> f64 {
+    r.up_to_s.unwrap_or(f64::INFINITY)
+}
+
+/// The union of two ranges that overlap or touch.
+fn union(a: &TimeRange, b: &TimeRange) -> Option<TimeRange> {
+    if lo(a) > hi(b) || lo(b) > hi(a) {
+        return None;
+    }
+    Some(TimeRange {
+        after_s: if lo(a) <= lo(b) { a.after_s } else { b.after_s },
+        up_to_s: if hi(a) >= hi(b) { a.up_to_s } else { b.up_to_s },
+    })
+}
+
+/// The asking side of history catch-up (see the module documentation).
+#[derive(Debug)]
+pub struct CatchUp {
+    me: u32,
+    next_id: u64,
+    /// Fleet seconds without a replay before open requests are given up.
+    timeout_s: f64,
+    peers: BTreeMap<u32, PeerStream>,
+    /// Counters (the answering side adds its own in [`Replayer`]).
+    pub stats: CatchUpStats,
+}
+
+impl CatchUp {
+    /// The asking side of robot `me`; open requests expire after `timeout_s`
+    /// of fleet time without a replay.
+    pub fn new(me: u32, timeout_s: f64) -> Self {
+        Self {
+            me,
+            next_id: 0,
+            timeout_s,
+            peers: BTreeMap::new(),
+            stats: CatchUpStats::default(),
+        }
+    }
+
+    /// Notes a message delivered from `env.robot_id`, whose history we keep in
+    /// `history`: a peer heard for the first time is asked for everything, a
+    /// gap in a data stream for the windows it may have touched, and windows
+    /// a heartbeat says exist, and we still lack a heartbeat later, for
+    /// themselves.
+    pub fn delivered(&mut self, env: &Envelope, history: &PeerHistory) {
+        let kind = env.kind();
+        let data = matches!(
+            kind,
+            MessageKind::Tracks | MessageKind::Descriptors | MessageKind::Snapshot
+        );
+        let first = !self.peers.contains_key(&env.robot_id);
+        let p = self.peers.entry(env.robot_id).or_default();
+        if first {
+            p.want(TimeRange::ALL, f64::NEG_INFINITY);
+        }
+        match &env.body {
+            Body::Snapshot(s) => {
+                if let (Some(a), Some(b)) = (s.clones.first(), s.clones.last()) {
+                    p.window_span_s = Some((b.t_s - a.t_s).max(0.0));
+                }
+            }
+            Body::Heartbeat(hb) => {
+                // Newest end of any window we stored from it (the bound may
+                // have dropped windows since: they are not asked for again).
+                let held = history.stored_span.map(|(_, end)| end);
+                let claimed = std::mem::replace(&mut p.claimed_end_s, hb.newest_window_end_s);
+                // The previous heartbeat's claim, still unmet: its window is
+                // lost (not merely on its way: one heartbeat period later).
+                if claimed.is_some_and(|c| held.is_none_or(|h| c > h)) {
+                    // Everything after what we hold: the peer may have made
+                    // more by the time it answers (and may send no further
+                    // heartbeat to tell: it may have landed).
+                    let range = TimeRange {
+                        after_s: held,
+                        up_to_s: None,
+                    };
+                    // One question at a time: while one is out, newer claims
+                    // wait for its answer (a peer cut off for a minute would
+                    // otherwise be asked at every heartbeat).
+                    if p.open.is_empty() && p.wanted.is_empty() {
+                        self.stats.windows_missing += 1;
+                        p.want(range, f64::NEG_INFINITY);
+                    }
+                }
+            }
+            _ => {}
+        }
+        if !data {
+            return;
+        }
+        let span = p.window_span_s.unwrap_or(DEFAULT_WINDOW_SPAN_S);
+        if let Some((seq, stamp)) = p.last.insert(kind, (env.seq, env.stamp_s)) {
+            // A restarted peer numbers from 0 again: only forward jumps are losses.
+            if env.seq > seq + 1 {
+                self.stats.gaps_seen += 1;
+                // Messages sent in (stamp, env.stamp_s) were lost: a keyframe
+                // window ending there, or holding a lost frame, is incomplete.
+                let up_to = env.stamp_s + span;
+                let range = TimeRange {
+                    after_s: Some(stamp - GAP_SLACK_S),
+                    up_to_s: Some(up_to),
+                };
+                p.want(range, up_to);
+            }
+        }
+    }
+
+    /// Notes that `peer` came back after vanishing: the windows after the
+    /// newest one held are asked for.
+    pub fn reappeared(&mut self, peer: u32, history: Option<&PeerHistory>) {
+        let p = self.peers.entry(peer).or_default();
+        let range = TimeRange {
+            after_s: history.and_then(PeerHistory::newest_window_end_s),
+            up_to_s: None,
+        };
+        p.want(range, f64::NEG_INFINITY);
+    }
+
+    /// The requests due at fleet time `now_s`, one per peer at most; open
+    /// requests without a replay for the timeout are given up.
+    pub fn requests(&mut self, now_s: f64) -> Vec<HistoryRequest> {
+        let mut out = Vec::new();
+        for (&peer, p) in &mut self.peers {
+            let fresh = p.open.is_empty();
+            if !fresh && now_s - p.last_progress_s > self.timeout_s {
+                self.stats.requests_expired += p.open.len() as u64;
+                tracing::warn!(
+                    peer,
+                    open = p.open.len(),
+                    "history catch-up: no replay for {} s, requests given up",
+                    self.timeout_s
+                );
+                p.open.clear();
+            } else if !fresh && now_s - p.last_progress_s.max(p.last_ask_s) > RETRY_AFTER_S {
+                // Nothing came since we asked: the request or its replies
+                // were lost (the link may only just be back). Ask again; the
+                // peer merges a request for windows it still has queued.
+                self.stats.requests_retried += p.open.len() as u64;
+                for r in std::mem::take(&mut p.open).into_values() {
+                    for range in r.ranges {
+                        p.want(range, f64::NEG_INFINITY);
+                    }
+                }
+            }
+            let (due, later): (Vec<_>, Vec<_>) = std::mem::take(&mut p.wanted)
+                .into_iter()
+                .partition(|(_, ask_after)| *ask_after <= now_s);
+            p.wanted = later;
+            if due.is_empty() {
+                continue;
+            }
+            // A new request takes over the open ones (their replies would
+            // overlap; a lost one would be sent again alongside).
+            let mut ranges: Vec<TimeRange> = due.into_iter().map(|(r, _)| r).collect();
+            for r in std::mem::take(&mut p.open).into_values() {
+                ranges.extend(r.ranges);
+            }
+            let mut ranges = merge(ranges);
+            ranges.truncate(MAX_REQUEST_RANGES);
+            let request_id = self.next_id;
+            self.next_id += 1;
+            if fresh {
+                p.last_progress_s = now_s;
+            }
+            p.last_ask_s = now_s;
+            p.open.insert(
+                request_id,
+                OpenRequest {
+                    ranges: ranges.clone(),
+                },
+            );
+            self.stats.requests_sent += 1;
+            tracing::debug!(peer, request_id, ?ranges, now_s, "history catch-up: asking");
+            out.push(HistoryRequest {
+                to_robot: peer,
+                request_id,
+                ranges,
+            });
+        }
+        out
+    }
+
+    /// Takes a replay from `peer` delivered at fleet time `now_s`: stores its
+    /// window in `history` if we asked for it and it is missing or more
+    /// complete than ours, and closes the requests it completes.
+    pub fn accept(
+        &mut self,
+        peer: u32,
+        replay: HistoryReplay,
+        now_s: f64,
+        history: &mut PeerHistory,
+        limits: &HistoryLimits,
+    ) -> Option<Replayed> {
+        let p = self.peers.get_mut(&peer)?;
+        let mut outcome = None;
+        if let Some(w) = replay
+            .window
+            .filter(|_| replay.for_robots.contains(&self.me))
+        {
+            p.last_progress_s = now_s;
+            self.stats.windows_received += 1;
+            let end = w.end_s();
+            let asked = p
+                .open
+                .values()
+                .any(|r| r.ranges.iter().any(|range| range.contains(end)));
+            if asked {
+                let r = history.add_replayed(KeyframeWindow::from_wire(w), limits);
+                match r {
+                    Replayed::New => self.stats.windows_stored += 1,
+                    Replayed::Completed => self.stats.windows_completed += 1,
+                    Replayed::AlreadyHeld => {}
+                }
+                outcome = Some(r);
+            }
+        }
+        for c in replay.completes.iter().filter(|c| c.robot == self.me) {
+            if p.open.remove(&c.request_id).is_some() {
+                self.stats.requests_completed += 1;
+            }
+        }
+        outcome
+    }
+
+    /// Requests sent to `peer` and not answered in full yet.
+    pub fn open_requests(&self, peer: u32) -> usize {
+        self.peers.get(&peer).map_or(0, |p| p.open.len())
+    }
+}
+
+/// Sorts ranges and merges those that overlap or touch.
+fn merge(mut ranges: Vec<TimeRange>) -> Vec<TimeRange> {
+    ranges.sort_by(|a, b| lo(a).total_cmp(&lo(b)));
+    let mut out: Vec<TimeRange> = Vec::with_capacity(ranges.len());
+    for r in ranges {
+        match out
+            .last_mut()
+            .and_then(|last| union(last, &r).map(|u| (last, u)))
+        {
+            Some((last, u)) => *last = u,
+            None => out.push(r),
+        }
+    }
+    out
+}
+
+/// A window queued for replay.
+#[derive(Clone, Debug, Default)]
+struct Queued {
+    for_robots: BTreeSet<u32>,
+    /// Requests whose last window this is.
+    completes: Vec<RequestRef>,
+}
+
+/// The answering side of history catch-up (see the module documentation).
+#[derive(Debug)]
+pub struct Replayer {
+    me: u32,
+    /// Our own keyframe windows, built as a peer builds them.
+    archive: PeerHistory,
+    limits: HistoryLimits,
+    /// Windows to send, by key (oldest first).
+    queue: BTreeMap<u64, Queued>,
+    /// Requests that found nothing, to complete with the next message.
+    found_nothing: Vec<RequestRef>,
+    /// Replay bytes per second of fleet time.
+    bytes_per_s: f64,
+    /// Bytes that may still be sent now (a token bucket of one second).
+    budget: f64,
+    last_refill_s: Option<f64>,
+    /// Counters of the answering side.
+    pub stats: CatchUpStats,
+}
+
+impl Replayer {
+    /// The answering side of robot `me`, keeping its own windows within
+    /// `limits` (the bound its peers keep of it) and replaying at most
+    /// `bytes_per_s` per second of fleet time.
+    pub fn new(me: u32, limits: HistoryLimits, bytes_per_s: f64) -> Self {
+        Self {
+            me,
+            archive: PeerHistory::default(),
+            limits,
+            queue: BTreeMap::new(),
+            found_nothing: Vec::new(),
+            bytes_per_s,
+            budget: bytes_per_s,
+            last_refill_s: None,
+            stats: CatchUpStats::default(),
+        }
+    }
+
+    /// Archives what this agent published (its tracks, descriptors and
+    /// snapshots), so its keyframe windows can be sent again.
+    pub fn published(&mut self, body: &Body) {
+        match body {
+            Body::Tracks(t) => self.archive.add_tracks(t.clone(), &self.limits),
+            Body::Descriptors(d) => self.archive.add_descriptors(d.clone(), &self.limits),
+            Body::Snapshot(s) => self.archive.add_snapshot(s.clone(), &self.limits),
+            Body::Heartbeat(_) | Body::HistoryRequest(_) | Body::HistoryReplay(_) => {}
+        }
+    }
+
+    /// The archive of our own windows.
+    pub fn archive(&self) -> &PeerHistory {
+        &self.archive
+    }
+
+    /// Queues the windows `from` asked for, if it asked us.
+    pub fn request(&mut self, from: u32, req: &HistoryRequest) {
+        if req.to_robot != self.me || from == self.me {
+            return;
+        }
+        self.stats.requests_answered += 1;
+        let id = RequestRef {
+            robot: from,
+            request_id: req.request_id,
+        };
+        let keys: Vec<u64> = self
+            .archive
+            .keyframes
+            .iter()
+            .filter(|(_, kf)| req.ranges.iter().any(|r| r.contains(kf.end_s())))
+            .map(|(k, _)| *k)
+            .collect();
+        tracing::debug!(
+            from,
+            request_id = req.request_id,
+            windows = keys.len(),
+            "history catch-up: answering"
+        );
+        let Some(&last) = keys.last() else {
+            self.found_nothing.push(id);
+            return;
+        };
+        for k in keys {
+            let q = self.queue.entry(k).or_default();
+            if q.for_robots.len() < MAX_REPLAY_ROBOTS {
+                q.for_robots.insert(from);
+            }
+        }
+        self.queue.entry(last).or_default().completes.push(id);
+    }
+
+    /// Adds the budget of the fleet time elapsed up to `now_s` (at most one
+    /// second's worth held).
+    pub fn refill(&mut self, now_s: f64) {
+        let dt = self.last_refill_s.map_or(0.0, |t| (now_s - t).max(0.0));
+        self.last_refill_s = Some(now_s);
+        self.budget = (self.budget + dt * self.bytes_per_s).min(self.bytes_per_s);
+    }
+
+    /// The next replay to send, if there is one and budget left for it.
+    pub fn next_replay(&mut self) -> Option<HistoryReplay> {
+        if self.budget <= 0.0 {
+            return None;
+        }
+        while let Some((key, q)) = self.queue.pop_first() {
+            let mut completes = std::mem::take(&mut self.found_nothing);
+            completes.extend(q.completes);
+            let window = self
+                .archive
+                .keyframes
+                .get(&key)
+                .map(KeyframeWindow::to_wire);
+            if window.is_none() {
+                // Dropped from the archive since it was asked for: what it
+                // completes goes with the next message.
+                self.found_nothing = completes;
+                continue;
+            }
+            return Some(HistoryReplay {
+                for_robots: q.for_robots.into_iter().collect(),
+                window,
+                completes,
+            });
+        }
+        if self.found_nothing.is_empty() {
+            return None;
+        }
+        Some(HistoryReplay {
+            for_robots: Vec::new(),
+            window: None,
+            completes: std::mem::take(&mut self.found_nothing),
+        })
+    }
+
+    /// Counts a replay sent as `bytes` encoded bytes against the budget
+    /// (`window`: it carried a window).
+    pub fn sent(&mut self, window: bool, bytes: usize) {
+        self.budget -= bytes as f64;
+        self.stats.replay_bytes += bytes as u64;
+        if window {
+            self.stats.windows_replayed += 1;
+        }
+    }
+
+    /// Windows waiting to be sent.
+    pub fn queued(&self) -> usize {
+        self.queue.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::history_retention::Retention;
+    use common::messages::{samples, HistoryWindow};
+
+    const PEER: u32 = 1;
+    const ME: u32 = 2;
+
+    fn limits() -> HistoryLimits {
+        HistoryLimits {
+            max_bytes: 64 << 20,
+            recent_s: 2.0,
+            retention: Retention::Oldest,
+        }
+    }
+
+    /// What peer 1 publishes at frame `f`: its tracks, and every 10th frame
+    /// (from frame 10) a keyframe window with its descriptors. Sequence
+    /// numbers count per kind, as an outbox does.
+    fn published(f: u64) -> Vec<Envelope> {
+        let mut out = vec![samples::tracks(f, 20)];
+        if f >= 10 && f % 10 == 0 {
+            let mut s = samples::snapshot(f, 11, 0, true);
+            let mut d = samples::descriptors(f, 20, true);
+            s.seq = f / 10 - 1;
+            d.seq = f / 10 - 1;
+            out.extend([s, d]);
+        }
+        out
+    }
+
+    /// A live peer history fed with `envs`, as an agent's node does.
+    fn feed(h: &mut PeerHistory, envs: &[Envelope]) {
+        for e in envs {
+            match e.body.clone() {
+                Body::Tracks(t) => h.add_tracks(t, &limits()),
+                Body::Descriptors(d) => h.add_descriptors(d, &limits()),
+                Body::Snapshot(s) => h.add_snapshot(s, &limits()),
+                _ => {}
+            }
+        }
+    }
+
+    fn t(f: u64) -> f64 {
+        let Body::Tracks(tr) = samples::tracks(f, 1).body else {
+            return f64::NAN;
+        };
+        tr.t_s
+    }
+
+    #[test]
+    fn a_peer_heard_first_is_asked_for_everything_once() {
+        let mut c = CatchUp::new(ME, 60.0);
+        for f in 0..3 {
+            for e in published(f) {
+                c.delivered(&e, &PeerHistory::default());
+            }
+        }
+        let reqs = c.requests(t(3));
+        assert_eq!(reqs.len(), 1);
+        assert_eq!(reqs[0].to_robot, PEER);
+        assert_eq!(reqs[0].ranges, [TimeRange::ALL]);
+        assert!(c.requests(t(4)).is_empty());
+        assert_eq!(c.open_requests(PEER), 1);
+    }
+
+    #[test]
+    fn a_gap_in_three_streams_is_one_request_made_once_its_windows_exist() {
+        let mut c = CatchUp::new(ME, 600.0);
+        let mut all: Vec<Envelope> = (0..=120).flat_map(published).collect();
+        // Frames 35 to 84 are lost: tracks, snapshots and descriptors.
+        all.retain(|e| {
+            let f = match &e.body {
+                Body::Tracks(x) => x.frame_index,
+                Body::Snapshot(x) => x.frame_index,
+                Body::Descriptors(x) => x.frame_index,
+                _ => 0,
+            };
+            !(35..85).contains(&f)
+        });
+        // The first request (everything) goes at once, and is answered.
+        c.delivered(&all[0], &PeerHistory::default());
+        let first = c.requests(t(0));
+        assert_eq!(first.len(), 1);
+        assert_eq!(first[0].ranges, [TimeRange::ALL]);
+        let done = HistoryReplay {
+            for_robots: Vec::new(),
+            window: None,
+            completes: vec![RequestRef {
+                robot: ME,
+                request_id: first[0].request_id,
+            }],
+        };
+        c.accept(PEER, done, t(0), &mut PeerHistory::default(), &limits());
+        for e in &all[1..] {
+            c.delivered(e, &PeerHistory::default());
+        }
+        assert_eq!(c.stats.gaps_seen, 3);
+        // The gap's waits until the windows that may hold a lost frame are
+        // made: one window span (1 s) after the first snapshot past the gap
+        // (frame 90).
+        assert!(c.requests(t(99)).is_empty());
+        let gap = c.requests(t(101));
+        assert_eq!(gap.len(), 1, "{gap:?}");
+        let [range] = gap[0].ranges[..] else {
+            panic!("{gap:?}")
+        };
+        // Every window that ends in the gap or holds a frame of it.
+        for f in [40, 50, 80, 90] {
+            assert!(range.contains(t(f)), "window of frame {f}: {range:?}");
+        }
+        assert!(
+            !range.contains(t(20)) && !range.contains(t(110)),
+            "{range:?}"
+        );
+    }
+
+    /// Peer 1's replayer after publishing frames `0..=last`.
+    fn replayer(last: u64, bytes_per_s: f64) -> Replayer {
+        let mut r = Replayer::new(PEER, limits(), bytes_per_s);
+        for e in (0..=last).flat_map(published) {
+            r.published(&e.body);
+        }
+        r
+    }
+
+    fn request(id: u64, ranges: Vec<TimeRange>) -> HistoryRequest {
+        HistoryRequest {
+            to_robot: PEER,
+            request_id: id,
+            ranges,
+        }
+    }
+
+    fn window_end(r: &HistoryReplay) -> Option<f64> {
+        r.window.as_ref().map(HistoryWindow::end_s)
+    }
+
+    #[test]
+    fn a_replayer_answers_from_its_archive_oldest_first_within_its_budget() {
+        let mut r = replayer(100, 1e9);
+        assert_eq!(r.archive().keyframes.len(), 10);
+        // Another robot's request, and one for robots 2 and 3 overlapping.
+        r.request(ME, &request(9, vec![TimeRange::ALL]));
+        r.request(
+            3,
+            &HistoryRequest {
+                to_robot: 7,
+                ..request(1, vec![TimeRange::ALL])
+            },
+        );
+        r.request(
+            3,
+            &request(
+                4,
+                vec![TimeRange {
+                    after_s: Some(t(75)),
+                    up_to_s: None,
+                }],
+            ),
+        );
+        assert_eq!(r.queued(), 10);
+        let mut ends = Vec::new();
+        let mut completes = Vec::new();
+        while let Some(x) = r.next_replay() {
+            assert!(x.for_robots.contains(&ME));
+            assert_eq!(x.for_robots.contains(&3), window_end(&x) > Some(t(75)));
+            ends.extend(window_end(&x));
+            completes.extend(x.completes.iter().map(|c| (c.robot, c.request_id)));
+            r.sent(x.window.is_some(), 10);
+        }
+        let expected: Vec<f64> = (1..=10).map(|k| t(10 * k)).collect();
+        assert_eq!(ends, expected);
+        assert_eq!(completes, [(ME, 9), (3, 4)]);
+
+        // A budget of 30 kB per second, windows of 20 kB, ticks of 0.5 s: a
+        // window goes while the budget is above zero, so the first tick sends
+        // the one-second burst and one more; then 7 windows (140 kB) in 4 s
+        // against the 150 kB of the burst and 3.5 s.
+        let mut r = replayer(100, 30e3);
+        r.request(ME, &request(0, vec![TimeRange::ALL]));
+        let mut per_tick = Vec::new();
+        for tick in 0..8 {
+            r.refill(f64::from(tick) * 0.5);
+            let mut n = 0;
+            while let Some(x) = r.next_replay() {
+                r.sent(x.window.is_some(), 20_000);
+                n += 1;
+            }
+            per_tick.push(n);
+        }
+        assert_eq!(per_tick, [2, 1, 0, 1, 1, 1, 0, 1]);
+    }
+
+    #[test]
+    fn a_request_that_finds_nothing_is_completed_at_once() {
+        let mut r = replayer(5, 1e9);
+        r.request(ME, &request(3, vec![TimeRange::ALL]));
+        let x = r.next_replay().expect("a completion");
+        assert!(x.window.is_none());
+        assert_eq!(
+            x.completes,
+            [RequestRef {
+                robot: ME,
+                request_id: 3
+            }]
+        );
+        assert!(r.next_replay().is_none());
+    }
+
+    #[test]
+    fn replayed_windows_are_what_a_live_peer_stores_and_are_kept_only_when_asked() {
+        let live_all: Vec<Envelope> = (0..=100).flat_map(published).collect();
+        let mut live = PeerHistory::default();
+        feed(&mut live, &live_all);
+
+        // We lost frames 35-84: our history lacks windows 40-80 and holds
+        // window 90 without the frames 80-84.
+        let mut ours = PeerHistory::default();
+        let mut c = CatchUp::new(ME, 600.0);
+        let kept: Vec<Envelope> = live_all
+            .iter()
+            .filter(|e| match &e.body {
+                Body::Tracks(x) => !(35..85).contains(&x.frame_index),
+                Body::Snapshot(x) => !(35..85).contains(&x.frame_index),
+                Body::Descriptors(x) => !(35..85).contains(&x.frame_index),
+                _ => true,
+            })
+            .cloned()
+            .collect();
+        for e in &kept {
+            c.delivered(e, &PeerHistory::default());
+        }
+        feed(&mut ours, &kept);
+        assert_eq!(ours.keyframes.len(), 5);
+
+        // A replay we did not ask for is ignored.
+        let mut r = replayer(100, 1e9);
+        r.request(ME, &request(77, vec![TimeRange::ALL]));
+        let unasked = r.next_replay().expect("a window");
+        assert_eq!(c.accept(PEER, unasked, 0.0, &mut ours, &limits()), None);
+
+        let mut r = replayer(100, 1e9);
+        for req in c.requests(t(102)) {
+            r.request(ME, &req);
+        }
+        let mut outcomes = Vec::new();
+        while let Some(x) = r.next_replay() {
+            outcomes.extend(c.accept(PEER, x, t(100), &mut ours, &limits()));
+        }
+        assert_eq!(c.open_requests(PEER), 0);
+        assert_eq!(ours.keyframes.len(), 10);
+        assert_eq!(ours.keyframes, live.keyframes);
+        assert_eq!(c.stats.windows_stored, 5);
+        assert_eq!(c.stats.windows_completed, 1);
+        assert!(outcomes.contains(&Replayed::AlreadyHeld));
+
+        // A window for another robot is not ours to store.
+        let mut r = replayer(100, 1e9);
+        let mut other = CatchUp::new(ME, 600.0);
+        for e in &kept {
+            other.delivered(e, &PeerHistory::default());
+        }
+        let reqs = other.requests(t(102));
+        r.request(3, &reqs[0]);
+        let mut fresh = PeerHistory::default();
+        while let Some(x) = r.next_replay() {
+            assert_eq!(other.accept(PEER, x, 0.0, &mut fresh, &limits()), None);
+        }
+        assert!(fresh.keyframes.is_empty());
+    }
+
+    #[test]
+    fn requests_without_replies_are_sent_again_then_expire_and_a_peer_back_is_asked_again() {
+        let mut c = CatchUp::new(ME, 30.0);
+        let mut h = PeerHistory::default();
+        let envs: Vec<Envelope> = (0..=40).flat_map(published).collect();
+        feed(&mut h, &envs);
+        for e in &envs {
+            c.delivered(e, &PeerHistory::default());
+        }
+        let first = c.requests(100.0);
+        assert_eq!(first.len(), 1);
+        // No reply within 5 s: asked again, the same ranges, and again 5 s
+        // later, until 30 s pass without a reply.
+        assert!(c.requests(104.0).is_empty());
+        let again = c.requests(106.0);
+        assert_eq!(again.len(), 1);
+        assert_eq!(again[0].ranges, first[0].ranges);
+        assert!(again[0].request_id > first[0].request_id);
+        assert!(c.requests(110.0).is_empty());
+        assert_eq!(c.requests(112.0).len(), 1);
+        assert_eq!(c.stats.requests_retried, 2);
+        assert_eq!(c.open_requests(PEER), 1);
+        assert!(c.requests(131.0).is_empty());
+        assert_eq!(c.open_requests(PEER), 0);
+        assert_eq!(c.stats.requests_expired, 1);
+
+        c.reappeared(PEER, Some(&h));
+        let back = c.requests(140.0);
+        assert_eq!(
+            back[0].ranges,
+            [TimeRange {
+                after_s: Some(t(40)),
+                up_to_s: None
+            }]
+        );
+    }
+
+    fn heartbeat(seq: u64, newest_window_end_s: Option<f64>) -> Envelope {
+        let mut hb = samples::heartbeat(seq * 10);
+        hb.seq = seq;
+        if let Body::Heartbeat(h) = &mut hb.body {
+            h.newest_window_end_s = newest_window_end_s;
+        }
+        hb
+    }
+
+    /// The peer's last windows were lost and it sends no data after them (it
+    /// landed): no gap shows, but its heartbeats say what it made.
+    #[test]
+    fn windows_a_heartbeat_claims_and_we_still_lack_a_heartbeat_later_are_asked_for() {
+        let mut c = CatchUp::new(ME, 600.0);
+        let mut h = PeerHistory::default();
+        let got: Vec<Envelope> = (0..=15).flat_map(published).collect();
+        feed(&mut h, &got);
+        for e in &got {
+            c.delivered(e, &h);
+        }
+        // Everything, at first sight: answered with what the peer had then.
+        let first = c.requests(t(16));
+        let done = HistoryReplay {
+            for_robots: Vec::new(),
+            window: None,
+            completes: vec![RequestRef {
+                robot: ME,
+                request_id: first[0].request_id,
+            }],
+        };
+        c.accept(PEER, done, t(16), &mut h, &limits());
+        assert_eq!(c.open_requests(PEER), 0);
+        // Claims we meet ask for nothing, nor does a claim on its way.
+        c.delivered(&heartbeat(1, Some(t(10))), &h);
+        c.delivered(&heartbeat(2, Some(t(40))), &h);
+        assert!(c.requests(t(41)).is_empty());
+        c.delivered(&heartbeat(3, Some(t(40))), &h);
+        let reqs = c.requests(t(42));
+        assert_eq!(
+            reqs[0].ranges,
+            [TimeRange {
+                after_s: Some(t(10)),
+                up_to_s: None
+            }]
+        );
+        assert_eq!(c.stats.windows_missing, 1);
+        // Asked once, not at every heartbeat while the replay is on its way.
+        c.delivered(&heartbeat(4, Some(t(40))), &h);
+        assert!(c.requests(t(43)).is_empty());
+    }
+
+    #[test]
+    fn ranges_merge_when_they_overlap_or_touch() {
+        let r = |a: f64, b: f64| TimeRange {
+            after_s: Some(a),
+            up_to_s: Some(b),
+        };
+        assert_eq!(
+            merge(vec![r(5.0, 6.0), r(1.0, 2.0), r(2.0, 3.0), r(2.5, 2.7)]),
+            [r(1.0, 3.0), r(5.0, 6.0)]
+        );
+        let open = TimeRange {
+            after_s: Some(4.0),
+            up_to_s: None,
+        };
+        assert_eq!(merge(vec![r(5.0, 6.0), open]), [open]);
+    }
+}
