@@ -490,17 +490,18 @@ pub struct HistoryConfig {
     /// about 33 KiB/s. An hour of history takes about 3 min at the default.
     #[serde(default = "default_replay_kib_per_s")]
     pub replay_kib_per_s: f64,
-    /// Fleet seconds without a replay from a peer before our open requests to
-    /// it are given up.
-    #[serde(default = "default_catch_up_timeout_s")]
-    pub catch_up_timeout_s: f64,
+    /// Fleet seconds without a reply before a catch-up request is sent again
+    /// (a request costs some 50 bytes; it is only given up when its peer
+    /// vanishes).
+    #[serde(default = "default_catch_up_retry_s")]
+    pub catch_up_retry_s: f64,
 }
 
 fn default_replay_kib_per_s() -> f64 {
     512.0
 }
-fn default_catch_up_timeout_s() -> f64 {
-    60.0
+fn default_catch_up_retry_s() -> f64 {
+    5.0
 }
 
 fn default_history_mib() -> f64 {
@@ -526,7 +527,7 @@ impl Default for HistoryConfig {
             max_peer_mib_per_s: default_max_peer_mib_per_s(),
             catch_up: true,
             replay_kib_per_s: default_replay_kib_per_s(),
-            catch_up_timeout_s: default_catch_up_timeout_s(),
+            catch_up_retry_s: default_catch_up_retry_s(),
         }
     }
 }
@@ -608,10 +609,7 @@ impl AgentConfig {
                 self.history.max_peer_mib_per_s,
             ),
             ("history.replay_kib_per_s", self.history.replay_kib_per_s),
-            (
-                "history.catch_up_timeout_s",
-                self.history.catch_up_timeout_s,
-            ),
+            ("history.catch_up_retry_s", self.history.catch_up_retry_s),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} must be a finite number >= 0 (got {v})"));

@@ -28,10 +28,6 @@ use std::collections::{BTreeMap, BTreeSet};
 /// window ends a little before its snapshot is sent.
 const GAP_SLACK_S: f64 = 1.0;
 
-/// Fleet seconds without any reply to an open request before it is sent
-/// again (the request, or its replies, may have been lost).
-const RETRY_AFTER_S: f64 = 5.0;
-
 /// A peer's window span assumed before its first snapshot, s.
 const DEFAULT_WINDOW_SPAN_S: f64 = 2.0;
 
@@ -42,9 +38,10 @@ pub struct CatchUpStats {
     pub requests_sent: u64,
     /// Requests answered in full.
     pub requests_completed: u64,
-    /// Requests given up: no replay from the peer for the timeout.
-    pub requests_expired: u64,
-    /// Requests sent again: no reply for [`RETRY_AFTER_S`] after asking.
+    /// Requests given up because the peer vanished (asked again if it comes
+    /// back).
+    pub requests_dropped: u64,
+    /// Requests sent again: no reply for the retry period since asking.
     pub requests_retried: u64,
     /// Sequence gaps seen in peers' data messages (each asked about).
     pub gaps_seen: u64,
@@ -143,21 +140,23 @@ fn union(a: &TimeRange, b: &TimeRange) -> Option<TimeRange> {
 pub struct CatchUp {
     me: u32,
     next_id: u64,
-    /// Fleet seconds without a replay before open requests are given up.
-    timeout_s: f64,
+    /// Fleet seconds without a reply before a request is sent again.
+    retry_s: f64,
     peers: BTreeMap<u32, PeerStream>,
     /// Counters (the answering side adds its own in [`Replayer`]).
     pub stats: CatchUpStats,
 }
 
 impl CatchUp {
-    /// The asking side of robot `me`; open requests expire after `timeout_s`
-    /// of fleet time without a replay.
-    pub fn new(me: u32, timeout_s: f64) -> Self {
+    /// The asking side of robot `me`; a request without a reply for `retry_s`
+    /// of fleet time is sent again (a request costs some 50 bytes: a link back
+    /// from an outage is used within `retry_s`). Requests are only given up
+    /// when their peer vanishes ([`CatchUp::vanished`]).
+    pub fn new(me: u32, retry_s: f64) -> Self {
         Self {
             me,
             next_id: 0,
-            timeout_s,
+            retry_s,
             peers: BTreeMap::new(),
             stats: CatchUpStats::default(),
         }
@@ -231,6 +230,16 @@ impl CatchUp {
         }
     }
 
+    /// Notes that `peer` vanished: its open requests are given up (it is asked
+    /// again when it comes back).
+    pub fn vanished(&mut self, peer: u32) {
+        if let Some(p) = self.peers.get_mut(&peer) {
+            self.stats.requests_dropped += p.open.len() as u64;
+            p.open.clear();
+            p.wanted.clear();
+        }
+    }
+
     /// Notes that `peer` came back after vanishing: the windows after the
     /// newest one held are asked for.
     pub fn reappeared(&mut self, peer: u32, history: Option<&PeerHistory>) {
@@ -248,18 +257,9 @@ impl CatchUp {
         let mut out = Vec::new();
         for (&peer, p) in &mut self.peers {
             let fresh = p.open.is_empty();
-            if !fresh && now_s - p.last_progress_s > self.timeout_s {
-                self.stats.requests_expired += p.open.len() as u64;
-                tracing::warn!(
-                    peer,
-                    open = p.open.len(),
-                    "history catch-up: no replay for {} s, requests given up",
-                    self.timeout_s
-                );
-                p.open.clear();
-            } else if !fresh && now_s - p.last_progress_s.max(p.last_ask_s) > RETRY_AFTER_S {
+            if !fresh && now_s - p.last_progress_s.max(p.last_ask_s) > self.retry_s {
                 // Nothing came since we asked: the request or its replies
-                // were lost (the link may only just be back). Ask again; the
+                // were lost (the link may not be back yet). Ask again; the
                 // peer merges a request for windows it still has queued.
                 self.stats.requests_retried += p.open.len() as u64;
                 for r in std::mem::take(&mut p.open).into_values() {
@@ -580,7 +580,7 @@ mod tests {
 
     #[test]
     fn a_peer_heard_first_is_asked_for_everything_once() {
-        let mut c = CatchUp::new(ME, 60.0);
+        let mut c = CatchUp::new(ME, 5.0);
         for f in 0..3 {
             for e in published(f) {
                 c.delivered(&e, &PeerHistory::default());
@@ -596,7 +596,7 @@ mod tests {
 
     #[test]
     fn a_gap_in_three_streams_is_one_request_made_once_its_windows_exist() {
-        let mut c = CatchUp::new(ME, 600.0);
+        let mut c = CatchUp::new(ME, 5.0);
         let mut all: Vec<Envelope> = (0..=120).flat_map(published).collect();
         // Frames 35 to 84 are lost: tracks, snapshots and descriptors.
         all.retain(|e| {
@@ -747,7 +747,7 @@ mod tests {
         // We lost frames 35-84: our history lacks windows 40-80 and holds
         // window 90 without the frames 80-84.
         let mut ours = PeerHistory::default();
-        let mut c = CatchUp::new(ME, 600.0);
+        let mut c = CatchUp::new(ME, 5.0);
         let kept: Vec<Envelope> = live_all
             .iter()
             .filter(|e| match &e.body {
@@ -787,7 +787,7 @@ mod tests {
 
         // A window for another robot is not ours to store.
         let mut r = replayer(100, 1e9);
-        let mut other = CatchUp::new(ME, 600.0);
+        let mut other = CatchUp::new(ME, 5.0);
         for e in &kept {
             other.delivered(e, &PeerHistory::default());
         }
@@ -801,8 +801,8 @@ mod tests {
     }
 
     #[test]
-    fn requests_without_replies_are_sent_again_then_expire_and_a_peer_back_is_asked_again() {
-        let mut c = CatchUp::new(ME, 30.0);
+    fn unanswered_requests_are_sent_again_until_the_peer_vanishes() {
+        let mut c = CatchUp::new(ME, 5.0);
         let mut h = PeerHistory::default();
         let envs: Vec<Envelope> = (0..=40).flat_map(published).collect();
         feed(&mut h, &envs);
@@ -811,23 +811,26 @@ mod tests {
         }
         let first = c.requests(100.0);
         assert_eq!(first.len(), 1);
-        // No reply within 5 s: asked again, the same ranges, and again 5 s
-        // later, until 30 s pass without a reply.
-        assert!(c.requests(104.0).is_empty());
-        let again = c.requests(106.0);
-        assert_eq!(again.len(), 1);
-        assert_eq!(again[0].ranges, first[0].ranges);
-        assert!(again[0].request_id > first[0].request_id);
-        assert!(c.requests(110.0).is_empty());
-        assert_eq!(c.requests(112.0).len(), 1);
-        assert_eq!(c.stats.requests_retried, 2);
+        // No reply: asked again every 5 s, with the same ranges.
+        let mut asked_at = Vec::new();
+        for k in 1..=20 {
+            let now = 100.0 + f64::from(k);
+            for r in c.requests(now) {
+                assert_eq!(r.ranges, first[0].ranges);
+                asked_at.push(now);
+            }
+        }
+        assert_eq!(asked_at, [106.0, 112.0, 118.0]);
+        assert_eq!(c.stats.requests_retried, 3);
         assert_eq!(c.open_requests(PEER), 1);
-        assert!(c.requests(131.0).is_empty());
-        assert_eq!(c.open_requests(PEER), 0);
-        assert_eq!(c.stats.requests_expired, 1);
 
+        // Gone: given up. Back: asked for what came after the newest held.
+        c.vanished(PEER);
+        assert_eq!(c.open_requests(PEER), 0);
+        assert_eq!(c.stats.requests_dropped, 1);
+        assert!(c.requests(240.0).is_empty());
         c.reappeared(PEER, Some(&h));
-        let back = c.requests(140.0);
+        let back = c.requests(250.0);
         assert_eq!(
             back[0].ranges,
             [TimeRange {
@@ -850,7 +853,7 @@ mod tests {
     /// landed): no gap shows, but its heartbeats say what it made.
     #[test]
     fn windows_a_heartbeat_claims_and_we_still_lack_a_heartbeat_later_are_asked_for() {
-        let mut c = CatchUp::new(ME, 600.0);
+        let mut c = CatchUp::new(ME, 5.0);
         let mut h = PeerHistory::default();
         let got: Vec<Envelope> = (0..=15).flat_map(published).collect();
         feed(&mut h, &got);

@@ -331,8 +331,10 @@ impl Node {
         for ev in events {
             let e = self.report.peers.presence(ev, self.wall_s(), self.fleet_t);
             if let (Some(e), Some((asking, _))) = (e.as_ref(), self.catch_up.as_mut()) {
-                if e.event == "reappeared" {
-                    asking.reappeared(e.peer, self.report.histories.get(&e.peer));
+                match e.event {
+                    "reappeared" => asking.reappeared(e.peer, self.report.histories.get(&e.peer)),
+                    "vanished" | "left" => asking.vanished(e.peer),
+                    _ => {}
                 }
             }
             self.note(e);
@@ -620,7 +622,7 @@ pub fn run_node(
     };
     if cfg.history.catch_up {
         node.catch_up = Some((
-            CatchUp::new(cfg.robot_id, cfg.history.catch_up_timeout_s),
+            CatchUp::new(cfg.robot_id, cfg.history.catch_up_retry_s),
             Replayer::new(
                 cfg.robot_id,
                 node.limits,

@@ -149,7 +149,6 @@ fn after_a_link_outage_agents_catch_up_on_their_peers_histories_over_zenoh() {
         }
         let c = &s["catch_up"];
         assert!(c["windows_stored"].as_u64().unwrap_or(0) > 10, "{c}");
-        assert_eq!(c["requests_expired"], 0, "{c}");
     }
     // Without catch-up the outage's windows stay lost.
     let lost = held(&off, 2, 0);

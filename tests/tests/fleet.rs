@@ -277,6 +277,23 @@ fn a_killed_agent_is_seen_leaving_and_coming_back_and_the_others_finish() {
         assert!(r["ate_pos_m"].as_f64().unwrap().is_finite());
         assert!(r["peer_losses"].as_u64().unwrap() >= 1);
     }
+    // The restarted agent lost every peer history with its process: history
+    // catch-up got the windows its peers made before it came back.
+    let stats = |i: usize| read_json(&out.join(format!("robot{i}/transport_stats.json")));
+    let again = stats(2);
+    for p in 0..2 {
+        let made = stats(p)["own_archive_windows"].as_u64().unwrap_or(0);
+        let held = again["histories"][p.to_string()]["keyframes"]
+            .as_u64()
+            .unwrap_or(0);
+        assert!(made > 10, "robot {p} made {made} windows");
+        assert_eq!(
+            held, made,
+            "the restarted robot holds {held} of robot {p}'s {made} windows"
+        );
+    }
+    let c = &again["catch_up"];
+    assert!(c["windows_stored"].as_u64().unwrap_or(0) > 5, "{c}");
 }
 
 #[test]
