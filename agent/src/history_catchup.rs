@@ -571,6 +571,31 @@ mod tests {
         }
     }
 
+    /// Our asking side and our history of the peer after hearing its frames
+    /// `0..=last`.
+    fn heard(last: u64) -> (CatchUp, PeerHistory) {
+        let mut c = CatchUp::new(ME, 5.0);
+        let mut h = PeerHistory::default();
+        let envs: Vec<Envelope> = (0..=last).flat_map(published).collect();
+        feed(&mut h, &envs);
+        for e in &envs {
+            c.delivered(e, &h);
+        }
+        (c, h)
+    }
+
+    /// The peer's answer that `req` found nothing more.
+    fn done(req: &HistoryRequest) -> HistoryReplay {
+        HistoryReplay {
+            for_robots: Vec::new(),
+            window: None,
+            completes: vec![RequestRef {
+                robot: ME,
+                request_id: req.request_id,
+            }],
+        }
+    }
+
     fn t(f: u64) -> f64 {
         let Body::Tracks(tr) = samples::tracks(f, 1).body else {
             return f64::NAN;
@@ -613,15 +638,13 @@ mod tests {
         let first = c.requests(t(0));
         assert_eq!(first.len(), 1);
         assert_eq!(first[0].ranges, [TimeRange::ALL]);
-        let done = HistoryReplay {
-            for_robots: Vec::new(),
-            window: None,
-            completes: vec![RequestRef {
-                robot: ME,
-                request_id: first[0].request_id,
-            }],
-        };
-        c.accept(PEER, done, t(0), &mut PeerHistory::default(), &limits());
+        c.accept(
+            PEER,
+            done(&first[0]),
+            t(0),
+            &mut PeerHistory::default(),
+            &limits(),
+        );
         for e in &all[1..] {
             c.delivered(e, &PeerHistory::default());
         }
@@ -802,13 +825,7 @@ mod tests {
 
     #[test]
     fn unanswered_requests_are_sent_again_until_the_peer_vanishes() {
-        let mut c = CatchUp::new(ME, 5.0);
-        let mut h = PeerHistory::default();
-        let envs: Vec<Envelope> = (0..=40).flat_map(published).collect();
-        feed(&mut h, &envs);
-        for e in &envs {
-            c.delivered(e, &PeerHistory::default());
-        }
+        let (mut c, h) = heard(40);
         let first = c.requests(100.0);
         assert_eq!(first.len(), 1);
         // No reply: asked again every 5 s, with the same ranges.
@@ -853,24 +870,10 @@ mod tests {
     /// landed): no gap shows, but its heartbeats say what it made.
     #[test]
     fn windows_a_heartbeat_claims_and_we_still_lack_a_heartbeat_later_are_asked_for() {
-        let mut c = CatchUp::new(ME, 5.0);
-        let mut h = PeerHistory::default();
-        let got: Vec<Envelope> = (0..=15).flat_map(published).collect();
-        feed(&mut h, &got);
-        for e in &got {
-            c.delivered(e, &h);
-        }
+        let (mut c, mut h) = heard(15);
         // Everything, at first sight: answered with what the peer had then.
         let first = c.requests(t(16));
-        let done = HistoryReplay {
-            for_robots: Vec::new(),
-            window: None,
-            completes: vec![RequestRef {
-                robot: ME,
-                request_id: first[0].request_id,
-            }],
-        };
-        c.accept(PEER, done, t(16), &mut h, &limits());
+        c.accept(PEER, done(&first[0]), t(16), &mut h, &limits());
         assert_eq!(c.open_requests(PEER), 0);
         // Claims we meet ask for nothing, nor does a claim on its way.
         c.delivered(&heartbeat(1, Some(t(10))), &h);

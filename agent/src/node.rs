@@ -780,7 +780,10 @@ pub fn run_node(
             }
         }
 
-        // 4. Tick done.
+        // 4. Tick done: history catch-up first, so that a peer that has our
+        // heartbeat of this tick has our requests and replays of it too (the
+        // lockstep clock keeps them deterministic).
+        node.catch_up(t_end);
         let beat = match cfg.clock.mode {
             ClockMode::Lockstep => true,
             ClockMode::Realtime => {
@@ -798,7 +801,6 @@ pub fn run_node(
             );
             node.publish(vec![hb]);
         }
-        node.catch_up(t_end);
         tick += 1;
         node.report.ticks = tick;
         if tick % 10 == 0 || tick == setup.ticks_total {
