@@ -135,6 +135,11 @@ pub struct RobotSetup {
     pub grid: TickGrid,
     /// Ticks until the robot's data end.
     pub ticks_total: u64,
+    /// Ticks until the last robot's data end (simulated fleets; a recording
+    /// knows only its own robot): in lockstep an agent whose data have ended
+    /// keeps ticking with its peers, so that what it still sends them
+    /// (answers to history catch-up requests) lands on the fleet clock.
+    pub fleet_ticks_total: u64,
     /// Recorded events (MCAP replay), if any.
     recorded: Option<Vec<SimEvent>>,
 }
@@ -168,6 +173,16 @@ impl RobotSetup {
         };
         Ok(Self {
             ticks_total: grid.ticks_until(t_end),
+            fleet_ticks_total: match &recorded {
+                Some(_) => grid.ticks_until(t_end),
+                None => grid.ticks_until(
+                    fleet
+                        .truths
+                        .iter()
+                        .map(|t| t.end_time())
+                        .fold(t_end, f64::max),
+                ),
+            },
             fleet,
             robot,
             variant,
@@ -667,7 +682,15 @@ pub fn run_node(
     let mut initialized = false;
     let mut last_heartbeat = Instant::now();
     let mut tick = 0u64;
-    while tick < setup.ticks_total {
+    // In lockstep with peers, tick on to the last robot's end (see
+    // `RobotSetup::fleet_ticks_total`); past our own end there are no data.
+    let ticks_end = match cfg.clock.mode {
+        ClockMode::Lockstep if !cfg.clock.peers.is_empty() => {
+            setup.fleet_ticks_total.max(setup.ticks_total)
+        }
+        _ => setup.ticks_total,
+    };
+    while tick < ticks_end {
         if Node::stopping(stop) {
             node.report.interrupted = true;
             break;
@@ -803,10 +826,10 @@ pub fn run_node(
         }
         tick += 1;
         node.report.ticks = tick;
-        if tick % 10 == 0 || tick == setup.ticks_total {
+        if tick % 10 == 0 || tick == ticks_end {
             progress(Progress {
                 tick,
-                ticks_total: setup.ticks_total,
+                ticks_total: ticks_end,
                 frames: node.report.run.frames.len() as u64,
                 lag_s: if cfg.clock.mode == ClockMode::Realtime {
                     pacer.lag_s(t_end)
@@ -854,7 +877,9 @@ pub fn run_node(
     if Node::stopping(stop) {
         node.report.interrupted = node.report.interrupted || tick < setup.ticks_total;
     }
-    node.report.fleet_s = t_last - grid.t0_s;
+    // Our own span: the ticks past our data end (lockstep) only kept time.
+    let own_end = grid.end_of(setup.ticks_total.saturating_sub(1));
+    node.report.fleet_s = t_last.min(own_end) - grid.t0_s;
     node.report.run.cooperation = est.cooperation().map(|c| c.stats);
     node.report.keyframe_db_bytes = est
         .cooperation()
