@@ -119,6 +119,8 @@ pub struct NodeReport {
     /// they missed nothing).
     pub own_archive_windows: usize,
     /// Messages dropped by the injected outage (`faults.outage_fleet_s`).
+    /// They are dropped after decoding, so `net` counts them as received
+    /// (its sequence numbers then show no gap for them).
     pub outage_dropped: u64,
 }
 

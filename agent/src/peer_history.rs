@@ -80,10 +80,7 @@ impl KeyframeWindow {
 
     /// The newest clone's time (the snapshot's time without clones), s.
     pub fn end_s(&self) -> f64 {
-        self.snapshot
-            .clones
-            .last()
-            .map_or(self.snapshot.t_s, |c| c.t_s)
+        self.snapshot.end_s()
     }
 
     /// How much of the window arrived: frames with measurements, and whether

@@ -236,7 +236,7 @@ fn participant(ev: &mut Evidence, link: &Link, h: &PeerHistory) -> Option<usize>
         LinkSource::Window => (h.latest.as_ref()?, false),
         LinkSource::Keyframe(k) => (&h.keyframes.get(&k)?.snapshot, true),
     };
-    let key = time_key(snap.clones.last().map_or(snap.t_s, |c| c.t_s));
+    let key = time_key(snap.end_s());
     if let Some(i) = ev
         .participants
         .iter()

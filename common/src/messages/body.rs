@@ -206,6 +206,14 @@ pub struct StateSnapshot {
     pub landmarks: Vec<Landmark>,
 }
 
+impl StateSnapshot {
+    /// The window's end time: its newest clone's time (the snapshot's time
+    /// without clones), s. Peers key keyframe windows by it.
+    pub fn end_s(&self) -> f64 {
+        self.clones.last().map_or(self.t_s, |c| c.t_s)
+    }
+}
+
 /// The pose of the camera in the global frame `G` when one image was taken:
 /// `(R_CtoG, p_CinG)`.
 ///

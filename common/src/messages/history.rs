@@ -97,10 +97,7 @@ impl HistoryWindow {
     /// The window's end time: its newest clone's time (the snapshot's time
     /// without clones).
     pub fn end_s(&self) -> f64 {
-        self.snapshot
-            .clones
-            .last()
-            .map_or(self.snapshot.t_s, |c| c.t_s)
+        self.snapshot.end_s()
     }
 }
 
