@@ -68,6 +68,8 @@ pub struct TransportReport<'a> {
     pub own_archive_windows: usize,
     /// Messages dropped by the injected outage (`faults.outage_fleet_s`).
     pub outage_dropped: u64,
+    /// Messages dropped by the injected loss (`faults.loss_fraction`).
+    pub loss_dropped: u64,
 }
 
 fn percentile(sorted: &[f64], q: f64) -> f64 {
@@ -161,6 +163,7 @@ pub fn write_outputs(
         own_archive_bytes: report.own_archive_bytes,
         own_archive_windows: report.own_archive_windows,
         outage_dropped: report.outage_dropped,
+        loss_dropped: report.loss_dropped,
     };
     let json = serde_json::to_string_pretty(&transport_report).map_err(std::io::Error::other)?;
     std::fs::write(dir.join("transport_stats.json"), json)?;

@@ -90,17 +90,91 @@ pub struct FaultsConfig {
     /// (the fleet clock needs them; without them the peers would be released
     /// as silent), so the outage takes all the data and none of the clock.
     pub outage_fleet_s: Option<[f64; 2]>,
+    /// A lossy link: the fraction in `[0, 1]` of the peers' messages dropped on
+    /// arrival, each receiver losing its own (as on a radio link). In lockstep
+    /// runs the heartbeats pass, as in an outage.
+    pub loss_fraction: f64,
+    /// Seed of the loss draws, mixed with the run's seed. A draw depends only
+    /// on the seeds, the receiver, the sender, the message kind and its
+    /// sequence number, so the same run loses the same messages whatever order
+    /// they arrive in.
+    pub loss_seed: u64,
+}
+
+/// Why an injected fault took a message.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FaultDrop {
+    /// Sent inside `faults.outage_fleet_s`.
+    Outage,
+    /// Drawn by `faults.loss_fraction`.
+    Loss,
 }
 
 impl FaultsConfig {
-    /// Whether a message of `kind` stamped `stamp_s` is lost to the outage.
-    pub fn drops(&self, kind: common::messages::MessageKind, stamp_s: f64, lockstep: bool) -> bool {
-        let Some([from, to]) = self.outage_fleet_s else {
-            return false;
-        };
-        let clock = kind == common::messages::MessageKind::Heartbeat && lockstep;
-        !clock && stamp_s >= from && stamp_s < to
+    /// These faults in the run of `run_seed`: the loss draws differ from run
+    /// to run.
+    pub fn for_run(&self, run_seed: u64) -> FaultsConfig {
+        FaultsConfig {
+            loss_seed: splitmix64(self.loss_seed) ^ run_seed,
+            ..self.clone()
+        }
     }
+
+    /// Whether the injected faults take the message of `kind` that robot
+    /// `sender` stamped `stamp_s` with sequence number `seq`, on its way to robot
+    /// `receiver`.
+    pub fn drops(
+        &self,
+        message: FaultedMessage,
+        receiver: u32,
+        lockstep: bool,
+    ) -> Option<FaultDrop> {
+        let clock = message.kind == common::messages::MessageKind::Heartbeat && lockstep;
+        if clock {
+            return None;
+        }
+        if let Some([from, to]) = self.outage_fleet_s {
+            if message.stamp_s >= from && message.stamp_s < to {
+                return Some(FaultDrop::Outage);
+            }
+        }
+        if self.loss_fraction > 0.0 {
+            let kind = common::messages::MessageKind::ALL
+                .iter()
+                .position(|k| *k == message.kind)
+                .unwrap_or(0) as u64;
+            let draw = [receiver as u64, message.sender as u64, kind, message.seq]
+                .into_iter()
+                .fold(splitmix64(self.loss_seed), |h, v| splitmix64(h ^ v));
+            // The top 53 bits as a uniform number in [0, 1).
+            let u = (draw >> 11) as f64 / (1u64 << 53) as f64;
+            if u < self.loss_fraction {
+                return Some(FaultDrop::Loss);
+            }
+        }
+        None
+    }
+}
+
+/// What [`FaultsConfig::drops`] needs to know of a message.
+#[derive(Clone, Copy, Debug)]
+pub struct FaultedMessage {
+    /// Its kind.
+    pub kind: common::messages::MessageKind,
+    /// The sending robot.
+    pub sender: u32,
+    /// The sender's sequence number of this kind.
+    pub seq: u64,
+    /// The send time on the fleet clock, s.
+    pub stamp_s: f64,
+}
+
+/// One step of the SplitMix64 generator: a well-mixed 64-bit hash of `x`.
+fn splitmix64(x: u64) -> u64 {
+    let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
 }
 
 /// What an agent does with camera images.
@@ -616,6 +690,12 @@ impl AgentConfig {
                 return Err(format!("{name} must be a finite number >= 0 (got {v})"));
             }
         }
+        let loss = self.faults.loss_fraction;
+        if !(0.0..=1.0).contains(&loss) {
+            return Err(format!(
+                "faults.loss_fraction must be a fraction in [0, 1] (got {loss})"
+            ));
+        }
         if let Some([from, to]) = self.faults.outage_fleet_s {
             if !(from.is_finite() && to.is_finite() && from < to) {
                 return Err(format!(
@@ -666,6 +746,53 @@ mod tests {
 
     const MINIMAL: &str =
         "robot_id: 1\noutput_dir: out\ninput:\n  source: simulator\n  scenario: s.yaml\n";
+
+    #[test]
+    fn injected_loss_takes_its_fraction_the_same_messages_every_time_and_spares_the_clock() {
+        use common::messages::MessageKind;
+        let faults = FaultsConfig {
+            loss_fraction: 0.2,
+            ..FaultsConfig::default()
+        }
+        .for_run(7);
+        let msg = |sender, seq| FaultedMessage {
+            kind: MessageKind::Snapshot,
+            sender,
+            seq,
+            stamp_s: seq as f64,
+        };
+        let lost = |f: &FaultsConfig, receiver| {
+            (0..20_000)
+                .filter(|&seq| f.drops(msg(2, seq), receiver, true).is_some())
+                .collect::<Vec<u64>>()
+        };
+        let at_1 = lost(&faults, 1);
+        // 20 % of 20 000, within 4 binomial sigmas (57).
+        assert!((at_1.len() as f64 - 4000.0).abs() < 230.0, "{}", at_1.len());
+        assert_eq!(at_1, lost(&faults, 1), "the same draws");
+        // Each receiver and each run loses its own.
+        assert_ne!(at_1, lost(&faults, 3));
+        let other_run = FaultsConfig {
+            loss_fraction: 0.2,
+            ..FaultsConfig::default()
+        }
+        .for_run(8);
+        assert_ne!(at_1, lost(&other_run, 1));
+        // Heartbeats are the lockstep clock: they pass there, not in real time.
+        let hb = FaultedMessage {
+            kind: MessageKind::Heartbeat,
+            ..msg(2, 0)
+        };
+        let all = FaultsConfig {
+            loss_fraction: 1.0,
+            outage_fleet_s: Some([0.0, 10.0]),
+            ..FaultsConfig::default()
+        };
+        assert_eq!(all.drops(hb, 1, true), None);
+        assert_eq!(all.drops(hb, 1, false), Some(FaultDrop::Outage));
+        assert_eq!(all.drops(msg(2, 20), 1, true), Some(FaultDrop::Loss));
+        assert_eq!(FaultsConfig::default().drops(msg(2, 1), 1, false), None);
+    }
 
     #[test]
     fn minimal_config_takes_defaults_and_resolves_paths() {
@@ -725,6 +852,11 @@ mod tests {
         std::fs::write(&p, format!("{MINIMAL}history:\n  retention: newest\n")).unwrap();
         let e = AgentConfig::load(&p).unwrap_err().to_string();
         assert!(e.contains("newest") && e.contains("informed"), "{e}");
+        for loss in ["1.5", "-0.1", ".nan"] {
+            std::fs::write(&p, format!("{MINIMAL}faults:\n  loss_fraction: {loss}\n")).unwrap();
+            let e = AgentConfig::load(&p).unwrap_err().to_string();
+            assert!(e.contains("loss_fraction"), "{loss}: {e}");
+        }
     }
 
     #[test]

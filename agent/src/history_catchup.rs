@@ -16,10 +16,10 @@
 //!   answers requests from it, oldest window first, at a bounded rate of fleet
 //!   time so a catch-up never crowds out the live messages.
 
-use crate::peer_history::{HistoryLimits, KeyframeWindow, PeerHistory, Replayed};
+use crate::peer_history::{time_key, HistoryLimits, KeyframeWindow, PeerHistory, Replayed};
 use common::messages::{
-    Body, Envelope, HistoryReplay, HistoryRequest, MessageKind, RequestRef, TimeRange,
-    MAX_REPLAY_ROBOTS, MAX_REQUEST_RANGES,
+    AnsweredWindow, Body, Envelope, HistoryReplay, HistoryRequest, MessageKind, RequestRef,
+    TimeRange, MAX_ANSWERED_WINDOWS, MAX_REPLAY_ROBOTS, MAX_REQUEST_RANGES,
 };
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet};
@@ -30,6 +30,19 @@ const GAP_SLACK_S: f64 = 1.0;
 
 /// A peer's window span assumed before its first snapshot, s.
 const DEFAULT_WINDOW_SPAN_S: f64 = 2.0;
+
+/// Half-width of the range that asks again for one window, s: far below the
+/// spacing of keyframes (a camera period at least).
+const ONE_WINDOW_S: f64 = 1e-3;
+
+/// Times one window of a peer is asked for again after an answer that
+/// should have held it: a window our own memory bound drops must not be
+/// fetched forever. At a loss of one message in five, 5 leave 1 window in
+/// 15 000 missing.
+const MAX_ASKS_PER_WINDOW: u8 = 5;
+
+/// Windows per peer whose asks are counted; beyond, none is asked again.
+const MAX_COUNTED_WINDOWS: usize = 1 << 16;
 
 /// Catch-up counters of one agent.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
@@ -54,6 +67,9 @@ pub struct CatchUpStats {
     pub windows_stored: u64,
     /// Of those, held windows replaced by a more complete copy.
     pub windows_completed: u64,
+    /// Windows asked for again: an answer listed them, and their replay was
+    /// lost (or left a less complete copy than the answerer's).
+    pub windows_reasked: u64,
     /// Requests from peers answered by this agent.
     pub requests_answered: u64,
     /// Windows this agent sent again.
@@ -87,6 +103,8 @@ struct PeerStream {
     window_span_s: Option<f64>,
     /// The newest window end its last heartbeat claimed, s.
     claimed_end_s: Option<f64>,
+    /// Times each window (by [`time_key`] of its end) was asked for again.
+    asks: BTreeMap<u64, u8>,
 }
 
 impl PeerStream {
@@ -252,8 +270,13 @@ impl CatchUp {
     }
 
     /// The requests due at fleet time `now_s`, one per peer at most; open
-    /// requests without a replay for the timeout are given up.
-    pub fn requests(&mut self, now_s: f64) -> Vec<HistoryRequest> {
+    /// requests without a replay for the timeout are sent again. Windows
+    /// `histories` already holds whole are cut out of the ranges asked for.
+    pub fn requests(
+        &mut self,
+        now_s: f64,
+        histories: &BTreeMap<u32, PeerHistory>,
+    ) -> Vec<HistoryRequest> {
         let mut out = Vec::new();
         for (&peer, p) in &mut self.peers {
             let fresh = p.open.is_empty();
@@ -281,8 +304,19 @@ impl CatchUp {
             for r in std::mem::take(&mut p.open).into_values() {
                 ranges.extend(r.ranges);
             }
-            let mut ranges = merge(ranges);
-            ranges.truncate(MAX_REQUEST_RANGES);
+            let mut ranges: Vec<TimeRange> = merge(ranges)
+                .into_iter()
+                .flat_map(|r| without_whole(r, histories.get(&peer)))
+                .collect();
+            if ranges.is_empty() {
+                // Everything asked for has arrived whole since.
+                continue;
+            }
+            // What does not fit is asked for later (at once, it would take
+            // over this request at the next tick, and so on).
+            let rest = ranges.split_off(ranges.len().min(MAX_REQUEST_RANGES));
+            let later = now_s + self.retry_s;
+            p.wanted.extend(rest.into_iter().map(|r| (r, later)));
             let request_id = self.next_id;
             self.next_id += 1;
             if fresh {
@@ -341,8 +375,35 @@ impl CatchUp {
             }
         }
         for c in replay.completes.iter().filter(|c| c.robot == self.me) {
-            if p.open.remove(&c.request_id).is_some() {
-                self.stats.requests_completed += 1;
+            let Some(request) = p.open.remove(&c.request_id) else {
+                continue;
+            };
+            self.stats.requests_completed += 1;
+            // The answer's windows we lack, or hold less of than the peer:
+            // their replays were lost. Ask for each again.
+            for a in &replay.answered {
+                if !request.ranges.iter().any(|r| r.contains(a.end_s)) {
+                    continue;
+                }
+                let key = time_key(a.end_s);
+                let short = history.keyframes.get(&key).is_none_or(|held| {
+                    let (frames, descriptors) = held.completeness();
+                    frames < a.frames as usize || (a.descriptors && !descriptors)
+                });
+                if !short || (!p.asks.contains_key(&key) && p.asks.len() >= MAX_COUNTED_WINDOWS) {
+                    continue;
+                }
+                let asks = p.asks.entry(key).or_insert(0);
+                if *asks >= MAX_ASKS_PER_WINDOW {
+                    continue;
+                }
+                *asks += 1;
+                self.stats.windows_reasked += 1;
+                let range = TimeRange {
+                    after_s: Some(a.end_s - ONE_WINDOW_S),
+                    up_to_s: Some(a.end_s),
+                };
+                p.want(range, f64::NEG_INFINITY);
             }
         }
         outcome
@@ -352,6 +413,51 @@ impl CatchUp {
     pub fn open_requests(&self, peer: u32) -> usize {
         self.peers.get(&peer).map_or(0, |p| p.open.len())
     }
+}
+
+/// `range` with the windows `history` holds whole cut out (a snapshot, a
+/// frame of measurements at every clone, and descriptors): what is left to
+/// ask for is the windows missing or short of something, so a lost track
+/// frame brings back its own window, not every window near the gap.
+fn without_whole(range: TimeRange, history: Option<&PeerHistory>) -> Vec<TimeRange> {
+    let Some(h) = history else {
+        return vec![range];
+    };
+    let whole = h
+        .keyframes
+        .values()
+        .filter(|kf| range.contains(kf.end_s()))
+        .filter(|kf| {
+            let (frames, descriptors) = kf.completeness();
+            descriptors && frames >= kf.snapshot.clones.len()
+        })
+        .map(KeyframeWindow::end_s);
+    let mut out = Vec::new();
+    let mut after = range.after_s;
+    for end in whole {
+        // (after, end - ONE_WINDOW_S]: empty when two whole windows follow
+        // each other.
+        let piece = TimeRange {
+            after_s: after,
+            up_to_s: Some(end - ONE_WINDOW_S),
+        };
+        if after.is_none_or(|a| a < end - ONE_WINDOW_S) {
+            out.push(piece);
+        }
+        after = Some(end);
+    }
+    if after.is_none_or(|a| range.up_to_s.is_none_or(|b| a < b)) {
+        out.push(TimeRange {
+            after_s: after,
+            up_to_s: range.up_to_s,
+        });
+    }
+    // Many whole windows scattered in a long range: asking for all of it
+    // costs bytes, and a request of too many pieces would not fit.
+    if out.len() > MAX_REQUEST_RANGES / 4 {
+        return vec![range];
+    }
+    out
 }
 
 /// Sorts ranges and merges those that overlap or touch.
@@ -389,6 +495,9 @@ pub struct Replayer {
     queue: BTreeMap<u64, Queued>,
     /// Requests that found nothing, to complete with the next message.
     found_nothing: Vec<RequestRef>,
+    /// The windows (archive keys) each queued request is answered with, for
+    /// the list of its completing message.
+    answers: BTreeMap<RequestRef, Vec<u64>>,
     /// Replay bytes per second of fleet time.
     bytes_per_s: f64,
     /// Bytes that may still be sent now (a token bucket of one second).
@@ -409,6 +518,7 @@ impl Replayer {
             limits,
             queue: BTreeMap::new(),
             found_nothing: Vec::new(),
+            answers: BTreeMap::new(),
             bytes_per_s,
             budget: bytes_per_s,
             last_refill_s: None,
@@ -459,13 +569,40 @@ impl Replayer {
             self.found_nothing.push(id);
             return;
         };
-        for k in keys {
+        for &k in &keys {
             let q = self.queue.entry(k).or_default();
             if q.for_robots.len() < MAX_REPLAY_ROBOTS {
                 q.for_robots.insert(from);
             }
         }
         self.queue.entry(last).or_default().completes.push(id);
+        // A requester's new request takes over its older ones (it asks
+        // again for what they did not bring), so only its newest answer's
+        // list is kept: the lists stay bounded by the peers times the archive.
+        self.answers.retain(|r, _| r.robot != from);
+        self.answers.insert(id, keys);
+    }
+
+    /// The windows of the answers to `completes`, as the archive holds them
+    /// now, oldest first (the answers' lists are dropped).
+    fn answered(&mut self, completes: &[RequestRef]) -> Vec<AnsweredWindow> {
+        let keys: BTreeSet<u64> = completes
+            .iter()
+            .filter_map(|c| self.answers.remove(c))
+            .flatten()
+            .collect();
+        keys.into_iter()
+            .filter_map(|k| self.archive.keyframes.get(&k))
+            .take(MAX_ANSWERED_WINDOWS)
+            .map(|kf| {
+                let (frames, descriptors) = kf.completeness();
+                AnsweredWindow {
+                    end_s: kf.end_s(),
+                    frames: frames as u32,
+                    descriptors,
+                }
+            })
+            .collect()
     }
 
     /// Adds the budget of the fleet time elapsed up to `now_s` (at most one
@@ -495,19 +632,24 @@ impl Replayer {
                 self.found_nothing = completes;
                 continue;
             }
+            let answered = self.answered(&completes);
             return Some(HistoryReplay {
                 for_robots: q.for_robots.into_iter().collect(),
                 window,
                 completes,
+                answered,
             });
         }
         if self.found_nothing.is_empty() {
             return None;
         }
+        let completes = std::mem::take(&mut self.found_nothing);
+        let answered = self.answered(&completes);
         Some(HistoryReplay {
             for_robots: Vec::new(),
             window: None,
-            completes: std::mem::take(&mut self.found_nothing),
+            completes,
+            answered,
         })
     }
 
@@ -593,6 +735,7 @@ mod tests {
                 robot: ME,
                 request_id: req.request_id,
             }],
+            answered: Vec::new(),
         }
     }
 
@@ -611,11 +754,11 @@ mod tests {
                 c.delivered(&e, &PeerHistory::default());
             }
         }
-        let reqs = c.requests(t(3));
+        let reqs = c.requests(t(3), &BTreeMap::new());
         assert_eq!(reqs.len(), 1);
         assert_eq!(reqs[0].to_robot, PEER);
         assert_eq!(reqs[0].ranges, [TimeRange::ALL]);
-        assert!(c.requests(t(4)).is_empty());
+        assert!(c.requests(t(4), &BTreeMap::new()).is_empty());
         assert_eq!(c.open_requests(PEER), 1);
     }
 
@@ -635,7 +778,7 @@ mod tests {
         });
         // The first request (everything) goes at once, and is answered.
         c.delivered(&all[0], &PeerHistory::default());
-        let first = c.requests(t(0));
+        let first = c.requests(t(0), &BTreeMap::new());
         assert_eq!(first.len(), 1);
         assert_eq!(first[0].ranges, [TimeRange::ALL]);
         c.accept(
@@ -652,8 +795,8 @@ mod tests {
         // The gap's waits until the windows that may hold a lost frame are
         // made: one window span (1 s) after the first snapshot past the gap
         // (frame 90).
-        assert!(c.requests(t(99)).is_empty());
-        let gap = c.requests(t(101));
+        assert!(c.requests(t(99), &BTreeMap::new()).is_empty());
+        let gap = c.requests(t(101), &BTreeMap::new());
         assert_eq!(gap.len(), 1, "{gap:?}");
         let [range] = gap[0].ranges[..] else {
             panic!("{gap:?}")
@@ -794,7 +937,7 @@ mod tests {
         assert_eq!(c.accept(PEER, unasked, 0.0, &mut ours, &limits()), None);
 
         let mut r = replayer(100, 1e9);
-        for req in c.requests(t(102)) {
+        for req in c.requests(t(102), &BTreeMap::new()) {
             r.request(ME, &req);
         }
         let mut outcomes = Vec::new();
@@ -814,7 +957,7 @@ mod tests {
         for e in &kept {
             other.delivered(e, &PeerHistory::default());
         }
-        let reqs = other.requests(t(102));
+        let reqs = other.requests(t(102), &BTreeMap::new());
         r.request(3, &reqs[0]);
         let mut fresh = PeerHistory::default();
         while let Some(x) = r.next_replay() {
@@ -824,15 +967,92 @@ mod tests {
     }
 
     #[test]
+    fn windows_whose_replays_were_lost_are_asked_for_again_from_the_answers_list() {
+        let live: Vec<Envelope> = (0..=100).flat_map(published).collect();
+        let mut whole = PeerHistory::default();
+        feed(&mut whole, &live);
+        // We heard the peer's first frames only (no window yet): everything
+        // is asked for.
+        let (mut c, mut ours) = heard(2);
+        let mut r = replayer(100, 1e9);
+        for req in c.requests(t(3), &BTreeMap::new()) {
+            r.request(ME, &req);
+        }
+        // Replays 1, 4 and 7 are lost on the way; the last one, which
+        // completes the request and lists the answer, arrives.
+        let mut lost = Vec::new();
+        let mut i = 0;
+        while let Some(x) = r.next_replay() {
+            i += 1;
+            if i % 3 == 1 && x.completes.is_empty() {
+                lost.extend(window_end(&x));
+                continue;
+            }
+            if !x.completes.is_empty() {
+                assert_eq!(x.answered.len(), 10);
+                assert!(x.answered.iter().all(|a| a.frames > 0 && a.descriptors));
+            }
+            c.accept(PEER, x, t(100), &mut ours, &limits());
+        }
+        assert_eq!(lost.len(), 3);
+        assert_eq!(ours.keyframes.len(), 7);
+        assert_eq!(c.stats.windows_reasked, 3);
+        assert_eq!(c.open_requests(PEER), 0);
+        // One request asks for exactly the lost windows, one range each.
+        let reqs = c.requests(t(101), &BTreeMap::new());
+        assert_eq!(reqs.len(), 1, "{reqs:?}");
+        assert_eq!(reqs[0].ranges.len(), 3);
+        for (range, end) in reqs[0].ranges.iter().zip(&lost) {
+            assert!(range.contains(*end), "{range:?} {end}");
+            assert_eq!(
+                whole
+                    .keyframes
+                    .values()
+                    .filter(|k| range.contains(k.end_s()))
+                    .count(),
+                1
+            );
+        }
+        for req in &reqs {
+            r.request(ME, req);
+        }
+        while let Some(x) = r.next_replay() {
+            c.accept(PEER, x, t(102), &mut ours, &limits());
+        }
+        assert_eq!(ours.keyframes, whole.keyframes);
+        // Nothing is missing now: the second answer asks for nothing more.
+        assert_eq!(c.stats.windows_reasked, 3);
+        assert!(c.requests(t(103), &BTreeMap::new()).is_empty());
+
+        // A window our own bound keeps dropping is asked for a few times,
+        // not forever.
+        let (mut c, mut tiny) = heard(2);
+        let small = HistoryLimits {
+            max_bytes: 1,
+            ..limits()
+        };
+        for round in 0..10 {
+            for req in c.requests(t(103 + round), &BTreeMap::new()) {
+                r.request(ME, &req);
+            }
+            while let Some(x) = r.next_replay() {
+                c.accept(PEER, x, t(103 + round), &mut tiny, &small);
+            }
+        }
+        assert!(c.stats.windows_reasked <= 10 * u64::from(MAX_ASKS_PER_WINDOW));
+        assert!(c.requests(t(200), &BTreeMap::new()).is_empty());
+    }
+
+    #[test]
     fn unanswered_requests_are_sent_again_until_the_peer_vanishes() {
         let (mut c, h) = heard(40);
-        let first = c.requests(100.0);
+        let first = c.requests(100.0, &BTreeMap::new());
         assert_eq!(first.len(), 1);
         // No reply: asked again every 5 s, with the same ranges.
         let mut asked_at = Vec::new();
         for k in 1..=20 {
             let now = 100.0 + f64::from(k);
-            for r in c.requests(now) {
+            for r in c.requests(now, &BTreeMap::new()) {
                 assert_eq!(r.ranges, first[0].ranges);
                 asked_at.push(now);
             }
@@ -845,9 +1065,9 @@ mod tests {
         c.vanished(PEER);
         assert_eq!(c.open_requests(PEER), 0);
         assert_eq!(c.stats.requests_dropped, 1);
-        assert!(c.requests(240.0).is_empty());
+        assert!(c.requests(240.0, &BTreeMap::new()).is_empty());
         c.reappeared(PEER, Some(&h));
-        let back = c.requests(250.0);
+        let back = c.requests(250.0, &BTreeMap::new());
         assert_eq!(
             back[0].ranges,
             [TimeRange {
@@ -872,15 +1092,15 @@ mod tests {
     fn windows_a_heartbeat_claims_and_we_still_lack_a_heartbeat_later_are_asked_for() {
         let (mut c, mut h) = heard(15);
         // Everything, at first sight: answered with what the peer had then.
-        let first = c.requests(t(16));
+        let first = c.requests(t(16), &BTreeMap::new());
         c.accept(PEER, done(&first[0]), t(16), &mut h, &limits());
         assert_eq!(c.open_requests(PEER), 0);
         // Claims we meet ask for nothing, nor does a claim on its way.
         c.delivered(&heartbeat(1, Some(t(10))), &h);
         c.delivered(&heartbeat(2, Some(t(40))), &h);
-        assert!(c.requests(t(41)).is_empty());
+        assert!(c.requests(t(41), &BTreeMap::new()).is_empty());
         c.delivered(&heartbeat(3, Some(t(40))), &h);
-        let reqs = c.requests(t(42));
+        let reqs = c.requests(t(42), &BTreeMap::new());
         assert_eq!(
             reqs[0].ranges,
             [TimeRange {
@@ -891,7 +1111,48 @@ mod tests {
         assert_eq!(c.stats.windows_missing, 1);
         // Asked once, not at every heartbeat while the replay is on its way.
         c.delivered(&heartbeat(4, Some(t(40))), &h);
-        assert!(c.requests(t(43)).is_empty());
+        assert!(c.requests(t(43), &BTreeMap::new()).is_empty());
+    }
+
+    #[test]
+    fn a_lost_track_frame_brings_back_its_own_window_only() {
+        let live: Vec<Envelope> = (0..=100).flat_map(published).collect();
+        let mut whole = PeerHistory::default();
+        feed(&mut whole, &live);
+        // Track frame 55 is lost: window 60 (clones of frames 50-60) is short
+        // of it; the gap's range also spans the whole windows 50 and 70.
+        let kept: Vec<Envelope> = live
+            .iter()
+            .filter(|e| !matches!(&e.body, Body::Tracks(x) if x.frame_index == 55))
+            .cloned()
+            .collect();
+        let mut ours = PeerHistory::default();
+        feed(&mut ours, &kept);
+        let mut c = CatchUp::new(ME, 5.0);
+        for e in &kept {
+            c.delivered(e, &ours);
+        }
+        let mut histories = BTreeMap::new();
+        histories.insert(PEER, ours);
+        let mut r = replayer(100, 1e9);
+        // The first request (everything, the peer being new) is answered.
+        for req in c.requests(t(40), &BTreeMap::new()) {
+            r.request(ME, &req);
+        }
+        while r.next_replay().is_some() {}
+        // The gap's request, once its windows exist, asks for window 60 only.
+        let reqs = c.requests(t(101), &histories);
+        assert_eq!(reqs.len(), 1, "{reqs:?}");
+        let mut windows = Vec::new();
+        r.request(ME, &reqs[0]);
+        let ours = histories.get_mut(&PEER).unwrap();
+        while let Some(x) = r.next_replay() {
+            windows.extend(window_end(&x));
+            c.accept(PEER, x, t(101), ours, &limits());
+        }
+        assert_eq!(windows, [t(60)]);
+        assert_eq!(ours.keyframes, whole.keyframes);
+        assert_eq!(c.stats.windows_completed, 1);
     }
 
     #[test]

@@ -12,7 +12,7 @@
 //! still run, so nothing they send is lost.
 
 use crate::agent_log_views::PeerPose;
-use crate::config::{AgentConfig, ClockMode, FaultsConfig, InputSource};
+use crate::config::{AgentConfig, ClockMode, FaultDrop, FaultedMessage, FaultsConfig, InputSource};
 use crate::estimator::{Estimator, FrameOutput};
 use crate::fleet_clock::{Lockstep, Pacer, TickGrid};
 use crate::history_catchup::{CatchUp, CatchUpStats, Replayer};
@@ -122,6 +122,9 @@ pub struct NodeReport {
     /// They are dropped after decoding, so `net` counts them as received
     /// (its sequence numbers then show no gap for them).
     pub outage_dropped: u64,
+    /// Messages dropped by the injected loss (`faults.loss_fraction`), counted
+    /// as `outage_dropped` is.
+    pub loss_dropped: u64,
 }
 
 /// The robot this agent is: its simulated (or recorded) sensors and its
@@ -238,6 +241,8 @@ struct Node {
     /// History catch-up, asking and answering (`None`: switched off).
     catch_up: Option<(CatchUp, Replayer)>,
     faults: FaultsConfig,
+    /// This agent's robot id (the receiver in the fault draws).
+    robot_id: u32,
     lockstep_mode: bool,
     /// Newest send time of any peer message accepted, s: the fleet clock as
     /// the peers see it, which goes on after our own data end.
@@ -308,7 +313,7 @@ impl Node {
         let Some((asking, replayer)) = self.catch_up.as_mut() else {
             return;
         };
-        let requests = asking.requests(now_s);
+        let requests = asking.requests(now_s, &self.report.histories);
         replayer.refill(now_s);
         for r in requests {
             let env = self.outbox.catch_up(now_s, Body::HistoryRequest(r));
@@ -393,12 +398,25 @@ impl Node {
             }
             return true;
         };
-        if self
+        let faulted = FaultedMessage {
+            kind: env.kind(),
+            sender: env.robot_id,
+            seq: env.seq,
+            stamp_s: env.stamp_s,
+        };
+        match self
             .faults
-            .drops(env.kind(), env.stamp_s, self.lockstep_mode)
+            .drops(faulted, self.robot_id, self.lockstep_mode)
         {
-            self.report.outage_dropped += 1;
-            return true;
+            Some(FaultDrop::Outage) => {
+                self.report.outage_dropped += 1;
+                return true;
+            }
+            Some(FaultDrop::Loss) => {
+                self.report.loss_dropped += 1;
+                return true;
+            }
+            None => {}
         }
         self.peer_clock_s = self.peer_clock_s.max(env.stamp_s);
         let peer = env.robot_id;
@@ -633,7 +651,8 @@ pub fn run_node(
         log,
         peer_poses: BTreeMap::new(),
         catch_up: None,
-        faults: cfg.faults.clone(),
+        faults: cfg.faults.for_run(fleet.seed),
+        robot_id: cfg.robot_id,
         lockstep_mode: cfg.clock.mode == ClockMode::Lockstep,
         peer_clock_s: f64::NEG_INFINITY,
     };

@@ -118,6 +118,20 @@ pub struct HistoryArgs {
     /// so the fleet clock runs on.
     #[arg(long, value_name = "FROM:TO", value_parser = parse_outage)]
     pub link_outage: Option<[f64; 2]>,
+    /// A lossy link: the fraction in [0, 1] of the peers' messages each agent
+    /// loses on arrival, drawn from the run's seed (in lockstep runs the
+    /// heartbeats pass, so the fleet clock runs on).
+    #[arg(long, value_name = "FRACTION", value_parser = parse_fraction)]
+    pub link_loss: Option<f64>,
+}
+
+/// A number in `[0, 1]`.
+fn parse_fraction(s: &str) -> std::result::Result<f64, String> {
+    let v: f64 = s.trim().parse().map_err(|e| format!("`{s}`: {e}"))?;
+    if !(0.0..=1.0).contains(&v) {
+        return Err(format!("`{s}`: expected a fraction in [0, 1]"));
+    }
+    Ok(v)
 }
 
 /// `FROM:TO` in seconds, `FROM < TO`.
@@ -148,10 +162,13 @@ impl HistoryArgs {
         }
     }
 
-    /// The faults these flags inject.
+    /// The faults these flags inject (the agents mix the run's seed into the
+    /// loss draws, so each Monte-Carlo run loses different messages).
     pub fn faults(&self) -> FaultsConfig {
         FaultsConfig {
             outage_fleet_s: self.link_outage,
+            loss_fraction: self.link_loss.unwrap_or(0.0),
+            loss_seed: 0,
         }
     }
 }

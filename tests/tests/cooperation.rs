@@ -159,3 +159,52 @@ fn after_a_link_outage_agents_catch_up_on_their_peers_histories_over_zenoh() {
     );
     assert_eq!(stats(&off, 2)["catch_up"], Value::Null);
 }
+
+/// On a link that loses 30 % of the messages (each agent its own draws; the
+/// lockstep heartbeats pass), nearly every keyframe window arrives short of a
+/// frame, its descriptors or its snapshot. Catch-up asks again for the gaps,
+/// and for the windows an answer listed but whose replays were lost too, so
+/// every agent ends holding every window of the robots that finished before
+/// the fleet did; of the last robot, all but those of its last seconds, which
+/// the fleet's end leaves no time to ask for.
+#[test]
+fn on_a_lossy_link_agents_still_end_with_their_peers_whole_histories_over_zenoh() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path());
+    let out = dir.path().join("lossy");
+    let summary = sim_fleet_run(
+        &sc,
+        &out,
+        &[
+            "--transport",
+            "zenoh",
+            "--variant",
+            "dc-full-history",
+            "--seed",
+            "2",
+            "--link-loss",
+            "0.3",
+        ],
+    );
+    assert_cooperates(&summary);
+    let mut reasked = 0;
+    for r in 0..3 {
+        let s = stats(&out, r);
+        assert!(s["loss_dropped"].as_u64().unwrap_or(0) > 100, "{s}");
+        let c = &s["catch_up"];
+        assert!(c["windows_completed"].as_u64().unwrap_or(0) > 5, "{c}");
+        reasked += c["windows_reasked"].as_u64().unwrap_or(0);
+        for p in (0..3).filter(|p| *p != r) {
+            let whole = stats(&out, p)["own_archive_windows"].as_u64().unwrap_or(0);
+            assert!(whole > 15, "robot {p} made {whole} windows");
+            let held = held(&out, r, p);
+            // Robot 2 flies last (30-54 s).
+            let last_seconds = if p == 2 { 6 } else { 0 };
+            assert!(
+                held <= whole && held + last_seconds >= whole,
+                "robot {r} holds {held} of robot {p}'s {whole} windows"
+            );
+        }
+    }
+    assert!(reasked > 0, "no lost replay was asked for again");
+}

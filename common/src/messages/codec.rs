@@ -18,7 +18,9 @@ pub const MAGIC: [u8; 4] = *b"FVIO";
 /// end with the sender's camera intrinsics (version 1 peers would misread it).
 /// Version 3: heartbeats carry the newest keyframe window's end time, and the
 /// history catch-up messages exist (version 2 peers would misread heartbeats).
-pub const WIRE_VERSION: u16 = 3;
+/// Version 4: a history answer lists the windows it was made of, so a
+/// requester can tell which replays it lost.
+pub const WIRE_VERSION: u16 = 4;
 
 /// The wire versions this build reads.
 pub const SUPPORTED_VERSIONS: &[u16] = &[WIRE_VERSION];

@@ -113,6 +113,23 @@ pub struct HistoryReplay {
     /// Requests fully answered once this message is in.
     #[serde(deserialize_with = "bounded_vec::deserialize")]
     pub completes: Vec<RequestRef>,
+    /// Every window the requests in `completes` were answered with, as the
+    /// answerer holds it, oldest first: a requester that lacks one of them,
+    /// or holds a less complete copy, lost its replay and asks for it again.
+    #[serde(deserialize_with = "bounded_vec::deserialize")]
+    pub answered: Vec<AnsweredWindow>,
+}
+
+/// A window of an answer, named by its end time, with how complete the
+/// answerer's copy is.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AnsweredWindow {
+    /// The window's end time, s.
+    pub end_s: f64,
+    /// Frames with measurements in it.
+    pub frames: u32,
+    /// Whether it carries the keyframe's descriptors.
+    pub descriptors: bool,
 }
 
 #[cfg(test)]
@@ -180,6 +197,13 @@ mod tests {
         assert!(matches!(
             env.validate(&limits),
             Err(ValidationError::ReplayFrameTime { index: 1, .. })
+        ));
+
+        let mut env = samples::history_replay(300, 10);
+        replay(&mut env).answered[5].end_s = f64::NAN;
+        assert!(matches!(
+            env.validate(&limits),
+            Err(ValidationError::NonFinite { field, .. }) if field == "history.answered[5].end_s"
         ));
 
         let mut env = samples::history_replay(300, 10);

@@ -61,13 +61,13 @@ pub use codec::{
 };
 pub use envelope::Envelope;
 pub use history::{
-    HistoryReplay, HistoryRequest, HistoryWindow, RequestRef, TimeRange, WindowFrame,
-    WindowObservation,
+    AnsweredWindow, HistoryReplay, HistoryRequest, HistoryWindow, RequestRef, TimeRange,
+    WindowFrame, WindowObservation,
 };
 pub use packed_cov::PackedCovariance;
 pub use validate::{
-    Limits, ValidationError, FLEET_ID_FORBIDDEN_CHARS, INTRINSICS_DIM, MAX_FLEET_ID_BYTES,
-    MAX_REPLAY_ROBOTS, MAX_REQUEST_RANGES, QUATERNION_NORM_TOLERANCE,
+    Limits, ValidationError, FLEET_ID_FORBIDDEN_CHARS, INTRINSICS_DIM, MAX_ANSWERED_WINDOWS,
+    MAX_FLEET_ID_BYTES, MAX_REPLAY_ROBOTS, MAX_REQUEST_RANGES, QUATERNION_NORM_TOLERANCE,
 };
 
 use serde::{Deserialize, Serialize};

@@ -11,9 +11,10 @@
 use nalgebra::{DMatrix, Matrix3, Vector2, Vector3};
 
 use super::{
-    AgentState, Body, CameraModelWire, CameraPose, DescriptorBatch, DescriptorEntry, Envelope,
-    Heartbeat, HistoryReplay, HistoryRequest, HistoryWindow, Landmark, PackedCovariance,
-    RequestRef, StateSnapshot, TimeRange, TrackFrame, TrackPoint, WindowFrame, WindowObservation,
+    AgentState, AnsweredWindow, Body, CameraModelWire, CameraPose, DescriptorBatch,
+    DescriptorEntry, Envelope, Heartbeat, HistoryReplay, HistoryRequest, HistoryWindow, Landmark,
+    PackedCovariance, RequestRef, StateSnapshot, TimeRange, TrackFrame, TrackPoint, WindowFrame,
+    WindowObservation,
 };
 use crate::camera::CameraModel;
 use crate::descriptor::Descriptor;
@@ -238,6 +239,14 @@ pub fn history_replay(frame_index: u64, n: usize) -> Envelope {
                 robot: 2,
                 request_id: 3,
             }],
+            answered: (0..40)
+                .map(|i| AnsweredWindow {
+                    end_s: frame_time(frame_index) - 0.5 * f64::from(i),
+                    frames: 11,
+                    descriptors: true,
+                })
+                .rev()
+                .collect(),
         })),
     )
 }

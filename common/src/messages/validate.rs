@@ -184,6 +184,10 @@ pub const MAX_REQUEST_RANGES: usize = 64;
 /// Most robots a [`HistoryReplay`] names (as asking, or as answered).
 pub const MAX_REPLAY_ROBOTS: usize = 1024;
 
+/// Most windows a [`HistoryReplay`] lists as answered (an hour of keyframe
+/// windows at one per 0.25 s).
+pub const MAX_ANSWERED_WINDOWS: usize = 16_384;
+
 /// `Ok` if `value` is finite, else a [`ValidationError::NonFinite`] naming it
 /// (the name is only built on failure).
 fn finite(value: f64, field: impl FnOnce() -> String) -> Result<(), ValidationError> {
@@ -399,6 +403,10 @@ fn validate_history_request(r: &HistoryRequest) -> Result<(), ValidationError> {
 fn validate_history_replay(r: &HistoryReplay, limits: &Limits) -> Result<(), ValidationError> {
     count("history.for_robots", r.for_robots.len(), MAX_REPLAY_ROBOTS)?;
     count("history.completes", r.completes.len(), MAX_REPLAY_ROBOTS)?;
+    count("history.answered", r.answered.len(), MAX_ANSWERED_WINDOWS)?;
+    for (i, a) in r.answered.iter().enumerate() {
+        finite(a.end_s, || format!("history.answered[{i}].end_s"))?;
+    }
     match &r.window {
         Some(w) => validate_history_window(w, limits),
         None => Ok(()),
