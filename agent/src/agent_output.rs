@@ -70,6 +70,9 @@ pub struct TransportReport<'a> {
     pub outage_dropped: u64,
     /// Messages dropped by the injected loss (`faults.loss_fraction`).
     pub loss_dropped: u64,
+    /// The history store: windows read back at start, files written
+    /// (`None`: no `history.store_dir`).
+    pub history_store: Option<&'a crate::node::StoreStats>,
 }
 
 fn percentile(sorted: &[f64], q: f64) -> f64 {
@@ -164,6 +167,7 @@ pub fn write_outputs(
         own_archive_windows: report.own_archive_windows,
         outage_dropped: report.outage_dropped,
         loss_dropped: report.loss_dropped,
+        history_store: report.store.as_ref(),
     };
     let json = serde_json::to_string_pretty(&transport_report).map_err(std::io::Error::other)?;
     std::fs::write(dir.join("transport_stats.json"), json)?;

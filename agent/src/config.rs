@@ -570,6 +570,20 @@ pub struct HistoryConfig {
     /// vanishes).
     #[serde(default = "default_catch_up_retry_s")]
     pub catch_up_retry_s: f64,
+    /// Folder where the agent keeps its peers' keyframe windows, and its
+    /// archive of its own (with `catch_up`), across restarts: read back at
+    /// start, written as they grow (none: memory only). Relative to the
+    /// configuration file's folder. One folder per agent.
+    #[serde(default)]
+    pub store_dir: Option<PathBuf>,
+    /// Fleet seconds between writes of the histories that changed; they are
+    /// written once more at the end.
+    #[serde(default = "default_store_period_s")]
+    pub store_period_s: f64,
+}
+
+fn default_store_period_s() -> f64 {
+    10.0
 }
 
 fn default_replay_kib_per_s() -> f64 {
@@ -603,6 +617,8 @@ impl Default for HistoryConfig {
             catch_up: true,
             replay_kib_per_s: default_replay_kib_per_s(),
             catch_up_retry_s: default_catch_up_retry_s(),
+            store_dir: None,
+            store_period_s: default_store_period_s(),
         }
     }
 }
@@ -624,6 +640,7 @@ impl AgentConfig {
         cfg.input.scenario = base.join(&cfg.input.scenario);
         cfg.input.mcap = cfg.input.mcap.map(|m| base.join(m));
         cfg.output_dir = base.join(&cfg.output_dir);
+        cfg.history.store_dir = cfg.history.store_dir.map(|d| base.join(d));
         cfg.validate().map_err(|what| ConfigError::Invalid {
             path: path.to_path_buf(),
             what,
@@ -685,6 +702,7 @@ impl AgentConfig {
             ),
             ("history.replay_kib_per_s", self.history.replay_kib_per_s),
             ("history.catch_up_retry_s", self.history.catch_up_retry_s),
+            ("history.store_period_s", self.history.store_period_s),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} must be a finite number >= 0 (got {v})"));
@@ -870,5 +888,10 @@ mod tests {
         let c = AgentConfig::load(&p).unwrap();
         assert_eq!(c.history.retention, Retention::Informed);
         assert_eq!(c.history.max_mib_per_peer, 64.0);
+        assert_eq!(c.history.store_dir, None);
+        std::fs::write(&p, format!("{MINIMAL}history:\n  store_dir: kept\n")).unwrap();
+        let c = AgentConfig::load(&p).unwrap();
+        assert_eq!(c.history.store_dir, Some(dir.path().join("kept")));
+        assert_eq!(c.history.store_period_s, 10.0);
     }
 }

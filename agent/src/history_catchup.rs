@@ -105,6 +105,9 @@ struct PeerStream {
     claimed_end_s: Option<f64>,
     /// Times each window (by [`time_key`] of its end) was asked for again.
     asks: BTreeMap<u64, u8>,
+    /// Whether anything of the peer was delivered (a peer known only from
+    /// disk is not asked until it is heard).
+    heard: bool,
 }
 
 impl PeerStream {
@@ -193,6 +196,7 @@ impl CatchUp {
         );
         let first = !self.peers.contains_key(&env.robot_id);
         let p = self.peers.entry(env.robot_id).or_default();
+        p.heard = true;
         if first {
             p.want(TimeRange::ALL, f64::NEG_INFINITY);
         }
@@ -258,10 +262,25 @@ impl CatchUp {
         }
     }
 
+    /// Notes that `history` of `peer` was read back from disk at start: when
+    /// the peer is heard, only the windows after the newest one held are
+    /// asked for (not everything, as for a peer we know nothing of).
+    pub fn restored(&mut self, peer: u32, history: &PeerHistory) {
+        let p = self.peers.entry(peer).or_default();
+        p.want(
+            TimeRange {
+                after_s: history.newest_window_end_s(),
+                up_to_s: None,
+            },
+            f64::NEG_INFINITY,
+        );
+    }
+
     /// Notes that `peer` came back after vanishing: the windows after the
     /// newest one held are asked for.
     pub fn reappeared(&mut self, peer: u32, history: Option<&PeerHistory>) {
         let p = self.peers.entry(peer).or_default();
+        p.heard = true;
         let range = TimeRange {
             after_s: history.and_then(PeerHistory::newest_window_end_s),
             up_to_s: None,
@@ -278,7 +297,7 @@ impl CatchUp {
         histories: &BTreeMap<u32, PeerHistory>,
     ) -> Vec<HistoryRequest> {
         let mut out = Vec::new();
-        for (&peer, p) in &mut self.peers {
+        for (&peer, p) in self.peers.iter_mut().filter(|(_, p)| p.heard) {
             let fresh = p.open.is_empty();
             if !fresh && now_s - p.last_progress_s.max(p.last_ask_s) > self.retry_s {
                 // Nothing came since we asked: the request or its replies
@@ -535,6 +554,12 @@ impl Replayer {
             Body::Snapshot(s) => self.archive.add_snapshot(s.clone(), &self.limits),
             Body::Heartbeat(_) | Body::HistoryRequest(_) | Body::HistoryReplay(_) => {}
         }
+    }
+
+    /// Takes `archive`, read back from disk at start, as the archive of our
+    /// own windows (those made from now on join it).
+    pub fn restore(&mut self, archive: PeerHistory) {
+        self.archive = archive;
     }
 
     /// The archive of our own windows.

@@ -25,6 +25,7 @@ pub mod fleet_clock;
 pub mod frontend;
 pub mod history_catchup;
 pub mod history_retention;
+pub mod history_store;
 pub mod hybrid;
 #[cfg(feature = "vision")]
 pub mod image_runner;

@@ -16,6 +16,7 @@ use crate::config::{AgentConfig, ClockMode, FaultDrop, FaultedMessage, FaultsCon
 use crate::estimator::{Estimator, FrameOutput};
 use crate::fleet_clock::{Lockstep, Pacer, TickGrid};
 use crate::history_catchup::{CatchUp, CatchUpStats, Replayer};
+use crate::history_store::HistoryStore;
 use crate::inbox::{DropReason, Inbox, NetStats, PeerRates};
 use crate::node_images::ImageFrames;
 use crate::outbox::Outbox;
@@ -27,6 +28,7 @@ use common::measurement::FeatureFrame;
 use common::messages::{encode, AgentState, Body, Envelope};
 use simulator::{Fleet, Scenario, SimEvent};
 use std::collections::{BTreeMap, VecDeque};
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use thiserror::Error;
@@ -55,6 +57,9 @@ pub enum NodeError {
     /// Camera images could not be turned into features.
     #[error("camera images: {0}")]
     Images(String),
+    /// The history store (`history.store_dir`) could not be opened.
+    #[error("history store: {0}")]
+    Store(#[from] crate::history_store::StoreError),
 }
 
 /// Progress of a run, for the launcher's display.
@@ -125,6 +130,21 @@ pub struct NodeReport {
     /// Messages dropped by the injected loss (`faults.loss_fraction`), counted
     /// as `outage_dropped` is.
     pub loss_dropped: u64,
+    /// The history store (`history.store_dir`), if one is used.
+    pub store: Option<StoreStats>,
+}
+
+/// What the history store did in a run.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct StoreStats {
+    /// Keyframe windows read back at start, per robot (ours included).
+    pub restored_windows: BTreeMap<u32, usize>,
+    /// Files (or their tails) that could not be read, and why.
+    pub unreadable: Vec<String>,
+    /// History files written.
+    pub writes: u64,
+    /// Writes that failed (each logged; the run goes on).
+    pub write_errors: u64,
 }
 
 /// The robot this agent is: its simulated (or recorded) sensors and its
@@ -240,6 +260,9 @@ struct Node {
     peer_poses: BTreeMap<u32, PeerPose>,
     /// History catch-up, asking and answering (`None`: switched off).
     catch_up: Option<(CatchUp, Replayer)>,
+    /// Histories kept on disk (`None`: memory only), the fleet seconds
+    /// between writes and the time of the last.
+    store: Option<(HistoryStore, f64, f64)>,
     faults: FaultsConfig,
     /// This agent's robot id (the receiver in the fault draws).
     robot_id: u32,
@@ -305,6 +328,82 @@ impl Node {
     fn newest_window_end_s(&self) -> Option<f64> {
         let (_, replayer) = self.catch_up.as_ref()?;
         replayer.archive().stored_span.map(|(_, end)| end)
+    }
+
+    /// Reads the histories kept in `dir` (ours into the catch-up archive,
+    /// the peers' into their histories), and keeps them there from now on.
+    fn restore(
+        &mut self,
+        dir: &Path,
+        fleet_id: &str,
+        period_s: f64,
+        max_peers: usize,
+    ) -> Result<(), NodeError> {
+        let mut store = HistoryStore::open(dir, fleet_id)?;
+        let loaded = store.load(&self.limits)?;
+        let mut stats = StoreStats::default();
+        for u in loaded.unreadable {
+            let why = format!("{}: {}", u.path.display(), u.why);
+            tracing::warn!("history store: {why}");
+            stats.unreadable.push(why);
+        }
+        for (robot, history) in loaded.histories {
+            let windows = history.keyframes.len();
+            if robot == self.robot_id {
+                // Our own windows serve peers' requests; without catch-up
+                // there is nobody to serve.
+                match self.catch_up.as_mut() {
+                    Some((_, replayer)) => replayer.restore(history),
+                    None => continue,
+                }
+            } else {
+                if !self.report.histories.contains_key(&robot)
+                    && self.report.histories.len() >= max_peers
+                {
+                    tracing::warn!(robot, "history store: no room for another peer");
+                    continue;
+                }
+                if let Some((asking, _)) = self.catch_up.as_mut() {
+                    asking.restored(robot, &history);
+                }
+                self.report.histories.insert(robot, history);
+            }
+            tracing::info!(robot, windows, "history store: read back");
+            stats.restored_windows.insert(robot, windows);
+        }
+        self.report.store = Some(stats);
+        self.store = Some((store, period_s, f64::NEG_INFINITY));
+        Ok(())
+    }
+
+    /// Writes the histories that changed, if `store_period_s` passed since
+    /// the last write (`force`: now, and every history).
+    fn store_histories(&mut self, now_s: f64, force: bool) {
+        let Some((store, period_s, last_s)) = self.store.as_mut() else {
+            return;
+        };
+        if !force && now_s - *last_s < *period_s {
+            return;
+        }
+        *last_s = now_s;
+        let own = self
+            .catch_up
+            .as_ref()
+            .map(|(_, r)| (self.robot_id, r.archive()));
+        let stats = self.report.store.get_or_insert_with(StoreStats::default);
+        let peers = self.report.histories.iter().map(|(&r, h)| (r, h));
+        for (robot, history) in peers.chain(own) {
+            match store.save(robot, history, force) {
+                Ok(true) => stats.writes += 1,
+                Ok(false) => {}
+                Err(e) => {
+                    stats.write_errors += 1;
+                    if stats.write_errors <= 5 {
+                        tracing::warn!("history store: {e}");
+                    }
+                }
+            }
+        }
     }
 
     /// History catch-up at fleet time `now_s`: the requests due, then the
@@ -651,6 +750,7 @@ pub fn run_node(
         log,
         peer_poses: BTreeMap::new(),
         catch_up: None,
+        store: None,
         faults: cfg.faults.for_run(fleet.seed),
         robot_id: cfg.robot_id,
         lockstep_mode: cfg.clock.mode == ClockMode::Lockstep,
@@ -665,6 +765,14 @@ pub fn run_node(
                 cfg.history.replay_kib_per_s * 1024.0,
             ),
         ));
+    }
+    if let Some(dir) = &cfg.history.store_dir {
+        node.restore(
+            dir,
+            &cfg.fleet_id,
+            cfg.history.store_period_s,
+            cfg.history.max_peers,
+        )?;
     }
     let mut images: Option<ImageFrames> = None;
 
@@ -828,6 +936,7 @@ pub fn run_node(
         // heartbeat of this tick has our requests and replays of it too (the
         // lockstep clock keeps them deterministic).
         node.catch_up(t_end);
+        node.store_histories(t_end, false);
         let beat = match cfg.clock.mode {
             ClockMode::Lockstep => true,
             ClockMode::Realtime => {
@@ -895,6 +1004,7 @@ pub fn run_node(
     }
     node.drain();
     node.deliver(f64::INFINITY);
+    node.store_histories(f64::INFINITY, true);
     if Node::stopping(stop) {
         node.report.interrupted = node.report.interrupted || tick < setup.ticks_total;
     }

@@ -300,10 +300,20 @@ impl PeerHistory {
                 .pending_keyframe_descriptors
                 .remove(&snap.frame_index)
                 .unwrap_or_default();
-            self.store(
-                KeyframeWindow::new(snap.clone(), frames, descriptors),
-                limits,
-            );
+            let mut kf = KeyframeWindow::new(snap.clone(), frames, descriptors);
+            // A copy of this window may be held already (read back from disk
+            // after a restart, or replayed): what it has more of stays (the
+            // keyframe's descriptors may have gone to it, and a restarted
+            // sender's first windows lack the frames from before its restart).
+            if let Some(held) = self.keyframes.get(&time_key(kf.end_s())) {
+                if kf.descriptors.is_empty() {
+                    kf.descriptors = held.descriptors.clone();
+                }
+                if held.frames.len() > kf.frames.len() {
+                    kf.frames = held.frames.clone();
+                }
+            }
+            self.store(kf, limits);
         }
         if self.latest.as_ref().is_none_or(|l| l.t_s <= snap.t_s) {
             self.latest = Some(snap);
@@ -473,6 +483,45 @@ mod tests {
         // Recent frames older than 2 s were dropped.
         assert!(h.recent.front().unwrap().t_s >= 0.0 - 1e-9);
         assert!(h.latest.is_some());
+    }
+
+    #[test]
+    fn a_window_already_held_keeps_what_the_live_copy_lacks() {
+        // A window read back from disk after a restart, whole.
+        let l = limits(usize::MAX);
+        let snap = snapshot(2.0, true);
+        let descriptors = vec![DescriptorEntry {
+            id: 3,
+            bits: [1; 4],
+        }];
+        let mut h = PeerHistory::default();
+        let frames: Vec<HistoricalFrame> = snap
+            .clones
+            .iter()
+            .map(|c| HistoricalFrame {
+                t_s: c.t_s,
+                observations: Vec::new(),
+            })
+            .collect();
+        let whole = KeyframeWindow::new(snap.clone(), frames, descriptors.clone());
+        h.add_replayed(whole.clone(), &l);
+        // The sender, restarted, sends it again: its keyframe descriptors
+        // first (they find the held copy), then a snapshot whose frames
+        // before the restart it no longer has.
+        h.add_tracks(tracks(2.0, 5), &l);
+        h.add_descriptors(
+            DescriptorBatch {
+                frame_index: snap.frame_index,
+                t_s: 2.0,
+                keyframe: true,
+                entries: descriptors,
+            },
+            &l,
+        );
+        h.add_snapshot(snap, &l);
+        assert_eq!(h.keyframes.len(), 1);
+        let kf = h.keyframes.values().next().unwrap();
+        assert_eq!(kf.completeness(), whole.completeness());
     }
 
     #[test]

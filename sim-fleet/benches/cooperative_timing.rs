@@ -53,6 +53,7 @@ fn args(scenario: &Path, seed: u64, variant: Variant, out: &Path) -> RunArgs {
         derived_delay_s: 3.0,
         agent_bin: None,
         dry_run: false,
+        history_store: None,
         history: Default::default(),
     }
 }

@@ -91,6 +91,11 @@ pub struct RunArgs {
     /// commands that would run them.
     #[arg(long)]
     pub dry_run: bool,
+    /// Keep each agent's histories on disk in `DIR/robot<i>` (read back when
+    /// an agent starts, so a run after this one, or an agent restarted, starts
+    /// with what it held).
+    #[arg(long, value_name = "DIR")]
+    pub history_store: Option<PathBuf>,
     /// What the agents keep of their peers.
     #[command(flatten)]
     pub history: HistoryArgs,
@@ -277,6 +282,11 @@ pub fn agent_configs(
         peers: (0..n as u32).filter(|p| *p != me).collect(),
         ..ClockConfig::default()
     };
+    // Absolute: the agents read their configurations from another folder.
+    let store = match &args.history_store {
+        Some(d) if d.is_relative() => Some(std::env::current_dir()?.join(d)),
+        other => other.clone(),
+    };
     let configs: Vec<AgentConfig> = (0..n)
         .map(|i| {
             let me = i as u32;
@@ -324,6 +334,7 @@ pub fn agent_configs(
                     let h = args.history.apply(HistoryConfig::default());
                     HistoryConfig {
                         max_peers: h.max_peers.max(n),
+                        store_dir: store.as_ref().map(|d| d.join(format!("robot{i}"))),
                         ..h
                     }
                 },

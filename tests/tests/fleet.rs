@@ -576,3 +576,96 @@ fn sigterm_stops_an_agent_with_its_outputs_written() {
     );
     assert!(out.join("agent.mcap").is_file());
 }
+
+/// Robot 2's configuration of the run in `out`, made to run it alone again
+/// (its peers gone) into `again`; `store: false` drops its history store.
+fn alone_again(out: &Path, again: &Path, store: bool) -> PathBuf {
+    let text = std::fs::read_to_string(out.join("robot2/config.yaml")).unwrap();
+    let mut lines: Vec<String> = Vec::new();
+    let mut in_peers = false;
+    for line in text.lines() {
+        if in_peers && line.starts_with("  - ") {
+            continue;
+        }
+        in_peers = false;
+        if line.starts_with("output_dir:") {
+            lines.push(format!("output_dir: {}", again.display()));
+        } else if line == "  peers:" {
+            lines.push("  peers: []".into());
+            in_peers = true;
+        } else if store || !line.starts_with("  store_dir:") {
+            lines.push(line.to_owned());
+        }
+    }
+    let p = again.with_extension("yaml");
+    std::fs::write(&p, lines.join("\n")).unwrap();
+    p
+}
+
+/// With `--history-store` each agent keeps its peers' keyframe windows, and
+/// its own, on disk. Started again after its peers have landed and gone
+/// (no peer left to catch up from), robot 2 reads them back, holds every
+/// window they made, and closes loops on them; without the store it holds
+/// none and closes none.
+#[test]
+fn an_agent_started_again_after_its_peers_are_gone_reads_their_histories_from_disk() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 24.0);
+    let out = dir.path().join("mission");
+    let store = dir.path().join("store");
+    sim_fleet_run(
+        &sc,
+        &out,
+        &[
+            "--transport",
+            "zenoh",
+            "--variant",
+            "dc-full-history",
+            "--seed",
+            "3",
+            "--history-store",
+            store.to_str().unwrap(),
+        ],
+    );
+    let stats = |run: &Path| read_json(&run.join("transport_stats.json"));
+    let made: Vec<u64> = (0..3)
+        .map(|i| {
+            stats(&out.join(format!("robot{i}")))["own_archive_windows"]
+                .as_u64()
+                .unwrap()
+        })
+        .collect();
+    assert!(made.iter().all(|&m| m > 15), "{made:?}");
+    let run_alone = |name: &str, keep: bool| {
+        let again = dir.path().join(name);
+        let cfg = alone_again(&out, &again, keep);
+        let mut agent = start_agent(&cfg, &dir.path().join(format!("{name}.log")));
+        assert!(wait(&mut agent, Duration::from_secs(120)), "{name} failed");
+        again
+    };
+    let again = run_alone("again", true);
+    let st = stats(&again);
+    let restored = &st["history_store"]["restored_windows"];
+    for p in 0..3 {
+        assert_eq!(restored[p.to_string()].as_u64(), Some(made[p]), "{st}");
+    }
+    for p in 0..2 {
+        let held = st["histories"][p.to_string()]["keyframes"].as_u64();
+        assert_eq!(
+            held,
+            Some(made[p]),
+            "robot 2 holds {held:?} of robot {p}'s windows"
+        );
+    }
+    assert_eq!(st["own_archive_windows"].as_u64(), Some(made[2]));
+    let loops = |run: &Path| {
+        read_json(&run.join("summary.json"))["robots"][0]["loop_closures"]
+            .as_f64()
+            .unwrap_or(0.0)
+    };
+    assert!(loops(&again) > 5.0, "{} loop closures", loops(&again));
+
+    let forgetful = run_alone("forgetful", false);
+    assert_eq!(stats(&forgetful)["history_store"], Value::Null);
+    assert_eq!(loops(&forgetful), 0.0);
+}

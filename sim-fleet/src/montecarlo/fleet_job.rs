@@ -40,6 +40,8 @@ pub fn run(
         derived_delay_s: 3.0,
         agent_bin: None,
         dry_run: false,
+        // Each Monte-Carlo run starts with empty histories.
+        history_store: None,
         history,
     };
     let n = scenario.robots.len();
