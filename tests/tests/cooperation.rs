@@ -21,6 +21,16 @@ fn scenario(dir: &Path) -> PathBuf {
     p
 }
 
+/// The flags of a `dc-full-history` run over Zenoh, seed 2.
+const OVER_ZENOH: [&str; 6] = [
+    "--transport",
+    "zenoh",
+    "--variant",
+    "dc-full-history",
+    "--seed",
+    "2",
+];
+
 fn metric(summary: &Value, robot: usize, key: &str) -> f64 {
     summary["robots"][robot][key].as_f64().unwrap_or(f64::NAN)
 }
@@ -51,18 +61,7 @@ fn assert_cooperates(summary: &Value) {
 fn agents_over_zenoh_share_features_and_close_loops_on_peer_histories() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path());
-    let summary = sim_fleet_run(
-        &sc,
-        &dir.path().join("zenoh"),
-        &[
-            "--transport",
-            "zenoh",
-            "--variant",
-            "dc-full-history",
-            "--seed",
-            "2",
-        ],
-    );
+    let summary = sim_fleet_run(&sc, &dir.path().join("zenoh"), &OVER_ZENOH);
     assert_cooperates(&summary);
 }
 
@@ -119,16 +118,7 @@ fn held(out: &Path, r: usize, p: usize) -> u64 {
 fn after_a_link_outage_agents_catch_up_on_their_peers_histories_over_zenoh() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path());
-    let common = [
-        "--transport",
-        "zenoh",
-        "--variant",
-        "dc-full-history",
-        "--seed",
-        "2",
-        "--link-outage",
-        "4:20",
-    ];
+    let common = [&OVER_ZENOH[..], &["--link-outage", "4:20"]].concat();
     let on = dir.path().join("catch-up");
     let summary = sim_fleet_run(&sc, &on, &common);
     assert_cooperates(&summary);
@@ -175,16 +165,7 @@ fn on_a_lossy_link_agents_still_end_with_their_peers_whole_histories_over_zenoh(
     let summary = sim_fleet_run(
         &sc,
         &out,
-        &[
-            "--transport",
-            "zenoh",
-            "--variant",
-            "dc-full-history",
-            "--seed",
-            "2",
-            "--link-loss",
-            "0.3",
-        ],
+        &[&OVER_ZENOH[..], &["--link-loss", "0.3"]].concat(),
     );
     assert_cooperates(&summary);
     let mut reasked = 0;
