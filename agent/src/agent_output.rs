@@ -15,6 +15,9 @@ use std::path::Path;
 pub struct HistoryReport {
     /// Keyframe windows held at the end.
     pub keyframes: usize,
+    /// Of those, windows held whole: a frame of measurements at every clone,
+    /// and the keyframe's descriptors.
+    pub whole: usize,
     /// Keyframe windows stored in total.
     pub stored: u64,
     /// Keyframe windows dropped by the memory bound.
@@ -66,6 +69,8 @@ pub struct TransportReport<'a> {
     pub own_archive_bytes: usize,
     /// Keyframe windows in that archive.
     pub own_archive_windows: usize,
+    /// Of those, windows whole (a frame at every clone, and descriptors).
+    pub own_archive_whole_windows: usize,
     /// Messages dropped by the injected outage (`faults.outage_fleet_s`).
     pub outage_dropped: u64,
     /// Messages dropped by the injected loss (`faults.loss_fraction`).
@@ -103,6 +108,7 @@ pub fn history_report(h: &crate::peer_history::PeerHistory, db: (usize, f64)) ->
     let stored_s = h.stored_span_s();
     HistoryReport {
         keyframes: h.keyframes.len(),
+        whole: h.keyframes.values().filter(|kf| kf.is_whole()).count(),
         stored: h.stored_keyframes,
         dropped: h.dropped_keyframes,
         bytes: h.bytes(),
@@ -165,6 +171,7 @@ pub fn write_outputs(
         catch_up: report.catch_up.as_ref(),
         own_archive_bytes: report.own_archive_bytes,
         own_archive_windows: report.own_archive_windows,
+        own_archive_whole_windows: report.own_archive_whole_windows,
         outage_dropped: report.outage_dropped,
         loss_dropped: report.loss_dropped,
         history_store: report.store.as_ref(),

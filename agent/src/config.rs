@@ -566,8 +566,11 @@ pub struct HistoryConfig {
     #[serde(default = "default_replay_kib_per_s")]
     pub replay_kib_per_s: f64,
     /// Fleet seconds without a reply before a catch-up request is sent again
-    /// (a request costs some 50 bytes; it is only given up when its peer
-    /// vanishes).
+    /// (a request costs some 50-120 bytes; it is only given up when its peer
+    /// vanishes). Any replay from the peer counts as a reply, so a long
+    /// catch-up is not asked again while it flows; on a lossy link a short
+    /// period gets a lost request or replay back before the peer lands (5 s
+    /// left a window of a robot's last seconds missing at 30 % loss).
     #[serde(default = "default_catch_up_retry_s")]
     pub catch_up_retry_s: f64,
     /// Folder where the agent keeps its peers' keyframe windows, and its
@@ -590,7 +593,7 @@ fn default_replay_kib_per_s() -> f64 {
     512.0
 }
 fn default_catch_up_retry_s() -> f64 {
-    5.0
+    2.0
 }
 
 fn default_history_mib() -> f64 {

@@ -10,16 +10,20 @@
 //!   heard, everything after the newest window held when a peer comes back
 //!   after vanishing, and the windows around a gap in a peer's sequence
 //!   numbers. It stores a replayed window only when it asked for it and the
-//!   window is missing or more complete than the copy held.
+//!   window is missing or more complete than the copy held. A window held
+//!   short of some parts is listed in the request with what it holds, and
+//!   only the missing parts come back, merged into the copy held.
 //! * [`Replayer`] (answering): keeps an archive of this agent's own keyframe
 //!   windows, built from what it published exactly as peers build theirs, and
 //!   answers requests from it, oldest window first, at a bounded rate of fleet
-//!   time so a catch-up never crowds out the live messages.
+//!   time so a catch-up never crowds out the live messages: a whole window to
+//!   a requester that lacks it, the missing parts to one that holds it short.
 
 use crate::peer_history::{time_key, HistoryLimits, KeyframeWindow, PeerHistory, Replayed};
 use common::messages::{
-    AnsweredWindow, Body, Envelope, HistoryReplay, HistoryRequest, MessageKind, RequestRef,
-    TimeRange, MAX_ANSWERED_WINDOWS, MAX_REPLAY_ROBOTS, MAX_REQUEST_RANGES,
+    AnsweredWindow, Body, Envelope, HeldWindow, HistoryReplay, HistoryRequest, MessageKind,
+    RequestRef, TimeRange, MAX_ANSWERED_WINDOWS, MAX_HELD_WINDOWS, MAX_REPLAY_ROBOTS,
+    MAX_REQUEST_RANGES,
 };
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet};
@@ -44,6 +48,14 @@ const MAX_ASKS_PER_WINDOW: u8 = 5;
 /// Windows per peer whose asks are counted; beyond, none is asked again.
 const MAX_COUNTED_WINDOWS: usize = 1 << 16;
 
+/// Most a range to ask for is put off by merging later ranges into it, s of
+/// fleet time: gaps in the three data streams of one outage merge into one
+/// request, while on a lossy link, where every second brings a gap that
+/// overlaps the last one, the windows are still asked for within a second
+/// of existing (merging without a limit put them off as long as the losses
+/// went on: tens of seconds).
+const MAX_MERGE_DELAY_S: f64 = 1.0;
+
 /// Catch-up counters of one agent.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct CatchUpStats {
@@ -67,6 +79,11 @@ pub struct CatchUpStats {
     pub windows_stored: u64,
     /// Of those, held windows replaced by a more complete copy.
     pub windows_completed: u64,
+    /// Replayed parts received that were for us (the missing frames or
+    /// descriptors of a window held short of them).
+    pub parts_received: u64,
+    /// Of those, parts that completed a window held.
+    pub parts_stored: u64,
     /// Windows asked for again: an answer listed them, and their replay was
     /// lost (or left a less complete copy than the answerer's).
     pub windows_reasked: u64,
@@ -74,6 +91,9 @@ pub struct CatchUpStats {
     pub requests_answered: u64,
     /// Windows this agent sent again.
     pub windows_replayed: u64,
+    /// Parts of windows this agent sent again (to requesters holding the
+    /// rest).
+    pub parts_replayed: u64,
     /// Encoded bytes of those replays.
     pub replay_bytes: u64,
 }
@@ -91,9 +111,8 @@ struct PeerStream {
     last: BTreeMap<MessageKind, (u64, f64)>,
     /// Requests sent and not yet answered in full.
     open: BTreeMap<u64, OpenRequest>,
-    /// Ranges to ask for, each with the fleet time after which to ask (the
-    /// windows it covers must exist by then).
-    wanted: Vec<(TimeRange, f64)>,
+    /// Ranges to ask for.
+    wanted: Vec<Wanted>,
     /// Fleet time of the last replay from this peer (or of the oldest open
     /// request when none came since).
     last_progress_s: f64,
@@ -110,10 +129,22 @@ struct PeerStream {
     heard: bool,
 }
 
+/// A range to ask for.
+#[derive(Clone, Copy, Debug)]
+struct Wanted {
+    range: TimeRange,
+    /// Fleet time after which to ask (the windows it covers must exist by
+    /// then).
+    ask_after: f64,
+    /// The earliest `ask_after` of the ranges merged into it.
+    first_due: f64,
+}
+
 impl PeerStream {
     /// Adds a range to ask for after `ask_after`; a range it overlaps is
     /// merged in and asked for at the later of the two times, so one outage
-    /// seen as gaps in three streams makes one request.
+    /// seen as gaps in three streams makes one request, unless that would put
+    /// off the earlier by more than [`MAX_MERGE_DELAY_S`].
     /// A range an open request already covers is not asked again.
     fn want(&mut self, range: TimeRange, ask_after: f64) {
         let asked = self
@@ -124,16 +155,28 @@ impl PeerStream {
         if asked {
             return;
         }
-        let (mut range, mut ask_after) = (range, ask_after);
-        self.wanted.retain(|(r, t)| {
-            let Some(u) = union(r, &range) else {
+        let mut new = Wanted {
+            range,
+            ask_after,
+            first_due: ask_after,
+        };
+        self.wanted.retain(|w| {
+            let Some(u) = union(&w.range, &new.range) else {
                 return true;
             };
-            range = u;
-            ask_after = ask_after.max(*t);
+            let first_due = w.first_due.min(new.first_due);
+            let ask_after = w.ask_after.max(new.ask_after);
+            if ask_after > first_due + MAX_MERGE_DELAY_S {
+                return true;
+            }
+            new = Wanted {
+                range: u,
+                ask_after,
+                first_due,
+            };
             false
         });
-        self.wanted.push((range, ask_after));
+        self.wanted.push(new);
     }
 }
 
@@ -312,14 +355,14 @@ impl CatchUp {
             }
             let (due, later): (Vec<_>, Vec<_>) = std::mem::take(&mut p.wanted)
                 .into_iter()
-                .partition(|(_, ask_after)| *ask_after <= now_s);
+                .partition(|w| w.ask_after <= now_s);
             p.wanted = later;
             if due.is_empty() {
                 continue;
             }
             // A new request takes over the open ones (their replies would
             // overlap; a lost one would be sent again alongside).
-            let mut ranges: Vec<TimeRange> = due.into_iter().map(|(r, _)| r).collect();
+            let mut ranges: Vec<TimeRange> = due.into_iter().map(|w| w.range).collect();
             for r in std::mem::take(&mut p.open).into_values() {
                 ranges.extend(r.ranges);
             }
@@ -335,7 +378,21 @@ impl CatchUp {
             // over this request at the next tick, and so on).
             let rest = ranges.split_off(ranges.len().min(MAX_REQUEST_RANGES));
             let later = now_s + self.retry_s;
-            p.wanted.extend(rest.into_iter().map(|r| (r, later)));
+            p.wanted.extend(rest.into_iter().map(|range| Wanted {
+                range,
+                ask_after: later,
+                first_due: later,
+            }));
+            // What we hold of the windows asked for: only the missing parts
+            // come back. A window not listed comes whole.
+            let held: Vec<HeldWindow> = histories
+                .get(&peer)
+                .into_iter()
+                .flat_map(|h| h.keyframes.values())
+                .filter(|kf| ranges.iter().any(|r| r.contains(kf.end_s())))
+                .map(KeyframeWindow::held)
+                .take(MAX_HELD_WINDOWS)
+                .collect();
             let request_id = self.next_id;
             self.next_id += 1;
             if fresh {
@@ -354,6 +411,7 @@ impl CatchUp {
                 to_robot: peer,
                 request_id,
                 ranges,
+                held,
             });
         }
         out
@@ -361,7 +419,8 @@ impl CatchUp {
 
     /// Takes a replay from `peer` delivered at fleet time `now_s`: stores its
     /// window in `history` if we asked for it and it is missing or more
-    /// complete than ours, and closes the requests it completes.
+    /// complete than ours, or merges its part into the window held, and
+    /// closes the requests it completes.
     pub fn accept(
         &mut self,
         peer: u32,
@@ -372,18 +431,26 @@ impl CatchUp {
     ) -> Option<Replayed> {
         let p = self.peers.get_mut(&peer)?;
         let mut outcome = None;
-        if let Some(w) = replay
-            .window
-            .filter(|_| replay.for_robots.contains(&self.me))
-        {
+        let for_me = replay.for_robots.contains(&self.me);
+        let asked = |p: &PeerStream, end: f64| {
+            p.open
+                .values()
+                .any(|r| r.ranges.iter().any(|range| range.contains(end)))
+        };
+        if let Some(part) = replay.part.filter(|_| for_me) {
+            p.last_progress_s = now_s;
+            self.stats.parts_received += 1;
+            if asked(p, part.end_s) {
+                outcome = history.add_part(part, limits);
+                if outcome == Some(Replayed::Completed) {
+                    self.stats.parts_stored += 1;
+                }
+            }
+        }
+        if let Some(w) = replay.window.filter(|_| for_me) {
             p.last_progress_s = now_s;
             self.stats.windows_received += 1;
-            let end = w.end_s();
-            let asked = p
-                .open
-                .values()
-                .any(|r| r.ranges.iter().any(|range| range.contains(end)));
-            if asked {
+            if asked(p, w.end_s()) {
                 let r = history.add_replayed(KeyframeWindow::from_wire(w), limits);
                 match r {
                     Replayed::New => self.stats.windows_stored += 1,
@@ -445,11 +512,7 @@ fn without_whole(range: TimeRange, history: Option<&PeerHistory>) -> Vec<TimeRan
     let whole = h
         .keyframes
         .values()
-        .filter(|kf| range.contains(kf.end_s()))
-        .filter(|kf| {
-            let (frames, descriptors) = kf.completeness();
-            descriptors && frames >= kf.snapshot.clones.len()
-        })
+        .filter(|kf| range.contains(kf.end_s()) && kf.is_whole())
         .map(KeyframeWindow::end_s);
     let mut out = Vec::new();
     let mut after = range.after_s;
@@ -498,7 +561,11 @@ fn merge(mut ranges: Vec<TimeRange>) -> Vec<TimeRange> {
 /// A window queued for replay.
 #[derive(Clone, Debug, Default)]
 struct Queued {
+    /// Robots that lack the window: it goes whole.
     for_robots: BTreeSet<u32>,
+    /// Robots that hold it short of some parts, with what they hold: if none
+    /// lacks it, only the parts some of them miss go.
+    parts: BTreeMap<u32, HeldWindow>,
     /// Requests whose last window this is.
     completes: Vec<RequestRef>,
 }
@@ -577,30 +644,49 @@ impl Replayer {
             robot: from,
             request_id: req.request_id,
         };
-        let keys: Vec<u64> = self
-            .archive
-            .keyframes
-            .iter()
-            .filter(|(_, kf)| req.ranges.iter().any(|r| r.contains(kf.end_s())))
-            .map(|(k, _)| *k)
-            .collect();
+        let held: BTreeMap<u64, &HeldWindow> =
+            req.held.iter().map(|h| (time_key(h.end_s), h)).collect();
+        let mut keys = Vec::new();
+        let mut last = None;
+        for (&k, kf) in &self.archive.keyframes {
+            if !req.ranges.iter().any(|r| r.contains(kf.end_s())) {
+                continue;
+            }
+            keys.push(k);
+            let held = held.get(&k).copied();
+            // A requester holding every part we have gets nothing.
+            if held.is_some_and(|h| kf.part_for([h]).is_empty()) {
+                continue;
+            }
+            last = Some(k);
+            let q = self.queue.entry(k).or_default();
+            // This request takes over the requester's older ones: what it
+            // holds now decides between whole and part.
+            q.for_robots.remove(&from);
+            q.parts.remove(&from);
+            if q.for_robots.len() + q.parts.len() >= MAX_REPLAY_ROBOTS {
+                continue;
+            }
+            match held {
+                Some(h) => {
+                    q.parts.insert(from, *h);
+                }
+                None => {
+                    q.for_robots.insert(from);
+                }
+            }
+        }
         tracing::debug!(
             from,
             request_id = req.request_id,
             windows = keys.len(),
+            to_send = self.queue.len(),
             "history catch-up: answering"
         );
-        let Some(&last) = keys.last() else {
-            self.found_nothing.push(id);
-            return;
-        };
-        for &k in &keys {
-            let q = self.queue.entry(k).or_default();
-            if q.for_robots.len() < MAX_REPLAY_ROBOTS {
-                q.for_robots.insert(from);
-            }
+        match last {
+            Some(last) => self.queue.entry(last).or_default().completes.push(id),
+            None => self.found_nothing.push(id),
         }
-        self.queue.entry(last).or_default().completes.push(id);
         // A requester's new request takes over its older ones (it asks
         // again for what they did not bring), so only its newest answer's
         // list is kept: the lists stay bounded by the peers times the archive.
@@ -646,21 +732,31 @@ impl Replayer {
         while let Some((key, q)) = self.queue.pop_first() {
             let mut completes = std::mem::take(&mut self.found_nothing);
             completes.extend(q.completes);
-            let window = self
-                .archive
-                .keyframes
-                .get(&key)
-                .map(KeyframeWindow::to_wire);
-            if window.is_none() {
+            let Some(kf) = self.archive.keyframes.get(&key) else {
                 // Dropped from the archive since it was asked for: what it
                 // completes goes with the next message.
                 self.found_nothing = completes;
                 continue;
+            };
+            // Whole if anyone lacks it (those holding it short take the
+            // whole copy too: one message instead of two), else the union
+            // of the parts its holders miss.
+            let (window, part) = if q.for_robots.is_empty() {
+                (None, Some(kf.part_for(q.parts.values())))
+            } else {
+                (Some(kf.to_wire()), None)
+            };
+            if part.as_ref().is_some_and(|p| p.is_empty()) {
+                // Nobody asked for it (only completes travel with it).
+                self.found_nothing = completes;
+                continue;
             }
+            let for_robots = q.for_robots.into_iter().chain(q.parts.into_keys());
             let answered = self.answered(&completes);
             return Some(HistoryReplay {
-                for_robots: q.for_robots.into_iter().collect(),
+                for_robots: for_robots.collect::<BTreeSet<_>>().into_iter().collect(),
                 window,
+                part,
                 completes,
                 answered,
             });
@@ -673,18 +769,22 @@ impl Replayer {
         Some(HistoryReplay {
             for_robots: Vec::new(),
             window: None,
+            part: None,
             completes,
             answered,
         })
     }
 
-    /// Counts a replay sent as `bytes` encoded bytes against the budget
-    /// (`window`: it carried a window).
-    pub fn sent(&mut self, window: bool, bytes: usize) {
+    /// Counts a replay sent as `bytes` encoded bytes against the budget;
+    /// `(window, part)`: whether it carried a window, a part.
+    pub fn sent(&mut self, (window, part): (bool, bool), bytes: usize) {
         self.budget -= bytes as f64;
         self.stats.replay_bytes += bytes as u64;
         if window {
             self.stats.windows_replayed += 1;
+        }
+        if part {
+            self.stats.parts_replayed += 1;
         }
     }
 
@@ -756,6 +856,7 @@ mod tests {
         HistoryReplay {
             for_robots: Vec::new(),
             window: None,
+            part: None,
             completes: vec![RequestRef {
                 robot: ME,
                 request_id: req.request_id,
@@ -850,6 +951,7 @@ mod tests {
             to_robot: PEER,
             request_id: id,
             ranges,
+            held: Vec::new(),
         }
     }
 
@@ -888,7 +990,7 @@ mod tests {
             assert_eq!(x.for_robots.contains(&3), window_end(&x) > Some(t(75)));
             ends.extend(window_end(&x));
             completes.extend(x.completes.iter().map(|c| (c.robot, c.request_id)));
-            r.sent(x.window.is_some(), 10);
+            r.sent((x.window.is_some(), false), 10);
         }
         let expected: Vec<f64> = (1..=10).map(|k| t(10 * k)).collect();
         assert_eq!(ends, expected);
@@ -905,7 +1007,7 @@ mod tests {
             r.refill(f64::from(tick) * 0.5);
             let mut n = 0;
             while let Some(x) = r.next_replay() {
-                r.sent(x.window.is_some(), 20_000);
+                r.sent((x.window.is_some(), false), 20_000);
                 n += 1;
             }
             per_tick.push(n);
@@ -1140,7 +1242,7 @@ mod tests {
     }
 
     #[test]
-    fn a_lost_track_frame_brings_back_its_own_window_only() {
+    fn a_lost_track_frame_brings_back_that_frame_only() {
         let live: Vec<Envelope> = (0..=100).flat_map(published).collect();
         let mut whole = PeerHistory::default();
         feed(&mut whole, &live);
@@ -1165,19 +1267,156 @@ mod tests {
             r.request(ME, &req);
         }
         while r.next_replay().is_some() {}
-        // The gap's request, once its windows exist, asks for window 60 only.
+        // The gap's request, once its windows exist, asks for window 60
+        // only, and says it holds it short of its sixth frame.
         let reqs = c.requests(t(101), &histories);
         assert_eq!(reqs.len(), 1, "{reqs:?}");
-        let mut windows = Vec::new();
+        let [held] = reqs[0].held[..] else {
+            panic!("{reqs:?}")
+        };
+        assert_eq!(held.end_s, t(60));
+        assert_eq!(held.frames_mask, 0b111_1101_1111);
+        assert!(held.descriptors);
         r.request(ME, &reqs[0]);
         let ours = histories.get_mut(&PEER).unwrap();
+        let mut parts = Vec::new();
         while let Some(x) = r.next_replay() {
-            windows.extend(window_end(&x));
+            assert!(x.window.is_none());
+            parts.extend(x.part.clone());
             c.accept(PEER, x, t(101), ours, &limits());
         }
-        assert_eq!(windows, [t(60)]);
+        // Back comes frame 55 alone: no snapshot, no other frame, no
+        // descriptors.
+        let [part] = &parts[..] else {
+            panic!("{parts:?}")
+        };
+        assert_eq!(part.end_s, t(60));
+        assert_eq!(part.frames.len(), 1);
+        assert_eq!(part.frames[0].t_s, t(55));
+        assert!(part.descriptors.is_empty());
         assert_eq!(ours.keyframes, whole.keyframes);
-        assert_eq!(c.stats.windows_completed, 1);
+        assert_eq!(ours.history_bytes, whole.history_bytes);
+        assert_eq!((c.stats.parts_received, c.stats.parts_stored), (1, 1));
+        assert_eq!(r.stats.parts_replayed, 0, "counted when sent");
+        // Whole now: nothing more is asked.
+        assert!(c.requests(t(120), &histories).is_empty());
+    }
+
+    /// Losses every second make overlapping gaps one after another: each
+    /// window is still asked for about a second after it exists, not when
+    /// the losses stop.
+    #[test]
+    fn on_a_steadily_lossy_link_windows_are_asked_for_as_they_come() {
+        let mut c = CatchUp::new(ME, 5.0);
+        let mut ours = PeerHistory::default();
+        let mut histories = BTreeMap::new();
+        let mut first_asked: BTreeMap<u64, f64> = BTreeMap::new();
+        for f in 0..=300u64 {
+            // One track frame in seven is lost.
+            let envs: Vec<Envelope> = published(f)
+                .into_iter()
+                .filter(|e| !(matches!(e.body, Body::Tracks(_)) && f % 7 == 3))
+                .collect();
+            feed(&mut ours, &envs);
+            for e in &envs {
+                c.delivered(e, &ours);
+            }
+            histories.insert(PEER, ours.clone());
+            for req in c.requests(t(f), &histories) {
+                if req.ranges == [TimeRange::ALL] {
+                    // The first request, before any window: nothing found.
+                    c.accept(PEER, done(&req), t(f), &mut ours, &limits());
+                    continue;
+                }
+                for w in (1..=30).map(|k| 10 * k) {
+                    if req.ranges.iter().any(|r| r.contains(t(w))) {
+                        first_asked.entry(w).or_insert(t(f));
+                    }
+                }
+            }
+        }
+        // Every window short of a frame (all but none: a window spans 11
+        // frames) is asked for within two seconds of its end.
+        for w in (2..=29).map(|k| 10 * k) {
+            let asked = first_asked.get(&w).copied();
+            assert!(
+                asked.is_some_and(|a| a - t(w) <= 2.0),
+                "window {w} (end {}) first asked at {asked:?}",
+                t(w)
+            );
+        }
+    }
+
+    #[test]
+    fn a_window_goes_whole_to_whoever_lacks_it_and_in_parts_to_its_holders() {
+        let mut r = replayer(100, 1e9);
+        let end = t(60);
+        let range = TimeRange {
+            after_s: Some(end - ONE_WINDOW_S),
+            up_to_s: Some(end),
+        };
+        let holding = |robot_mask: u64, descriptors: bool| HeldWindow {
+            end_s: end,
+            frames_mask: robot_mask,
+            descriptors,
+        };
+        // Robot 2 lacks frame 0, robot 3 frame 4 and the descriptors.
+        let all = (1u64 << 11) - 1;
+        r.request(
+            ME,
+            &HistoryRequest {
+                held: vec![holding(all & !1, true)],
+                ..request(0, vec![range])
+            },
+        );
+        r.request(
+            3,
+            &HistoryRequest {
+                held: vec![holding(all & !(1 << 4), false)],
+                ..request(0, vec![range])
+            },
+        );
+        let x = r.next_replay().expect("a part");
+        assert!(r.next_replay().is_none());
+        assert_eq!(x.for_robots, [ME, 3]);
+        let part = x.part.expect("a part");
+        let times: Vec<f64> = part.frames.iter().map(|f| f.t_s).collect();
+        assert_eq!(times, [t(50), t(54)]);
+        assert!(!part.descriptors.is_empty());
+        assert_eq!(x.completes.len(), 2);
+
+        // Robot 4 lacks the window: it goes whole, to all three.
+        r.request(
+            ME,
+            &HistoryRequest {
+                held: vec![holding(all & !1, true)],
+                ..request(1, vec![range])
+            },
+        );
+        r.request(4, &request(0, vec![range]));
+        let x = r.next_replay().expect("a window");
+        assert_eq!(x.for_robots, [ME, 4]);
+        assert!(x.window.is_some() && x.part.is_none());
+
+        // A holder of every part there is gets nothing, and its request
+        // completes at once.
+        r.request(
+            ME,
+            &HistoryRequest {
+                held: vec![holding(all, true)],
+                ..request(2, vec![range])
+            },
+        );
+        let x = r.next_replay().expect("a completion");
+        assert!(x.window.is_none() && x.part.is_none());
+        assert_eq!(
+            x.completes,
+            [RequestRef {
+                robot: ME,
+                request_id: 2
+            }]
+        );
+        assert_eq!(x.answered.len(), 1);
     }
 
     #[test]

@@ -233,6 +233,7 @@ impl HistoryStore {
                 body: Body::HistoryReplay(Box::new(HistoryReplay {
                     for_robots: Vec::new(),
                     window: Some(kf.to_wire()),
+                    part: None,
                     completes: Vec::new(),
                     answered: Vec::new(),
                 })),

@@ -123,6 +123,8 @@ pub struct NodeReport {
     /// Keyframe windows in that archive (what peers hold of this agent when
     /// they missed nothing).
     pub own_archive_windows: usize,
+    /// Of those, windows whole (a frame at every clone, and descriptors).
+    pub own_archive_whole_windows: usize,
     /// Messages dropped by the injected outage (`faults.outage_fleet_s`).
     /// They are dropped after decoding, so `net` counts them as received
     /// (its sequence numbers then show no gap for them).
@@ -419,7 +421,7 @@ impl Node {
             self.publish_one(env);
         }
         while let Some(replay) = self.catch_up.as_mut().and_then(|(_, r)| r.next_replay()) {
-            let window = replay.window.is_some();
+            let carried = (replay.window.is_some(), replay.part.is_some());
             let env = self
                 .outbox
                 .catch_up(now_s, Body::HistoryReplay(Box::new(replay)));
@@ -427,7 +429,7 @@ impl Node {
             // budget must not let a failing publish spin.
             let bytes = self.publish_one(env);
             if let Some((_, r)) = self.catch_up.as_mut() {
-                r.sent(window, bytes.max(1));
+                r.sent(carried, bytes.max(1));
             }
         }
     }
@@ -1021,11 +1023,18 @@ pub fn run_node(
         node.report.catch_up = Some(CatchUpStats {
             requests_answered: r.requests_answered,
             windows_replayed: r.windows_replayed,
+            parts_replayed: r.parts_replayed,
             replay_bytes: r.replay_bytes,
             ..a.clone()
         });
         node.report.own_archive_bytes = replayer.archive().bytes();
         node.report.own_archive_windows = replayer.archive().keyframes.len();
+        node.report.own_archive_whole_windows = replayer
+            .archive()
+            .keyframes
+            .values()
+            .filter(|kf| kf.is_whole())
+            .count();
     }
     node.report.wall_s = node.wall_s();
     node.report.cpu_s = crate::runner::thread_cpu_s(cpu_start.as_ref());

@@ -20,8 +20,8 @@
 
 use crate::history_retention::{self, Place, Retention};
 use common::messages::{
-    DescriptorBatch, DescriptorEntry, HistoryWindow, StateSnapshot, TrackFrame, WindowFrame,
-    WindowObservation,
+    DescriptorBatch, DescriptorEntry, HeldWindow, HistoryWindow, StateSnapshot, TrackFrame,
+    WindowFrame, WindowObservation, WindowPart,
 };
 use std::collections::{BTreeMap, HashMap, VecDeque};
 
@@ -87,6 +87,80 @@ impl KeyframeWindow {
     /// the descriptors did (a lost message leaves a window short of one).
     pub fn completeness(&self) -> (usize, bool) {
         (self.frames.len(), !self.descriptors.is_empty())
+    }
+
+    /// Whether it holds everything a window can hold: a frame at every
+    /// clone and the descriptors.
+    pub fn is_whole(&self) -> bool {
+        let (frames, descriptors) = self.completeness();
+        descriptors && frames >= self.snapshot.clones.len()
+    }
+
+    /// Which of its parts this copy holds, as a request lists it.
+    pub fn held(&self) -> HeldWindow {
+        let frames_mask = self
+            .snapshot
+            .clones
+            .iter()
+            .take(64)
+            .enumerate()
+            .filter(|(_, c)| self.frames.iter().any(|f| f.t_s == c.t_s))
+            .fold(0u64, |mask, (i, _)| mask | (1 << i));
+        HeldWindow {
+            end_s: self.end_s(),
+            frames_mask,
+            descriptors: !self.descriptors.is_empty(),
+        }
+    }
+
+    /// The parts of this window that some holder in `held` lacks: each
+    /// frame one of them misses, and the descriptors if one misses those.
+    /// Empty (no frames, no descriptors) when there is nothing to send.
+    pub fn part_for<'a>(&self, held: impl IntoIterator<Item = &'a HeldWindow>) -> WindowPart {
+        let clone_index = |t_s: f64| self.snapshot.clones.iter().position(|c| c.t_s == t_s);
+        let mut frames_wanted = vec![false; self.frames.len()];
+        let mut descriptors = false;
+        for h in held {
+            for (wanted, f) in frames_wanted.iter_mut().zip(&self.frames) {
+                *wanted |= clone_index(f.t_s).is_none_or(|i| !h.holds_frame(i));
+            }
+            descriptors |= !h.descriptors;
+        }
+        WindowPart {
+            end_s: self.end_s(),
+            frames: self
+                .frames
+                .iter()
+                .zip(frames_wanted)
+                .filter(|(_, wanted)| *wanted)
+                .map(|(f, _)| f.clone())
+                .collect(),
+            descriptors: if descriptors {
+                self.descriptors.clone()
+            } else {
+                Vec::new()
+            },
+        }
+    }
+
+    /// Adds what `part` has that this copy lacks: frames at its clone times
+    /// not held (kept oldest first), and descriptors if none are held.
+    /// Returns whether anything was added.
+    fn merge(&mut self, part: WindowPart) -> bool {
+        let mut added = false;
+        for f in part.frames {
+            let at_clone = self.snapshot.clones.iter().any(|c| c.t_s == f.t_s);
+            if at_clone && !self.frames.iter().any(|g| g.t_s == f.t_s) {
+                self.frames.push(f);
+                added = true;
+            }
+        }
+        self.frames.sort_by(|a, b| a.t_s.total_cmp(&b.t_s));
+        if self.descriptors.is_empty() && !part.descriptors.is_empty() {
+            self.descriptors = part.descriptors;
+            added = true;
+        }
+        added
     }
 
     /// Approximate heap bytes held.
@@ -338,6 +412,11 @@ impl PeerHistory {
             self.stored_bytes = self.stored_bytes.saturating_sub(old.bytes());
             self.stored_keyframes -= 1;
         }
+        self.keep_within(limits);
+    }
+
+    /// Drops keyframe windows while the history exceeds its bound.
+    fn keep_within(&mut self, limits: &HistoryLimits) {
         while self.history_bytes > limits.max_bytes {
             let Some(old) = history_retention::victim(&self.keyframes, limits.retention)
                 .and_then(|k| self.keyframes.remove(&k))
@@ -359,6 +438,25 @@ impl PeerHistory {
         };
         self.store(kf, limits);
         outcome
+    }
+
+    /// Adds a replayed part to the window it belongs to, if that window is
+    /// held: `Completed` when it added something, `AlreadyHeld` when the copy
+    /// held had it all, `None` when the window is not held (a part cannot
+    /// make a window: it has no snapshot).
+    pub fn add_part(&mut self, part: WindowPart, limits: &HistoryLimits) -> Option<Replayed> {
+        let kf = self.keyframes.get_mut(&time_key(part.end_s))?;
+        let before = kf.bytes();
+        if !kf.merge(part) {
+            return Some(Replayed::AlreadyHeld);
+        }
+        let grown = kf.bytes().saturating_sub(before);
+        self.history_bytes += grown;
+        self.stored_bytes += grown;
+        self.revision += 1;
+        // The window grew: the bound may now drop one.
+        self.keep_within(limits);
+        Some(Replayed::Completed)
     }
 
     /// The newest stored window's end time, s.
@@ -522,6 +620,62 @@ mod tests {
         assert_eq!(h.keyframes.len(), 1);
         let kf = h.keyframes.values().next().unwrap();
         assert_eq!(kf.completeness(), whole.completeness());
+    }
+
+    #[test]
+    fn a_part_fills_in_what_a_held_window_lacks_and_nothing_else() {
+        let l = limits(usize::MAX);
+        let snap = snapshot(2.0, true);
+        let frame = |t_s: f64| HistoricalFrame {
+            t_s,
+            observations: vec![HistoricalObservation {
+                id: 7,
+                xy_norm: [0.1, 0.2],
+            }],
+        };
+        let times: Vec<f64> = snap.clones.iter().map(|c| c.t_s).collect();
+        // Held without clones 3 and 8 and without descriptors.
+        let short: Vec<HistoricalFrame> = times
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| ![3, 8].contains(i))
+            .map(|(_, &t)| frame(t))
+            .collect();
+        let mut h = PeerHistory::default();
+        h.add_replayed(KeyframeWindow::new(snap.clone(), short, Vec::new()), &l);
+        let held = h.keyframes.values().next().unwrap().held();
+        assert_eq!(held.frames_mask, 0b110_1111_0111);
+        assert!(!held.descriptors);
+        let whole = KeyframeWindow::new(
+            snap.clone(),
+            times.iter().map(|&t| frame(t)).collect(),
+            vec![DescriptorEntry {
+                id: 7,
+                bits: [5; 4],
+            }],
+        );
+        let part = whole.part_for([&held]);
+        assert_eq!(part.frames.len(), 2);
+        assert_eq!(part.descriptors.len(), 1);
+        let (bytes, revision) = (h.history_bytes, h.revision);
+        // A frame at no clone time is ignored; the rest fills the window.
+        let mut stray = part.clone();
+        stray.frames.push(frame(2.05));
+        assert_eq!(h.add_part(stray, &l), Some(Replayed::Completed));
+        let kf = h.keyframes.values().next().unwrap();
+        assert_eq!(kf.frames, whole.frames);
+        assert_eq!(kf.descriptors, whole.descriptors);
+        assert!(kf.is_whole());
+        assert!(h.history_bytes > bytes);
+        assert_eq!(h.history_bytes, whole.bytes());
+        assert!(h.revision > revision);
+        // Again: nothing new. A part of a window not held makes nothing.
+        assert_eq!(h.add_part(part.clone(), &l), Some(Replayed::AlreadyHeld));
+        let elsewhere = WindowPart { end_s: 9.0, ..part };
+        assert_eq!(h.add_part(elsewhere, &l), None);
+        assert_eq!(h.keyframes.len(), 1);
+        // Nothing is missing for a holder of it all.
+        assert!(whole.part_for([&whole.held()]).is_empty());
     }
 
     #[test]

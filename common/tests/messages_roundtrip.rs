@@ -47,7 +47,7 @@ fn header_is_magic_version_then_bincode_standard() {
     assert_eq!(&bytes[..4], b"FVIO");
     assert_eq!(bytes[..4], MAGIC);
     assert_eq!(u16::from_le_bytes([bytes[4], bytes[5]]), WIRE_VERSION);
-    assert_eq!(WIRE_VERSION, 4);
+    assert_eq!(WIRE_VERSION, 5);
     let payload = bincode::serde::encode_to_vec(&env, bincode::config::standard()).unwrap();
     assert_eq!(&bytes[6..], &payload[..]);
 }

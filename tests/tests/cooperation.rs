@@ -109,6 +109,13 @@ fn held(out: &Path, r: usize, p: usize) -> u64 {
         .unwrap_or(0)
 }
 
+/// Of those, the windows held whole (a frame at every clone, descriptors).
+fn held_whole(out: &Path, r: usize, p: usize) -> u64 {
+    stats(out, r)["histories"][p.to_string()]["whole"]
+        .as_u64()
+        .unwrap_or(0)
+}
+
 /// A link outage over fleet seconds 4-20 (every data message sent in it is
 /// lost; lockstep heartbeats pass) costs the third robot most of the others'
 /// flights. With history catch-up every agent gets the missed keyframe windows
@@ -153,10 +160,11 @@ fn after_a_link_outage_agents_catch_up_on_their_peers_histories_over_zenoh() {
 /// On a link that loses 30 % of the messages (each agent its own draws; the
 /// lockstep heartbeats pass), nearly every keyframe window arrives short of a
 /// frame, its descriptors or its snapshot. Catch-up asks again for the gaps,
-/// and for the windows an answer listed but whose replays were lost too, so
-/// every agent ends holding every window of the robots that finished before
-/// the fleet did; of the last robot, all but those of its last seconds, which
-/// the fleet's end leaves no time to ask for.
+/// and for the windows an answer listed but whose replays were lost too; a
+/// window held short of a frame or its descriptors gets only those back. So
+/// every agent ends holding, whole, every window of the robots that finished
+/// before the fleet did; of the last robot, all but those of its last
+/// seconds, which the fleet's end leaves no time to ask for.
 #[test]
 fn on_a_lossy_link_agents_still_end_with_their_peers_whole_histories_over_zenoh() {
     let dir = tempfile::tempdir().unwrap();
@@ -168,24 +176,35 @@ fn on_a_lossy_link_agents_still_end_with_their_peers_whole_histories_over_zenoh(
         &[&OVER_ZENOH[..], &["--link-loss", "0.3"]].concat(),
     );
     assert_cooperates(&summary);
-    let mut reasked = 0;
+    let (mut reasked, mut parts) = (0, 0);
     for r in 0..3 {
         let s = stats(&out, r);
         assert!(s["loss_dropped"].as_u64().unwrap_or(0) > 100, "{s}");
         let c = &s["catch_up"];
-        assert!(c["windows_completed"].as_u64().unwrap_or(0) > 5, "{c}");
+        let completed = c["windows_completed"].as_u64().unwrap_or(0);
+        let by_parts = c["parts_stored"].as_u64().unwrap_or(0);
+        assert!(completed + by_parts > 5, "{c}");
         reasked += c["windows_reasked"].as_u64().unwrap_or(0);
+        parts += by_parts;
         for p in (0..3).filter(|p| *p != r) {
-            let whole = stats(&out, p)["own_archive_windows"].as_u64().unwrap_or(0);
-            assert!(whole > 15, "robot {p} made {whole} windows");
-            let held = held(&out, r, p);
+            let made = stats(&out, p);
+            let windows = made["own_archive_windows"].as_u64().unwrap_or(0);
+            let whole = made["own_archive_whole_windows"].as_u64().unwrap_or(0);
+            assert!(whole > 15, "robot {p} made {whole} whole windows");
             // Robot 2 flies last (30-54 s).
             let last_seconds = if p == 2 { 6 } else { 0 };
+            let held = held(&out, r, p);
             assert!(
-                held <= whole && held + last_seconds >= whole,
-                "robot {r} holds {held} of robot {p}'s {whole} windows"
+                held <= windows && held + last_seconds >= windows,
+                "robot {r} holds {held} of robot {p}'s {windows} windows"
+            );
+            let held_whole = held_whole(&out, r, p);
+            assert!(
+                held_whole <= whole && held_whole + last_seconds >= whole,
+                "robot {r} holds {held_whole} of robot {p}'s {whole} whole windows whole"
             );
         }
     }
     assert!(reasked > 0, "no lost replay was asked for again");
+    assert!(parts > 0, "no window was completed by a part");
 }

@@ -19,8 +19,9 @@ pub const MAGIC: [u8; 4] = *b"FVIO";
 /// Version 3: heartbeats carry the newest keyframe window's end time, and the
 /// history catch-up messages exist (version 2 peers would misread heartbeats).
 /// Version 4: a history answer lists the windows it was made of, so a
-/// requester can tell which replays it lost.
-pub const WIRE_VERSION: u16 = 4;
+/// requester can tell which replays it lost. Version 5: a request lists the
+/// windows held short of some parts, and a replay may carry only those parts.
+pub const WIRE_VERSION: u16 = 5;
 
 /// The wire versions this build reads.
 pub const SUPPORTED_VERSIONS: &[u16] = &[WIRE_VERSION];

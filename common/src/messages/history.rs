@@ -6,7 +6,11 @@
 //! would never make a historical loop closure there. It asks the peer with a
 //! [`HistoryRequest`] (ranges of window end times); the peer answers from its
 //! own archive with one [`HistoryReplay`] per keyframe window, paced, and says
-//! when each request is fully answered.
+//! when each request is fully answered. A window the requester holds short of
+//! some parts (a track frame or the descriptors were lost) is listed in the
+//! request with what it holds, and only the missing parts come back
+//! ([`WindowPart`]): on a lossy link most windows miss one message of a dozen,
+//! and the snapshot, most of a window's bytes, has arrived.
 //!
 //! A replay is published to the whole fleet (the transports only broadcast);
 //! it names the robots that asked for it, and the others ignore it.
@@ -49,6 +53,51 @@ pub struct HistoryRequest {
     /// The windows wanted, by end time.
     #[serde(deserialize_with = "bounded_vec::deserialize")]
     pub ranges: Vec<TimeRange>,
+    /// Windows in `ranges` the requester holds already, short of some parts:
+    /// only those parts are sent. A window not listed is sent whole.
+    #[serde(deserialize_with = "bounded_vec::deserialize")]
+    pub held: Vec<HeldWindow>,
+}
+
+/// A window the requester holds, and which of its parts.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HeldWindow {
+    /// The window's end time, s.
+    pub end_s: f64,
+    /// Bit `i` set: the frame of measurements at the window's `i`-th clone
+    /// (oldest first) is held. Clones past the 64th count as not held.
+    pub frames_mask: u64,
+    /// Whether the keyframe's descriptors are held.
+    pub descriptors: bool,
+}
+
+impl HeldWindow {
+    /// Whether the frame at clone `index` is held.
+    pub fn holds_frame(&self, index: usize) -> bool {
+        index < 64 && self.frames_mask & (1 << index) != 0
+    }
+}
+
+/// The parts of a window its requesters lacked: the frames they miss, and the
+/// keyframe's descriptors if one of them misses those.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WindowPart {
+    /// The window's end time, s (it names the window the requesters hold).
+    pub end_s: f64,
+    /// Frames of measurements, each at one of the window's clone times,
+    /// oldest first.
+    #[serde(deserialize_with = "bounded_vec::deserialize")]
+    pub frames: Vec<WindowFrame>,
+    /// The keyframe's descriptors (empty: not sent).
+    #[serde(deserialize_with = "bounded_vec::deserialize")]
+    pub descriptors: Vec<DescriptorEntry>,
+}
+
+impl WindowPart {
+    /// Whether it carries nothing.
+    pub fn is_empty(&self) -> bool {
+        self.frames.is_empty() && self.descriptors.is_empty()
+    }
 }
 
 /// A request, named by its requester and id.
@@ -108,8 +157,10 @@ pub struct HistoryReplay {
     #[serde(deserialize_with = "bounded_vec::deserialize")]
     pub for_robots: Vec<u32>,
     /// The window (`None` when the message only completes requests that found
-    /// nothing).
+    /// nothing, or carries a part).
     pub window: Option<HistoryWindow>,
+    /// The missing parts of a window the requesters hold (never with `window`).
+    pub part: Option<WindowPart>,
     /// Requests fully answered once this message is in.
     #[serde(deserialize_with = "bounded_vec::deserialize")]
     pub completes: Vec<RequestRef>,
@@ -134,7 +185,9 @@ pub struct AnsweredWindow {
 
 #[cfg(test)]
 mod tests {
-    use super::super::{decode, encode, samples, Body, Envelope, ValidationError};
+    use super::super::{
+        decode, encode, samples, Body, Envelope, ValidationError, MAX_HELD_WINDOWS,
+    };
     use super::*;
 
     fn replay(env: &mut Envelope) -> &mut HistoryReplay {
@@ -148,7 +201,9 @@ mod tests {
     fn requests_and_replays_round_trip() {
         for env in [
             samples::history_request(12.5),
+            samples::history_request_holding(12.5, 30),
             samples::history_replay(300, 80),
+            samples::history_part(300, 80, &[2, 7], true),
         ] {
             assert_eq!(decode(&encode(&env).unwrap()).unwrap(), env);
         }
@@ -236,5 +291,72 @@ mod tests {
         let mut env = samples::history_replay(300, 10);
         replay(&mut env).window = None;
         assert_eq!(decode(&encode(&env).unwrap()).unwrap(), env);
+    }
+
+    #[test]
+    fn a_part_is_small_and_checked() {
+        let limits = Default::default();
+        let whole = encode(&samples::history_replay(300, 100)).unwrap().len();
+        let part = encode(&samples::history_part(300, 100, &[4], false))
+            .unwrap()
+            .len();
+        // One frame of eleven, no snapshot: a tenth of the window or less.
+        assert!(part * 10 < whole, "part {part} B, whole {whole} B");
+
+        let mut env = samples::history_part(300, 10, &[2, 7], true);
+        let w = samples::history_replay(300, 10);
+        replay(&mut env).window = match w.body {
+            Body::HistoryReplay(r) => r.window,
+            _ => None,
+        };
+        assert_eq!(
+            env.validate(&limits),
+            Err(ValidationError::ReplayWindowAndPart)
+        );
+
+        let env = samples::history_part(300, 10, &[7, 2], true);
+        assert!(matches!(
+            env.validate(&limits),
+            Err(ValidationError::PartFramesOutOfOrder { index: 1, .. })
+        ));
+
+        let mut env = samples::history_part(300, 10, &[2], true);
+        replay(&mut env).part.as_mut().unwrap().frames[0].observations[1].xy_norm[0] = f32::NAN;
+        assert!(matches!(
+            env.validate(&limits),
+            Err(ValidationError::NonFinite { field, .. })
+                if field == "history.part.frames[0].observations[1].xy_norm[0]"
+        ));
+
+        let mut env = samples::history_part(300, 10, &[2], true);
+        replay(&mut env).part.as_mut().unwrap().end_s = f64::INFINITY;
+        assert!(env.validate(&limits).is_err());
+    }
+
+    #[test]
+    fn a_request_lists_at_most_so_many_held_windows_with_finite_ends() {
+        let limits = Default::default();
+        let env = samples::history_request_holding(3.0, MAX_HELD_WINDOWS);
+        assert_eq!(env.validate(&limits), Ok(()));
+        let env = samples::history_request_holding(3.0, MAX_HELD_WINDOWS + 1);
+        assert!(matches!(
+            env.validate(&limits),
+            Err(ValidationError::TooMany {
+                field: "history_request.held",
+                ..
+            })
+        ));
+        let mut env = samples::history_request_holding(3.0, 4);
+        if let Body::HistoryRequest(r) = &mut env.body {
+            r.held[2].end_s = f64::NAN;
+        }
+        assert!(env.validate(&limits).is_err());
+        let held = HeldWindow {
+            end_s: 1.0,
+            frames_mask: 0b101,
+            descriptors: false,
+        };
+        assert!(held.holds_frame(0) && !held.holds_frame(1) && held.holds_frame(2));
+        assert!(!held.holds_frame(64) && !held.holds_frame(200));
     }
 }

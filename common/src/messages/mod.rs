@@ -61,13 +61,14 @@ pub use codec::{
 };
 pub use envelope::Envelope;
 pub use history::{
-    AnsweredWindow, HistoryReplay, HistoryRequest, HistoryWindow, RequestRef, TimeRange,
-    WindowFrame, WindowObservation,
+    AnsweredWindow, HeldWindow, HistoryReplay, HistoryRequest, HistoryWindow, RequestRef,
+    TimeRange, WindowFrame, WindowObservation, WindowPart,
 };
 pub use packed_cov::PackedCovariance;
 pub use validate::{
     Limits, ValidationError, FLEET_ID_FORBIDDEN_CHARS, INTRINSICS_DIM, MAX_ANSWERED_WINDOWS,
-    MAX_FLEET_ID_BYTES, MAX_REPLAY_ROBOTS, MAX_REQUEST_RANGES, QUATERNION_NORM_TOLERANCE,
+    MAX_FLEET_ID_BYTES, MAX_HELD_WINDOWS, MAX_REPLAY_ROBOTS, MAX_REQUEST_RANGES,
+    QUATERNION_NORM_TOLERANCE,
 };
 
 use serde::{Deserialize, Serialize};

@@ -12,9 +12,9 @@ use nalgebra::{DMatrix, Matrix3, Vector2, Vector3};
 
 use super::{
     AgentState, AnsweredWindow, Body, CameraModelWire, CameraPose, DescriptorBatch,
-    DescriptorEntry, Envelope, Heartbeat, HistoryReplay, HistoryRequest, HistoryWindow, Landmark,
-    PackedCovariance, RequestRef, StateSnapshot, TimeRange, TrackFrame, TrackPoint, WindowFrame,
-    WindowObservation,
+    DescriptorEntry, Envelope, Heartbeat, HeldWindow, HistoryReplay, HistoryRequest, HistoryWindow,
+    Landmark, PackedCovariance, RequestRef, StateSnapshot, TimeRange, TrackFrame, TrackPoint,
+    WindowFrame, WindowObservation, WindowPart,
 };
 use crate::camera::CameraModel;
 use crate::descriptor::Descriptor;
@@ -198,6 +198,7 @@ pub fn history_request(after_s: f64) -> Envelope {
                 after_s: Some(after_s),
                 up_to_s: None,
             }],
+            held: Vec::new(),
         }),
     )
 }
@@ -235,6 +236,7 @@ pub fn history_replay(frame_index: u64, n: usize) -> Envelope {
                 frames,
                 descriptors: descriptor_entries(n),
             }),
+            part: None,
             completes: vec![RequestRef {
                 robot: 2,
                 request_id: 3,
@@ -249,6 +251,46 @@ pub fn history_replay(frame_index: u64, n: usize) -> Envelope {
                 .collect(),
         })),
     )
+}
+
+/// The parts of the window of [`history_replay`] a requester lacked: its
+/// frames at the clones `missing` (indices, oldest first) and, if
+/// `descriptors`, the keyframe's descriptors.
+pub fn history_part(frame_index: u64, n: usize, missing: &[usize], descriptors: bool) -> Envelope {
+    let mut env = history_replay(frame_index, n);
+    if let Body::HistoryReplay(r) = &mut env.body {
+        if let Some(w) = r.window.take() {
+            r.part = Some(WindowPart {
+                end_s: w.end_s(),
+                frames: missing
+                    .iter()
+                    .filter_map(|&i| w.frames.get(i).cloned())
+                    .collect(),
+                descriptors: if descriptors {
+                    w.descriptors
+                } else {
+                    Vec::new()
+                },
+            });
+        }
+    }
+    env
+}
+
+/// A request for the windows after `after_s`, holding `held` of them short
+/// of their newest frame.
+pub fn history_request_holding(after_s: f64, held: usize) -> Envelope {
+    let mut env = history_request(after_s);
+    if let Body::HistoryRequest(r) = &mut env.body {
+        r.held = (0..held)
+            .map(|i| HeldWindow {
+                end_s: after_s + 1.1 * (i + 1) as f64,
+                frames_mask: (1 << 10) - 1,
+                descriptors: i % 2 == 0,
+            })
+            .collect();
+    }
+    env
 }
 
 /// A heartbeat of a running agent.

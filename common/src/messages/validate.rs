@@ -5,7 +5,7 @@ use thiserror::Error;
 
 use super::body::{Body, CameraPose, DescriptorBatch, Heartbeat, StateSnapshot, TrackFrame};
 use super::envelope::Envelope;
-use super::history::{HistoryReplay, HistoryRequest, HistoryWindow};
+use super::history::{HistoryReplay, HistoryRequest, HistoryWindow, WindowFrame, WindowPart};
 use super::packed_cov::PackedCovariance;
 use crate::camera::{CameraError, CameraModel};
 
@@ -176,6 +176,20 @@ pub enum ValidationError {
         /// Its time.
         t_s: f64,
     },
+    /// A replay carries both a whole window and a part of one.
+    #[error("history carries both a window and a part: at most one")]
+    ReplayWindowAndPart,
+    /// A replayed part's frames are not in increasing time order.
+    #[error(
+        "history.part.frames[{index}].t_s = {t_s} is not after the frame before it: \
+         frames must be oldest first"
+    )]
+    PartFramesOutOfOrder {
+        /// Index of the frame.
+        index: usize,
+        /// Its time.
+        t_s: f64,
+    },
 }
 
 /// Most ranges in one [`HistoryRequest`].
@@ -187,6 +201,10 @@ pub const MAX_REPLAY_ROBOTS: usize = 1024;
 /// Most windows a [`HistoryReplay`] lists as answered (an hour of keyframe
 /// windows at one per 0.25 s).
 pub const MAX_ANSWERED_WINDOWS: usize = 16_384;
+
+/// Most windows a [`HistoryRequest`] lists as held short of some parts (a
+/// request that would list more asks for the rest whole).
+pub const MAX_HELD_WINDOWS: usize = 4096;
 
 /// `Ok` if `value` is finite, else a [`ValidationError::NonFinite`] naming it
 /// (the name is only built on failure).
@@ -397,6 +415,10 @@ fn validate_history_request(r: &HistoryRequest) -> Result<(), ValidationError> {
             }
         }
     }
+    count("history_request.held", r.held.len(), MAX_HELD_WINDOWS)?;
+    for (i, h) in r.held.iter().enumerate() {
+        finite(h.end_s, || format!("history_request.held[{i}].end_s"))?;
+    }
     Ok(())
 }
 
@@ -407,10 +429,63 @@ fn validate_history_replay(r: &HistoryReplay, limits: &Limits) -> Result<(), Val
     for (i, a) in r.answered.iter().enumerate() {
         finite(a.end_s, || format!("history.answered[{i}].end_s"))?;
     }
-    match &r.window {
-        Some(w) => validate_history_window(w, limits),
-        None => Ok(()),
+    match (&r.window, &r.part) {
+        (Some(_), Some(_)) => Err(ValidationError::ReplayWindowAndPart),
+        (Some(w), None) => validate_history_window(w, limits),
+        (None, Some(p)) => validate_window_part(p, limits),
+        (None, None) => Ok(()),
     }
+}
+
+/// A replayed part: at most one frame per possible clone, oldest first, and
+/// at most a keyframe's descriptors. Which clones the frames belong to is
+/// checked by the requester against the window it holds.
+fn validate_window_part(p: &WindowPart, limits: &Limits) -> Result<(), ValidationError> {
+    finite(p.end_s, || "history.part.end_s".into())?;
+    count("history.part.frames", p.frames.len(), limits.max_clones)?;
+    count(
+        "history.part.descriptors",
+        p.descriptors.len(),
+        limits.max_descriptor_entries,
+    )?;
+    let mut previous = f64::NEG_INFINITY;
+    for (i, f) in p.frames.iter().enumerate() {
+        finite(f.t_s, || format!("history.part.frames[{i}].t_s"))?;
+        if f.t_s <= previous {
+            return Err(ValidationError::PartFramesOutOfOrder {
+                index: i,
+                t_s: f.t_s,
+            });
+        }
+        previous = f.t_s;
+        validate_window_frame(
+            "history.part.frames",
+            "history.part.frames.observations",
+            i,
+            f,
+            limits,
+        )?;
+    }
+    Ok(())
+}
+
+/// The measurements of a replayed frame: bounded and finite.
+/// `frames` names the frames (`history.window.frames`), `observations` their
+/// observations for a count error.
+fn validate_window_frame(
+    frames: &str,
+    observations: &'static str,
+    i: usize,
+    f: &WindowFrame,
+    limits: &Limits,
+) -> Result<(), ValidationError> {
+    count(observations, f.observations.len(), limits.max_features)?;
+    for (k, o) in f.observations.iter().enumerate() {
+        all_finite(&o.xy_norm, || {
+            format!("{frames}[{i}].observations[{k}].xy_norm")
+        })?;
+    }
+    Ok(())
 }
 
 /// A replayed window: a valid keyframe snapshot, and at most one frame per
@@ -441,16 +516,13 @@ fn validate_history_window(w: &HistoryWindow, limits: &Limits) -> Result<(), Val
                 t_s: f.t_s,
             });
         }
-        count(
+        validate_window_frame(
+            "history.window.frames",
             "history.window.frames.observations",
-            f.observations.len(),
-            limits.max_features,
+            i,
+            f,
+            limits,
         )?;
-        for (k, o) in f.observations.iter().enumerate() {
-            all_finite(&o.xy_norm, || {
-                format!("history.window.frames[{i}].observations[{k}].xy_norm")
-            })?;
-        }
     }
     Ok(())
 }
