@@ -2,10 +2,11 @@
 //! panics, and valid envelopes round-trip exactly.
 
 use common::messages::{
-    decode, encode, AgentState, Body, CameraModelWire, CameraPose, DecodeError, DescriptorBatch,
-    DescriptorEntry, DistortionWire, Envelope, Heartbeat, Landmark, Limits, PackedCovariance,
-    StateSnapshot, TrackFrame, TrackPoint, DECODE_CLAIM_LIMIT_BYTES, HEADER_LEN, MAGIC,
-    WIRE_VERSION,
+    decode, encode, AgentState, AnsweredWindow, Body, CameraModelWire, CameraPose, DecodeError,
+    DescriptorBatch, DescriptorEntry, DistortionWire, Envelope, Heartbeat, HeldWindow,
+    HistoryReplay, HistoryRequest, HistoryWindow, Landmark, Limits, PackedCovariance, RequestRef,
+    StateSnapshot, TimeRange, TrackFrame, TrackPoint, WindowFrame, WindowObservation, WindowPart,
+    DECODE_CLAIM_LIMIT_BYTES, HEADER_LEN, MAGIC, WIRE_VERSION,
 };
 use nalgebra::Vector3;
 use proptest::collection::vec;
@@ -56,19 +57,25 @@ fn tracks() -> impl Strategy<Value = Body> {
     )
 }
 
+fn descriptor_entry() -> impl Strategy<Value = DescriptorEntry> {
+    (any::<u64>(), any::<[u64; 4]>()).prop_map(|(id, bits)| DescriptorEntry { id, bits })
+}
+
 fn descriptors() -> impl Strategy<Value = Body> {
-    let entry =
-        (any::<u64>(), any::<[u64; 4]>()).prop_map(|(id, bits)| DescriptorEntry { id, bits });
-    (any::<u64>(), finite_f64(), any::<bool>(), vec(entry, 0..40)).prop_map(
-        |(frame_index, t_s, keyframe, entries)| {
+    (
+        any::<u64>(),
+        finite_f64(),
+        any::<bool>(),
+        vec(descriptor_entry(), 0..40),
+    )
+        .prop_map(|(frame_index, t_s, keyframe, entries)| {
             Body::Descriptors(DescriptorBatch {
                 frame_index,
                 t_s,
                 keyframe,
                 entries,
             })
-        },
-    )
+        })
 }
 
 fn camera() -> impl Strategy<Value = CameraModelWire> {
@@ -128,6 +135,10 @@ fn landmark() -> impl Strategy<Value = Landmark> {
 }
 
 fn snapshot() -> impl Strategy<Value = Body> {
+    state_snapshot().prop_map(Body::Snapshot)
+}
+
+fn state_snapshot() -> impl Strategy<Value = StateSnapshot> {
     (0..=8usize)
         .prop_flat_map(|n| {
             let len = PackedCovariance::packed_len(6 * n);
@@ -146,7 +157,7 @@ fn snapshot() -> impl Strategy<Value = Body> {
             for (i, d) in diag.into_iter().enumerate() {
                 lower[PackedCovariance::packed_index(i, i)] = d;
             }
-            Body::Snapshot(StateSnapshot {
+            StateSnapshot {
                 frame_index,
                 t_s,
                 keyframe,
@@ -157,7 +168,131 @@ fn snapshot() -> impl Strategy<Value = Body> {
                     lower,
                 },
                 landmarks,
+            }
+        })
+}
+
+fn window_frame(t_s: f64) -> impl Strategy<Value = WindowFrame> {
+    let observation = (any::<u64>(), [finite_f32(), finite_f32()])
+        .prop_map(|(id, xy_norm)| WindowObservation { id, xy_norm });
+    vec(observation, 0..20).prop_map(move |observations| WindowFrame { t_s, observations })
+}
+
+/// Frames at `times` (kept oldest first, one per time).
+fn window_frames(mut times: Vec<f64>) -> impl Strategy<Value = Vec<WindowFrame>> {
+    times.sort_by(f64::total_cmp);
+    times.dedup();
+    times.into_iter().map(window_frame).collect::<Vec<_>>()
+}
+
+fn time_range() -> impl Strategy<Value = TimeRange> {
+    (
+        proptest::option::of(-1e3..1e3f64),
+        proptest::option::of(0.0..1e3f64),
+    )
+        .prop_map(|(after_s, length)| TimeRange {
+            after_s,
+            // Never empty: it ends after it starts.
+            up_to_s: length.map(|l| after_s.unwrap_or(0.0) + l + 1e-3),
+        })
+}
+
+fn history_request() -> impl Strategy<Value = Body> {
+    let held = (finite_f64(), any::<u64>(), any::<bool>()).prop_map(
+        |(end_s, frames_mask, descriptors)| HeldWindow {
+            end_s,
+            frames_mask,
+            descriptors,
+        },
+    );
+    (
+        any::<u32>(),
+        any::<u64>(),
+        vec(time_range(), 0..8),
+        vec(held, 0..20),
+    )
+        .prop_map(|(to_robot, request_id, ranges, held)| {
+            Body::HistoryRequest(HistoryRequest {
+                to_robot,
+                request_id,
+                ranges,
+                held,
             })
+        })
+}
+
+/// A keyframe window: frames at some of its clones' times.
+fn history_window() -> impl Strategy<Value = HistoryWindow> {
+    (
+        state_snapshot(),
+        any::<u64>(),
+        vec(descriptor_entry(), 0..20),
+    )
+        .prop_flat_map(|(mut snapshot, mask, descriptors)| {
+            snapshot.keyframe = true;
+            let times: Vec<f64> = snapshot
+                .clones
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| mask & (1 << i) != 0)
+                .map(|(_, c)| c.t_s)
+                .collect();
+            (Just(snapshot), window_frames(times), Just(descriptors))
+        })
+        .prop_map(|(snapshot, frames, descriptors)| HistoryWindow {
+            snapshot,
+            frames,
+            descriptors,
+        })
+}
+
+fn window_part() -> impl Strategy<Value = WindowPart> {
+    (
+        finite_f64(),
+        vec(-1e3..1e3f64, 0..8),
+        vec(descriptor_entry(), 0..20),
+    )
+        .prop_flat_map(|(end_s, times, descriptors)| {
+            (Just(end_s), window_frames(times), Just(descriptors))
+        })
+        .prop_map(|(end_s, frames, descriptors)| WindowPart {
+            end_s,
+            frames,
+            descriptors,
+        })
+}
+
+fn history_replay() -> impl Strategy<Value = Body> {
+    let request = (any::<u32>(), any::<u64>())
+        .prop_map(|(robot, request_id)| RequestRef { robot, request_id });
+    let answered =
+        (finite_f64(), any::<u32>(), any::<bool>()).prop_map(|(end_s, frames, descriptors)| {
+            AnsweredWindow {
+                end_s,
+                frames,
+                descriptors,
+            }
+        });
+    // A whole window, a part, or neither (a message that only completes).
+    let carried = prop_oneof![
+        history_window().prop_map(|w| (Some(w), None)),
+        window_part().prop_map(|p| (None, Some(p))),
+        Just((None, None)),
+    ];
+    (
+        vec(any::<u32>(), 0..8),
+        carried,
+        vec(request, 0..8),
+        vec(answered, 0..20),
+    )
+        .prop_map(|(for_robots, (window, part), completes, answered)| {
+            Body::HistoryReplay(Box::new(HistoryReplay {
+                for_robots,
+                window,
+                part,
+                completes,
+                answered,
+            }))
         })
 }
 
@@ -192,7 +327,14 @@ fn envelope() -> impl Strategy<Value = Envelope> {
         any::<u32>(),
         any::<u64>(),
         finite_f64(),
-        prop_oneof![tracks(), descriptors(), snapshot(), heartbeat()],
+        prop_oneof![
+            tracks(),
+            descriptors(),
+            snapshot(),
+            heartbeat(),
+            history_request(),
+            history_replay()
+        ],
     )
         .prop_map(|(fleet_id, robot_id, seq, stamp_s, body)| Envelope {
             fleet_id,
