@@ -321,19 +321,19 @@ fn heartbeat() -> impl Strategy<Value = Body> {
         )
 }
 
-fn envelope() -> impl Strategy<Value = Envelope> {
+fn envelope() -> BoxedStrategy<Envelope> {
     (
         fleet_id(),
         any::<u32>(),
         any::<u64>(),
         finite_f64(),
         prop_oneof![
-            tracks(),
-            descriptors(),
-            snapshot(),
-            heartbeat(),
-            history_request(),
-            history_replay()
+            tracks().boxed(),
+            descriptors().boxed(),
+            snapshot().boxed(),
+            heartbeat().boxed(),
+            history_request().boxed(),
+            history_replay().boxed()
         ],
     )
         .prop_map(|(fleet_id, robot_id, seq, stamp_s, body)| Envelope {
@@ -344,6 +344,10 @@ fn envelope() -> impl Strategy<Value = Envelope> {
             sent_wall_ns: seq.wrapping_mul(7),
             body,
         })
+        // Boxed, and each kind of body too: unboxed, an envelope's value tree
+        // is built on the stack, and a debug build overflowed the test
+        // thread's 2 MiB (either box alone was not enough).
+        .boxed()
 }
 
 /// Decoding either fails or returns an envelope that is valid and re-encodes to
