@@ -78,6 +78,9 @@ pub struct TransportReport<'a> {
     /// The history store: windows read back at start, files written
     /// (`None`: no `history.store_dir`).
     pub history_store: Option<&'a crate::node::StoreStats>,
+    /// The end of the run: how long it took to settle, and whether it did
+    /// (`None`: stopped before).
+    pub settle: Option<&'a crate::node::SettleStats>,
 }
 
 fn percentile(sorted: &[f64], q: f64) -> f64 {
@@ -175,6 +178,7 @@ pub fn write_outputs(
         outage_dropped: report.outage_dropped,
         loss_dropped: report.loss_dropped,
         history_store: report.store.as_ref(),
+        settle: report.settle.as_ref(),
     };
     let json = serde_json::to_string_pretty(&transport_report).map_err(std::io::Error::other)?;
     std::fs::write(dir.join("transport_stats.json"), json)?;

@@ -460,6 +460,12 @@ pub struct ClockConfig {
     /// still running, s.
     #[serde(default = "default_linger")]
     pub linger_timeout_s: f64,
+    /// Once every peer's data have ended, how long the agent may go on
+    /// asking its peers for the keyframe windows it lacks or holds short, and
+    /// answering theirs, before it leaves anyway, s (wall clock). It leaves
+    /// as soon as it and every peer are done.
+    #[serde(default = "default_settle_timeout")]
+    pub settle_timeout_s: f64,
 }
 
 fn default_mode() -> ClockMode {
@@ -477,6 +483,9 @@ fn default_barrier_timeout() -> f64 {
 fn default_linger() -> f64 {
     60.0
 }
+fn default_settle_timeout() -> f64 {
+    5.0
+}
 
 impl Default for ClockConfig {
     fn default() -> Self {
@@ -487,6 +496,7 @@ impl Default for ClockConfig {
             start_timeout_s: default_start_timeout(),
             barrier_timeout_s: default_barrier_timeout(),
             linger_timeout_s: default_linger(),
+            settle_timeout_s: default_settle_timeout(),
         }
     }
 }
@@ -692,6 +702,7 @@ impl AgentConfig {
             ("clock.start_timeout_s", c.start_timeout_s),
             ("clock.barrier_timeout_s", c.barrier_timeout_s),
             ("clock.linger_timeout_s", c.linger_timeout_s),
+            ("clock.settle_timeout_s", c.settle_timeout_s),
             ("publish.keyframe_period_s", self.publish.keyframe_period_s),
             (
                 "publish.heartbeat_period_s",

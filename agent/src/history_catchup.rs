@@ -495,6 +495,24 @@ impl CatchUp {
         outcome
     }
 
+    /// Asks `peer` once more for every window we lack or hold short (the
+    /// request leaves out those held whole, and lists those held short):
+    /// at the end of a run, the last losses left no later message to show
+    /// a gap.
+    pub fn sweep(&mut self, peer: u32) {
+        if let Some(p) = self.peers.get_mut(&peer).filter(|p| p.heard) {
+            p.want(TimeRange::ALL, f64::NEG_INFINITY);
+        }
+    }
+
+    /// Whether nothing is asked for or waited on from any peer heard.
+    pub fn idle(&self) -> bool {
+        self.peers
+            .values()
+            .filter(|p| p.heard)
+            .all(|p| p.open.is_empty() && p.wanted.is_empty())
+    }
+
     /// Requests sent to `peer` and not answered in full yet.
     pub fn open_requests(&self, peer: u32) -> usize {
         self.peers.get(&peer).map_or(0, |p| p.open.len())
@@ -786,6 +804,11 @@ impl Replayer {
         if part {
             self.stats.parts_replayed += 1;
         }
+    }
+
+    /// Whether nothing waits to be sent.
+    pub fn idle(&self) -> bool {
+        self.queue.is_empty() && self.found_nothing.is_empty()
     }
 
     /// Windows waiting to be sent.
@@ -1345,6 +1368,66 @@ mod tests {
                 t(w)
             );
         }
+    }
+
+    /// The peer's last track frame is lost and nothing follows it (it
+    /// landed): no gap shows. The sweep at the end asks once more, and only
+    /// that frame comes back.
+    #[test]
+    fn the_sweep_at_the_end_brings_back_what_no_gap_showed() {
+        let live: Vec<Envelope> = (0..=100).flat_map(published).collect();
+        let mut whole = PeerHistory::default();
+        feed(&mut whole, &live);
+        let kept: Vec<Envelope> = live
+            .iter()
+            .filter(|e| !matches!(&e.body, Body::Tracks(x) if x.frame_index == 100))
+            .cloned()
+            .collect();
+        let (before, after): (Vec<Envelope>, Vec<Envelope>) =
+            kept.into_iter().partition(|e| e.stamp_s <= t(90) + 1e-3);
+        // The first request (everything, at first sight) is answered at
+        // frame 90, before the loss.
+        let (mut c, mut ours) = heard(90);
+        let mut r = replayer(90, 1e9);
+        for req in c.requests(t(90), &BTreeMap::new()) {
+            r.request(ME, &req);
+        }
+        while let Some(x) = r.next_replay() {
+            c.accept(PEER, x, t(90), &mut ours, &limits());
+        }
+        for e in (91..=100).flat_map(published) {
+            r.published(&e.body);
+        }
+        feed(&mut ours, &after);
+        for e in &after {
+            c.delivered(e, &ours);
+        }
+        assert!(before.len() > after.len());
+        assert!(c.idle() && r.idle());
+        let mut histories = BTreeMap::new();
+        histories.insert(PEER, ours);
+        assert!(c.requests(t(120), &histories).is_empty(), "no gap showed");
+        assert_ne!(histories[&PEER].keyframes, whole.keyframes);
+
+        c.sweep(PEER);
+        assert!(!c.idle());
+        let reqs = c.requests(t(121), &histories);
+        let [req] = &reqs[..] else { panic!("{reqs:?}") };
+        r.request(ME, req);
+        assert!(!r.idle());
+        let ours = histories.get_mut(&PEER).unwrap();
+        let mut parts = 0;
+        while let Some(x) = r.next_replay() {
+            assert!(x.window.is_none());
+            parts += usize::from(x.part.is_some());
+            c.accept(PEER, x, t(121), ours, &limits());
+        }
+        assert_eq!(parts, 1);
+        assert_eq!(ours.keyframes, whole.keyframes);
+        assert!(c.idle() && r.idle());
+        // A peer never heard (known from disk only) is not swept.
+        c.sweep(9);
+        assert!(c.idle());
     }
 
     #[test]

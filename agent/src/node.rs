@@ -134,6 +134,34 @@ pub struct NodeReport {
     pub loss_dropped: u64,
     /// The history store (`history.store_dir`), if one is used.
     pub store: Option<StoreStats>,
+    /// How the end of the run settled (`None`: it was stopped first).
+    pub settle: Option<SettleStats>,
+}
+
+/// How the end of a run settled: once every peer's data had ended, the agent
+/// asked each once more for the windows it lacked or held short, and left
+/// when it and every peer were done (or at `clock.settle_timeout_s`).
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct SettleStats {
+    /// Wall seconds from every peer's data end to leaving.
+    pub wall_s: f64,
+    /// Whether it left with its own catch-up done and every peer settled
+    /// (false: the timeout came first).
+    pub complete: bool,
+}
+
+/// Fleet seconds per wall second after the data end of a lockstep run.
+const LOCKSTEP_LINGER_RATE: f64 = 10.0;
+
+/// Seconds between repeats of a `Settled` heartbeat (one may be lost).
+const SETTLED_REPEAT_S: f64 = 0.5;
+
+/// The settling at the end of a run, once every peer's data have ended.
+struct Settling {
+    started: Instant,
+    deadline: Instant,
+    /// When `Settled` was last announced.
+    announced: Option<Instant>,
 }
 
 /// What the history store did in a run.
@@ -330,6 +358,67 @@ impl Node {
     fn newest_window_end_s(&self) -> Option<f64> {
         let (_, replayer) = self.catch_up.as_ref()?;
         replayer.archive().stored_span.map(|(_, end)| end)
+    }
+
+    /// Starts settling: every peer in `alive` is asked once more for the
+    /// windows we lack or hold short (the last losses of a run leave no later
+    /// message to show a gap).
+    fn start_settling(&mut self, alive: &[u32], timeout: Duration) -> Settling {
+        if let Some((asking, _)) = self.catch_up.as_mut() {
+            for &peer in alive {
+                asking.sweep(peer);
+            }
+        }
+        let started = Instant::now();
+        Settling {
+            started,
+            deadline: started + timeout,
+            announced: None,
+        }
+    }
+
+    /// One step of settling: announces `Settled` once our catch-up has
+    /// nothing asked or queued (and again every [`SETTLED_REPEAT_S`]);
+    /// returns whether to leave: we and every peer in `alive` settled (we
+    /// stay for theirs, to answer their requests), or the deadline passed.
+    /// Without catch-up there is nothing to ask or answer: it leaves at once.
+    fn settle(
+        &mut self,
+        s: &mut Settling,
+        alive: &[u32],
+        t_last: f64,
+        last_tick: Option<u64>,
+    ) -> bool {
+        let idle = self
+            .catch_up
+            .as_ref()
+            .is_none_or(|(asking, replayer)| asking.idle() && replayer.idle());
+        if idle
+            && s.announced
+                .is_none_or(|t| t.elapsed().as_secs_f64() >= SETTLED_REPEAT_S)
+        {
+            let hb = self.outbox.heartbeat(
+                t_last,
+                AgentState::Settled,
+                self.report.run.frames.len() as u64,
+                last_tick,
+                self.newest_window_end_s(),
+            );
+            self.publish(vec![hb]);
+            s.announced = Some(Instant::now());
+        }
+        let peers_settled = alive
+            .iter()
+            .all(|p| self.report.peers.peers.get(p).is_some_and(|st| st.settled));
+        let complete = idle && (peers_settled || self.catch_up.is_none());
+        let leave = complete || Instant::now() >= s.deadline;
+        if leave {
+            self.report.settle = Some(SettleStats {
+                wall_s: s.started.elapsed().as_secs_f64(),
+                complete,
+            });
+        }
+        leave
     }
 
     /// Reads the histories kept in `dir` (ours into the catch-up archive,
@@ -532,18 +621,18 @@ impl Node {
         self.note(e);
         self.lockstep.heard(peer, now);
         if let Body::Heartbeat(hb) = &env.body {
-            let finished = hb.state == AgentState::Finished;
+            let settled = hb.state == AgentState::Settled;
+            let finished = settled || hb.state == AgentState::Finished;
             self.lockstep
                 .progress(peer, hb.last_frame_index, finished, now);
-            if finished
-                && !self
-                    .report
-                    .peers
-                    .peers
-                    .get(&peer)
-                    .is_some_and(|p| p.finished)
-            {
+            let known = self.report.peers.peers.get(&peer).copied();
+            // A lost `Finished` heartbeat: the `Settled` one says it too.
+            if finished && !known.is_some_and(|p| p.finished) {
                 let e = self.report.peers.push(peer, "finished", now, self.fleet_t);
+                self.note(Some(e));
+            }
+            if settled && !known.is_some_and(|p| p.settled) {
+                let e = self.report.peers.push(peer, "settled", now, self.fleet_t);
                 self.note(Some(e));
             }
         }
@@ -972,7 +1061,8 @@ pub fn run_node(
         }
     }
 
-    // The end: say so, then keep listening while peers still run.
+    // The end: say so, then keep listening while peers still run, and settle
+    // once none does.
     let t_last = node.fleet_t.unwrap_or(grid.t0_s);
     let hb = node.outbox.heartbeat(
         t_last,
@@ -984,18 +1074,31 @@ pub fn run_node(
     node.publish(vec![hb]);
     let linger_start = Instant::now();
     let linger_until = linger_start + Duration::from_secs_f64(cfg.clock.linger_timeout_s);
+    // Fleet seconds per wall second from here on. In lockstep nothing paces
+    // the clock once the data have ended, and the catch-up timers (a request
+    // is sent again after `history.catch_up_retry_s` of fleet time) would
+    // otherwise wait seconds of wall time for a reply that takes
+    // milliseconds: on a lossy link, settling timed out in 18 of 60 runs.
     let rate = match cfg.clock.mode {
         ClockMode::Realtime => cfg.clock.realtime_rate,
-        ClockMode::Lockstep => 1.0,
+        ClockMode::Lockstep => LOCKSTEP_LINGER_RATE,
     };
+    let mut settling: Option<Settling> = None;
     while !Node::stopping(stop) && Instant::now() < linger_until {
         let alive = node.report.peers.alive();
-        let running: Vec<u32> = alive
-            .into_iter()
-            .filter(|p| !node.report.peers.peers.get(p).is_some_and(|s| s.finished))
-            .collect();
-        if running.is_empty() {
-            break;
+        let running = alive
+            .iter()
+            .any(|p| !node.report.peers.peers.get(p).is_some_and(|s| s.finished));
+        if !running {
+            // Every peer's data have ended: settle before leaving.
+            let timeout = Duration::from_secs_f64(cfg.clock.settle_timeout_s);
+            let s = match settling.as_mut() {
+                Some(s) => s,
+                None => settling.insert(node.start_settling(&alive, timeout)),
+            };
+            if node.settle(s, &alive, t_last, tick.checked_sub(1)) {
+                break;
+            }
         }
         node.pump(Duration::from_millis(20));
         // Peers still running may ask for our windows (after an outage): our

@@ -16,9 +16,9 @@ pub struct PeerEvent {
     pub fleet_t_s: Option<f64>,
     /// The peer.
     pub peer: u32,
-    /// `appeared`, `vanished`, `reappeared`, `finished`, `left` (gone after
-    /// announcing the end of its data), `released` (no longer waited for in
-    /// lockstep) or `silent`.
+    /// `appeared`, `vanished`, `reappeared`, `finished`, `settled` (done
+    /// catching up at the end), `left` (gone after announcing the end of its
+    /// data), `released` (no longer waited for in lockstep) or `silent`.
     pub event: &'static str,
 }
 
@@ -33,6 +33,8 @@ pub struct PeerPresence {
     pub losses: u32,
     /// It announced the end of its data (since it last appeared).
     pub finished: bool,
+    /// It announced it is done catching up at the end (since it last appeared).
+    pub settled: bool,
 }
 
 /// The presence of every peer and the event log.
@@ -61,6 +63,7 @@ impl PeerEvents {
                 st.alive = true;
                 st.appearances += 1;
                 st.finished = false;
+                st.settled = false;
                 (
                     p,
                     if st.appearances > 1 {
@@ -107,8 +110,10 @@ impl PeerEvents {
         wall_s: f64,
         fleet_t_s: Option<f64>,
     ) -> PeerEvent {
-        if event == "finished" {
-            self.peers.entry(peer).or_default().finished = true;
+        match event {
+            "finished" => self.peers.entry(peer).or_default().finished = true,
+            "settled" => self.peers.entry(peer).or_default().settled = true,
+            _ => {}
         }
         let e = PeerEvent {
             wall_s,

@@ -301,7 +301,8 @@ fn heartbeat() -> impl Strategy<Value = Body> {
         prop_oneof![
             Just(AgentState::Starting),
             Just(AgentState::Running),
-            Just(AgentState::Finished)
+            Just(AgentState::Finished),
+            Just(AgentState::Settled)
         ],
         any::<u64>(),
         proptest::option::of(any::<u64>()),

@@ -409,6 +409,9 @@ pub enum AgentState {
     Running,
     /// Done: no more frames will come.
     Finished,
+    /// Done, and done asking its peers for the keyframe windows it lacks or
+    /// holds short: it leaves once every peer has settled too.
+    Settled,
 }
 
 /// Presence and progress of an agent (the fleet clock in lockstep runs).

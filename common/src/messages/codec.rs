@@ -20,7 +20,8 @@ pub const MAGIC: [u8; 4] = *b"FVIO";
 /// history catch-up messages exist (version 2 peers would misread heartbeats).
 /// Version 4: a history answer lists the windows it was made of, so a
 /// requester can tell which replays it lost. Version 5: a request lists the
-/// windows held short of some parts, and a replay may carry only those parts.
+/// windows held short of some parts, and a replay may carry only those parts;
+/// heartbeats may say `Settled`.
 pub const WIRE_VERSION: u16 = 5;
 
 /// The wire versions this build reads.
