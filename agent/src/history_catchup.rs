@@ -671,6 +671,12 @@ impl Replayer {
                 continue;
             }
             keys.push(k);
+            // This request takes over the requester's older ones: what it
+            // holds now decides between whole, part and nothing.
+            if let Some(q) = self.queue.get_mut(&k) {
+                q.for_robots.remove(&from);
+                q.parts.remove(&from);
+            }
             let held = held.get(&k).copied();
             // A requester holding every part we have gets nothing.
             if held.is_some_and(|h| kf.part_for([h]).is_empty()) {
@@ -678,10 +684,6 @@ impl Replayer {
             }
             last = Some(k);
             let q = self.queue.entry(k).or_default();
-            // This request takes over the requester's older ones: what it
-            // holds now decides between whole and part.
-            q.for_robots.remove(&from);
-            q.parts.remove(&from);
             if q.for_robots.len() + q.parts.len() >= MAX_REPLAY_ROBOTS {
                 continue;
             }
@@ -1480,6 +1482,26 @@ mod tests {
         let x = r.next_replay().expect("a window");
         assert_eq!(x.for_robots, [ME, 4]);
         assert!(x.window.is_some() && x.part.is_none());
+
+        // A newer request that holds it all takes back the part queued
+        // for an older one.
+        r.request(
+            ME,
+            &HistoryRequest {
+                held: vec![holding(all & !1, true)],
+                ..request(4, vec![range])
+            },
+        );
+        r.request(
+            ME,
+            &HistoryRequest {
+                held: vec![holding(all, true)],
+                ..request(5, vec![range])
+            },
+        );
+        let x = r.next_replay().expect("a completion");
+        assert!(x.window.is_none() && x.part.is_none(), "{x:?}");
+        assert!(r.next_replay().is_none());
 
         // A holder of every part there is gets nothing, and its request
         // completes at once.
