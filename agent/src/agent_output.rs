@@ -226,6 +226,13 @@ pub fn metrics_of(report: &NodeReport) -> MetricSet {
     m.latency_ms_mean = (!lat.is_empty()).then(|| lat.iter().sum::<f64>() / lat.len() as f64);
     m.latency_ms_p99 = (!lat.is_empty()).then(|| percentile(&lat, 0.99));
     m.history_bytes = Some(report.peak_history_bytes as u64);
+    m.keyframe_windows_published = Some(report.keyframe_windows_published);
+    let held = report.histories.values().flat_map(|h| h.keyframes.values());
+    let (held, whole) = held.fold((0, 0), |(n, w), kf| (n + 1, w + u64::from(kf.is_whole())));
+    m.peer_windows_held = Some(held);
+    m.peer_windows_whole = Some(whole);
+    // Without catch-up nothing is replayed.
+    m.replay_bytes_sent = Some(report.catch_up.as_ref().map_or(0, |c| c.replay_bytes));
     m.cpu_s = report.cpu_s;
     m
 }

@@ -118,6 +118,9 @@ pub struct NodeReport {
     pub robot_name: String,
     /// History catch-up counters, asking and answering (`None`: switched off).
     pub catch_up: Option<CatchUpStats>,
+    /// Keyframe windows handed to the transport (a window whose sending
+    /// failed still counts: peers can ask for it again).
+    pub keyframe_windows_published: u64,
     /// Bytes of this agent's archive of its own keyframe windows.
     pub own_archive_bytes: usize,
     /// Keyframe windows in that archive (what peers hold of this agent when
@@ -319,6 +322,9 @@ impl Node {
     /// Publishes `envelopes`; a failure is counted and logged, never fatal.
     fn publish(&mut self, envelopes: Vec<Envelope>) {
         for env in envelopes {
+            if matches!(&env.body, Body::Snapshot(s) if s.keyframe) {
+                self.report.keyframe_windows_published += 1;
+            }
             if let Some((_, replayer)) = self.catch_up.as_mut() {
                 replayer.published(&env.body);
             }

@@ -96,6 +96,22 @@ pub struct MetricSet {
     pub loop_closures: Option<u64>,
     /// Filter updates with features seen by several robots.
     pub common_feature_updates: Option<u64>,
+    /// Keyframe windows this agent published: its history, as its peers
+    /// store it.
+    pub keyframe_windows_published: Option<u64>,
+    /// Keyframe windows the other robots of the run published: what this
+    /// agent would hold of its peers had it missed nothing. Only a fleet's
+    /// summary knows it (`fill_peer_windows_published`); `null` in an agent's
+    /// own.
+    pub peer_windows_published: Option<u64>,
+    /// Peers' keyframe windows this agent held at the end of its run.
+    pub peer_windows_held: Option<u64>,
+    /// Of those, the windows held whole: a frame at every clone, and the
+    /// keyframe's descriptors.
+    pub peer_windows_whole: Option<u64>,
+    /// Bytes of history replays this agent sent to peers that asked for
+    /// windows they had missed (history catch-up).
+    pub replay_bytes_sent: Option<u64>,
     /// CPU time of the run, s: an agent process's, all its threads (transport
     /// included) from the start of its run to the end; an agent on a thread of
     /// `sim-fleet`, or a standalone run (`agent run`, the independent
@@ -190,8 +206,27 @@ impl MetricSet {
             history_bytes: u(|s| s.history_bytes),
             loop_closures: u(|s| s.loop_closures),
             common_feature_updates: u(|s| s.common_feature_updates),
+            keyframe_windows_published: u(|s| s.keyframe_windows_published),
+            peer_windows_published: u(|s| s.peer_windows_published),
+            peer_windows_held: u(|s| s.peer_windows_held),
+            peer_windows_whole: u(|s| s.peer_windows_whole),
+            replay_bytes_sent: u(|s| s.replay_bytes_sent),
             cpu_s: f(|s| s.cpu_s),
         }
+    }
+}
+
+/// Fills in each robot's `peer_windows_published`: the keyframe windows the
+/// other robots of `sets` (one robot each, every robot of a fleet run)
+/// published. Left `None` for all when a robot's own count is unknown, since
+/// the others' sums would then be short.
+pub fn fill_peer_windows_published<'a>(sets: impl IntoIterator<Item = &'a mut MetricSet>) {
+    let mut sets: Vec<&mut MetricSet> = sets.into_iter().collect();
+    let total: Option<u64> = sets.iter().map(|m| m.keyframe_windows_published).sum();
+    for m in &mut sets {
+        m.peer_windows_published = total
+            .zip(m.keyframe_windows_published)
+            .map(|(t, own)| t - own);
     }
 }
 

@@ -18,7 +18,7 @@ use agent::transport::fleet_certs::{issue, write_zenoh_configs, Member, Request,
 use agent::transport::zenoh_acl::RobotCertificates;
 use agent::transport::{InprocHub, TransportKind, ZenohSettings};
 use anyhow::{bail, Context, Result};
-use common::summary::{MetricSet, RobotSummary, RunSummary};
+use common::summary::{fill_peer_windows_published, MetricSet, RobotSummary, RunSummary};
 use indicatif::{ProgressBar, ProgressStyle};
 use simulator::scenario::RobotSpec;
 use simulator::Scenario;
@@ -674,6 +674,7 @@ fn collect(
             }
         }
     }
+    fill_peer_windows_published(robots.iter_mut().map(|r| &mut r.metrics));
     let sets: Vec<MetricSet> = robots.iter().map(|r| r.metrics.clone()).collect();
     RunSummary {
         scenario: scenario.name.clone(),
@@ -687,6 +688,15 @@ fn collect(
     }
 }
 
+/// The peers' keyframe windows a robot held whole at the end, of those its
+/// peers published (`whole/published`), or `-` when unknown.
+pub fn peer_windows(m: &MetricSet) -> String {
+    match (m.peer_windows_whole, m.peer_windows_published) {
+        (Some(w), Some(p)) => format!("{w}/{p}"),
+        _ => "-".into(),
+    }
+}
+
 fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
     let f = |v: Option<f64>, d: usize| v.map_or("-".to_string(), |v| format!("{v:.d$}"));
     println!(
@@ -697,7 +707,7 @@ fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
         f(s.wall_s, 1)
     );
     println!(
-        "robot  trajectory            ATE deg  ATE m   aligned m  NEES ori  NEES pos  KB/s sent  msgs in  dropped  CPU %"
+        "robot  trajectory            ATE deg  ATE m   aligned m  NEES ori  NEES pos  KB/s sent  msgs in  dropped  peer windows  CPU %"
     );
     // CPU time per second of the robot's own data (its frames at the camera
     // rate): the share of a core the agent needs to keep up in real time.
@@ -710,7 +720,7 @@ fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
     for r in &s.robots {
         let m = &r.metrics;
         println!(
-            "{:<6} {:<21} {:>7}  {:>6}  {:>9}  {:>8}  {:>8}  {:>9}  {:>7}  {:>7}  {:>5}",
+            "{:<6} {:<21} {:>7}  {:>6}  {:>9}  {:>8}  {:>8}  {:>9}  {:>7}  {:>7}  {:>12}  {:>5}",
             r.id,
             r.trajectory,
             f(m.ate_ori_deg, 3),
@@ -721,6 +731,7 @@ fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
             f(m.bytes_per_s_sent.map(|b| b / 1000.0), 1),
             m.messages_received.map_or("-".into(), |v| v.to_string()),
             m.messages_dropped.map_or("-".into(), |v| v.to_string()),
+            peer_windows(m),
             f(share(m).map(|x| 100.0 * x), 1),
         );
     }

@@ -285,6 +285,23 @@ fn cooperative_variants_run_whole_fleets_and_aggregate_per_robot() {
             .unwrap()
             > 0.0
     );
+    // On a loss-free link every agent ends with its peer's whole history; the
+    // traffic table says so, and is left out for the centralized estimator.
+    let dc = &one["variants"]["dc-full-history"];
+    assert_eq!(dc["histories_complete"], 4, "2 seeds x 2 agents");
+    assert!(one["variants"]["ce-cmsckf-cslam"]["histories_complete"].is_null());
+    let published = dc["mean"]["peer_windows_published"].as_u64().unwrap_or(0);
+    assert!(published > 5, "{}", dc["mean"]);
+    assert_eq!(dc["mean"]["peer_windows_whole"].as_u64(), Some(published));
+    let table = std::fs::read_to_string(dir.path().join("one/table.md")).unwrap();
+    let traffic: Vec<&str> = table
+        .lines()
+        .skip_while(|l| !l.starts_with("Traffic"))
+        .filter(|l| l.starts_with("| "))
+        .collect();
+    assert_eq!(traffic.len(), 3, "{table}");
+    assert!(traffic[2].starts_with("| dc-full-history |"), "{table}");
+    assert!(traffic[2].contains("| 4 of 4 |"), "{table}");
     assert_eq!(means_without_timing(&one), means_without_timing(&two));
 }
 

@@ -11,7 +11,7 @@ fn rpe_row(segment_m: f64, pos: Option<f64>, count: usize) -> RpeEntry {
     }
 }
 
-const METRIC_KEYS: [&str; 21] = [
+const METRIC_KEYS: [&str; 26] = [
     "ate_ori_deg",
     "ate_pos_m",
     "nees_ori",
@@ -32,6 +32,11 @@ const METRIC_KEYS: [&str; 21] = [
     "history_bytes",
     "loop_closures",
     "common_feature_updates",
+    "keyframe_windows_published",
+    "peer_windows_published",
+    "peer_windows_held",
+    "peer_windows_whole",
+    "replay_bytes_sent",
     "cpu_s",
 ];
 
@@ -151,4 +156,21 @@ fn the_mean_averages_each_field_over_the_robots_that_have_it() {
     assert_eq!(rpe[1].pos_m_mean, Some(1.0));
     assert_eq!(rpe[1].count, 2);
     assert_eq!(MetricSet::mean_of(&[]), MetricSet::default());
+}
+
+#[test]
+fn each_robot_is_owed_the_windows_the_others_published() {
+    let with = |n: Option<u64>| MetricSet {
+        keyframe_windows_published: n,
+        ..MetricSet::default()
+    };
+    let mut sets = [with(Some(123)), with(Some(71)), with(Some(88))];
+    fill_peer_windows_published(sets.iter_mut());
+    let owed: Vec<_> = sets.iter().map(|m| m.peer_windows_published).collect();
+    assert_eq!(owed, [Some(159), Some(211), Some(194)]);
+
+    // One robot's count unknown (its summary is missing): nobody's sum is known.
+    let mut sets = [with(Some(123)), with(None), with(Some(88))];
+    fill_peer_windows_published(sets.iter_mut());
+    assert!(sets.iter().all(|m| m.peer_windows_published.is_none()));
 }

@@ -208,6 +208,11 @@ pub struct VariantAggregate {
     pub diverged: usize,
     /// Robot runs that failed, over all robots and seeds.
     pub failed: usize,
+    /// Agent runs that ended holding whole every keyframe window their peers
+    /// published (`null`: no run knows, as in independent or centralized
+    /// variants).
+    #[serde(default)]
+    pub histories_complete: Option<usize>,
 }
 
 /// Whether a robot run diverged: its ATE position is missing, NaN, or above
@@ -290,7 +295,15 @@ pub fn aggregate_variant(robots: &[(u32, String)], runs: &[Vec<RobotOutcome>]) -
         })
         .collect();
     let scalars: Vec<Scalars> = run_means.iter().map(Scalars::of).collect();
+    let owed = runs.iter().flatten().filter_map(|o| {
+        let m = &o.metrics;
+        m.peer_windows_whole.zip(m.peer_windows_published)
+    });
+    let histories_complete = owed
+        .map(|(whole, published)| usize::from(whole >= published))
+        .reduce(|a, b| a + b);
     VariantAggregate {
+        histories_complete,
         mean: MetricSet::mean_of(&run_means),
         mean_spread: Spread::of(&run_means),
         mean_ci95: Scalars::ci95_of(&scalars),

@@ -6,7 +6,7 @@
 
 use crate::fleet_run::{agent_configs, run_inproc, HistoryArgs, RunArgs};
 use agent::runner::Variant;
-use common::summary::MetricSet;
+use common::summary::{fill_peer_windows_published, MetricSet};
 use simulator::Scenario;
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
@@ -61,6 +61,7 @@ pub fn run(
         }
         robots.push((i, agent::agent_output::metrics_of(&report)));
     }
+    fill_peer_windows_published(robots.iter_mut().map(|(_, m)| m));
     Ok((robots, sim_s))
 }
 

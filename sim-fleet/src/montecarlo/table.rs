@@ -52,7 +52,52 @@ pub fn render_table(study: &StudySummary) -> String {
             (v.robots.iter().map(|r| r.runs).sum(), v.diverged, v.failed),
         );
     }
+    traffic_table(&mut out, study);
     out
+}
+
+/// The traffic of the variants whose robots ran as agents (they sent
+/// something), per agent and averaged like the `mean` rows: KB sent per
+/// second of fleet time, history replays sent to peers that asked for what
+/// they had missed, the peers' keyframe windows held whole at the end against
+/// those the peers published (and the agent runs that held all of them), the
+/// peak heap of the peers' histories, loop closures and common-feature
+/// updates.
+fn traffic_table(out: &mut String, study: &StudySummary) {
+    let agents: Vec<_> = study
+        .variants
+        .iter()
+        .filter(|(_, v)| v.mean.bytes_per_s_sent.is_some())
+        .collect();
+    if agents.is_empty() {
+        return;
+    }
+    out.push_str("\nTraffic per agent (means over the runs of each run's robot mean):\n\n");
+    out.push_str(
+        "| variant | KB/s sent | replayed KB | peer windows held whole | histories complete | peer histories MB | loop closures | common-feature updates |\n",
+    );
+    out.push_str("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n");
+    let count = |v: Option<u64>| v.map_or_else(|| "-".to_string(), |v| v.to_string());
+    for (name, v) in agents {
+        let m = &v.mean;
+        let windows = match (m.peer_windows_whole, m.peer_windows_published) {
+            (Some(w), Some(p)) => format!("{w} of {p}"),
+            _ => "-".to_string(),
+        };
+        let agent_runs: usize = v.robots.iter().map(|r| r.runs).sum();
+        let complete = v
+            .histories_complete
+            .map_or_else(|| "-".to_string(), |c| format!("{c} of {agent_runs}"));
+        let _ = writeln!(
+            out,
+            "| {name} | {} | {} | {windows} | {complete} | {} | {} | {} |",
+            num(m.bytes_per_s_sent.map(|b| b / 1e3), 1),
+            num(m.replay_bytes_sent.map(|b| b as f64 / 1e3), 1),
+            num(m.history_bytes.map(|b| b as f64 / 1e6), 2),
+            count(m.loop_closures),
+            count(m.common_feature_updates),
+        );
+    }
 }
 
 fn row(
@@ -168,5 +213,58 @@ mod tests {
         );
         assert!(lines[6].ends_with("| 2 | 1 (1 failed) |"), "{table}");
         assert!(table.contains("seeds 1-2"));
+        assert!(
+            !table.contains("Traffic"),
+            "no agent ran, so no traffic table; {table}"
+        );
+    }
+
+    #[test]
+    fn agent_variants_get_a_traffic_row_with_their_peers_windows() {
+        let agent = |whole: u64, replayed: u64| {
+            let mut o = outcome(0.1);
+            let m = &mut o.metrics;
+            m.bytes_per_s_sent = Some(34_600.0);
+            m.replay_bytes_sent = Some(replayed);
+            m.peer_windows_published = Some(159);
+            m.peer_windows_whole = Some(whole);
+            m.history_bytes = Some(2_500_000);
+            m.loop_closures = Some(100);
+            m.common_feature_updates = Some(900);
+            o
+        };
+        let robots = vec![(0, "a".to_string()), (1, "b".to_string())];
+        let runs = vec![
+            vec![agent(159, 1000), agent(159, 3000)],
+            vec![agent(157, 2000), agent(159, 2000)],
+        ];
+        let study = StudySummary {
+            scenario: "loop".into(),
+            runs: 2,
+            seeds: vec![1, 2],
+            diverged_ate_pos_m: DIVERGED_ATE_POS_M,
+            wall_s: None,
+            variants: vec![
+                (
+                    "indp".into(),
+                    aggregate_variant(&robots, &[vec![outcome(0.1), outcome(0.2)]]),
+                ),
+                ("dc-full-history".into(), aggregate_variant(&robots, &runs)),
+            ],
+            failures: vec![],
+        };
+        assert_eq!(study.variants[1].1.histories_complete, Some(3));
+        assert_eq!(study.variants[0].1.histories_complete, None);
+        let table = render_table(&study);
+        let traffic: Vec<&str> = table
+            .lines()
+            .skip_while(|l| !l.starts_with("Traffic"))
+            .filter(|l| l.starts_with("| "))
+            .collect();
+        assert_eq!(traffic.len(), 3, "header and one agent variant; {table}");
+        assert_eq!(
+            traffic[2], "| dc-full-history | 34.6 | 2.0 | 159 of 159 | 3 of 4 | 2.50 | 100 | 900 |",
+            "{table}"
+        );
     }
 }
