@@ -339,7 +339,19 @@ impl PeerHistory {
             .rev()
             .find(|k| k.snapshot.frame_index == key)
         {
-            Some(kf) => kf.descriptors = batch.entries,
+            Some(kf) => {
+                // Descriptors that come after their snapshot (another topic,
+                // reordered) change the window: its bytes count against the
+                // bound, and the store and the loop-closure index see a new
+                // revision.
+                let before = kf.bytes();
+                kf.descriptors = batch.entries;
+                let after = kf.bytes();
+                self.history_bytes = (self.history_bytes + after).saturating_sub(before);
+                self.stored_bytes = (self.stored_bytes + after).saturating_sub(before);
+                self.revision += 1;
+                self.keep_within(limits);
+            }
             None => {
                 self.pending_keyframe_descriptors.insert(key, batch.entries);
                 // Only the newest few can still find their snapshot.
@@ -676,6 +688,30 @@ mod tests {
         assert_eq!(h.keyframes.len(), 1);
         // Nothing is missing for a holder of it all.
         assert!(whole.part_for([&whole.held()]).is_empty());
+    }
+
+    #[test]
+    fn keyframe_descriptors_after_their_snapshot_count_and_make_a_new_revision() {
+        let mut h = PeerHistory::default();
+        h.add_snapshot(snapshot(2.0, true), &limits(usize::MAX));
+        let (bytes, revision) = (h.history_bytes, h.revision);
+        let entries: Vec<DescriptorEntry> = (0..50)
+            .map(|id| DescriptorEntry { id, bits: [id; 4] })
+            .collect();
+        h.add_descriptors(
+            DescriptorBatch {
+                frame_index: 20,
+                t_s: 2.0,
+                keyframe: true,
+                entries,
+            },
+            &limits(usize::MAX),
+        );
+        let kf = h.keyframes.values().next().unwrap();
+        assert_eq!(kf.descriptors.len(), 50);
+        assert_eq!(h.history_bytes, kf.bytes());
+        assert!(h.history_bytes > bytes);
+        assert!(h.revision > revision, "the store and the index must see it");
     }
 
     #[test]
