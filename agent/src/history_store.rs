@@ -10,29 +10,57 @@
 //! A file is `FVHS`, a little-endian `u16` format version, then records: a
 //! little-endian `u32` length and one encoded message (the wire format of a
 //! replayed window, [`HistoryReplay`], so a record is decoded with the same
-//! bounds and checks as a message from the network). A file is replaced
-//! whole (written beside it, then renamed), so a crash leaves the old or the
-//! new one, never half of one. What cannot be read is reported and skipped:
-//! a file over its bound, another fleet's, a bad header; a bad record ends
-//! the file's reading with what was read before it kept.
+//! bounds and checks as a message from the network).
+//!
+//! A file is a log: each write appends the windows that are new, or more
+//! complete than the copy last written (a part that arrived late), and syncs
+//! them. Reading takes a window's most complete record. Rewriting every
+//! history at every write cost 180 times what it kept (measured: a peer
+//! history of 77 MB per hour, rewritten every 10 s). A file is replaced whole
+//! (written beside it, then renamed, so a crash leaves the old or the new one)
+//! only when its superseded records and the windows its history dropped make
+//! it more than [`COMPACT_FACTOR`] times what it must hold, when it could not
+//! be read to its end, or when it changed behind the store's back. A crash in
+//! an append leaves a cut record at the end: reading keeps the records before
+//! it, and the next write replaces the file.
+//!
+//! What cannot be read is reported and set aside (renamed
+//! `robot<N>.fvhs.unreadable-<unix time>`, so nothing is lost): a file over
+//! its bound, another fleet's, a bad header; a bad record ends the file's
+//! reading with what was read before it kept, and the next write makes a new
+//! file of that.
 
-use crate::peer_history::{HistoryLimits, KeyframeWindow, PeerHistory};
-use common::messages::{decode, encode, Body, Envelope, HistoryReplay};
+use crate::peer_history::{time_key, HistoryLimits, KeyframeWindow, PeerHistory, Replayed};
+use common::messages::{decode, encode, Body, Envelope, HistoryReplay, Limits};
 use std::collections::BTreeMap;
-use std::io::Write;
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
 /// The first bytes of a history file.
 const FILE_MAGIC: [u8; 4] = *b"FVHS";
 
-/// The format version this build writes and reads.
-const FILE_VERSION: u16 = 1;
+/// The format version this build writes and reads (version 1 files, each
+/// written whole, read the same way).
+const FILE_VERSION: u16 = 2;
+
+/// The format versions this build reads.
+const READABLE_VERSIONS: [u16; 2] = [1, FILE_VERSION];
+
+/// Bytes of the header: magic and version.
+const HEADER_LEN: u64 = FILE_MAGIC.len() as u64 + 2;
+
+/// A file is rewritten when it would exceed this many times the bytes of the
+/// records its history needs, plus [`COMPACT_SLACK`].
+pub const COMPACT_FACTOR: u64 = 2;
+
+/// Bytes a file may hold beyond its factor before it is rewritten.
+const COMPACT_SLACK: u64 = 64 << 10;
 
 /// A file read at start may hold this many times its history's memory bound
-/// (a window's encoding and its heap size differ a little), plus
-/// [`FILE_BOUND_SLACK`] bytes.
-const FILE_BOUND_FACTOR: usize = 2;
+/// (the log holds superseded records, and a window's encoding and its heap
+/// size differ), plus [`FILE_BOUND_SLACK`] bytes.
+const FILE_BOUND_FACTOR: usize = 8;
 
 /// Bytes a file may hold beyond its factor of the memory bound.
 const FILE_BOUND_SLACK: usize = 4096;
@@ -76,13 +104,44 @@ pub struct Loaded {
     pub unreadable: Vec<Unreadable>,
 }
 
+/// What one [`HistoryStore::save`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Saved {
+    /// Nothing new to write.
+    Unchanged,
+    /// Records appended, bytes.
+    Appended(u64),
+    /// The file written whole, bytes.
+    Rewritten(u64),
+}
+
+/// A window's record as the file holds it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Written {
+    /// How complete the copy written is ([`KeyframeWindow::completeness`]).
+    completeness: (usize, bool),
+    /// Bytes of its record, length prefix included.
+    bytes: u64,
+}
+
+/// What the store knows of one robot's file.
+#[derive(Debug, Default)]
+struct FileState {
+    /// Its length as the store left it (`None`: not known to end in a whole
+    /// record, so the next write replaces it).
+    len: Option<u64>,
+    /// The newest record of each window it holds, by time key.
+    windows: BTreeMap<u64, Written>,
+    /// The history's revision when the file was last brought up to date.
+    revision: Option<u64>,
+}
+
 /// One agent's folder of histories.
 #[derive(Debug)]
 pub struct HistoryStore {
     dir: PathBuf,
     fleet_id: String,
-    /// Revision of each history when it was last written.
-    written: BTreeMap<u32, u64>,
+    files: BTreeMap<u32, FileState>,
 }
 
 impl HistoryStore {
@@ -95,7 +154,7 @@ impl HistoryStore {
         Ok(Self {
             dir: dir.to_path_buf(),
             fleet_id: fleet_id.to_owned(),
-            written: BTreeMap::new(),
+            files: BTreeMap::new(),
         })
     }
 
@@ -128,61 +187,77 @@ impl HistoryStore {
         let mut loaded = Loaded::default();
         for (robot, path) in files {
             let mut history = PeerHistory::default();
-            if let Err(why) = self.read_file(robot, &path, limits, &mut history) {
-                loaded.unreadable.push(Unreadable {
-                    path: path.clone(),
-                    why,
-                });
+            let mut file = FileState::default();
+            match self.read_file(robot, &path, limits, &mut history, &mut file) {
+                Ok(len) => file.len = Some(len),
+                Err(why) => {
+                    let why = format!("{why}; {}", set_aside(robot, &path));
+                    loaded.unreadable.push(Unreadable {
+                        path: path.clone(),
+                        why,
+                    });
+                }
             }
             if !history.keyframes.is_empty() {
                 // What is on disk is what we hold: no need to write it again.
-                self.written.insert(robot, history.revision);
+                file.revision = Some(history.revision);
                 loaded.histories.insert(robot, history);
             }
+            self.files.insert(robot, file);
         }
         Ok(loaded)
     }
 
-    /// Reads robot `robot`'s file into `history`; `Err` says why it stopped
-    /// early (the windows before that are kept).
+    /// Reads robot `robot`'s file into `history`, noting its records in
+    /// `file`; the file's length, or why it stopped early (the windows before
+    /// that are kept).
     fn read_file(
         &self,
         robot: u32,
         path: &Path,
         limits: &HistoryLimits,
         history: &mut PeerHistory,
-    ) -> Result<(), String> {
+        file: &mut FileState,
+    ) -> Result<u64, String> {
         let bound = limits.max_bytes.saturating_mul(FILE_BOUND_FACTOR) + FILE_BOUND_SLACK;
-        let len = std::fs::metadata(path).map_err(|e| e.to_string())?.len();
+        let f = std::fs::File::open(path).map_err(|e| e.to_string())?;
+        let len = f.metadata().map_err(|e| e.to_string())?.len();
         if len > bound as u64 {
             return Err(format!(
                 "{len} bytes, over the {bound} its history's bound allows"
             ));
         }
-        let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
-        let header = FILE_MAGIC.len() + 2;
-        match bytes.get(..header) {
-            Some(h) if h[..4] == FILE_MAGIC => {
-                let version = u16::from_le_bytes([h[4], h[5]]);
-                if version != FILE_VERSION {
+        let mut r = std::io::BufReader::new(f);
+        let mut header = [0u8; HEADER_LEN as usize];
+        match r.read_exact(&mut header) {
+            Ok(()) if header[..4] == FILE_MAGIC => {
+                let version = u16::from_le_bytes([header[4], header[5]]);
+                if !READABLE_VERSIONS.contains(&version) {
                     return Err(format!(
-                        "format version {version}; this build reads {FILE_VERSION}"
+                        "format version {version}; this build reads {READABLE_VERSIONS:?}"
                     ));
                 }
             }
             _ => return Err("not a history file (no FVHS header)".into()),
         }
-        let mut at = header;
+        // A record is one message: nothing longer is decoded, so a damaged
+        // length allocates nothing.
+        let max_record = Limits::default().max_message_bytes as u64;
+        let mut at = HEADER_LEN;
         let mut index = 0usize;
-        while at < bytes.len() {
-            let record = bytes
-                .get(at..at + 4)
-                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
-                .and_then(|n| bytes.get(at + 4..at + 4 + n));
-            let Some(record) = record else {
-                return Err(format!("record {index} is cut short at byte {at}"));
+        while at < len {
+            let mut prefix = [0u8; 4];
+            let n = match r.read_exact(&mut prefix) {
+                Ok(()) => u64::from(u32::from_le_bytes(prefix)),
+                Err(_) => return Err(format!("record {index} is cut short at byte {at}")),
             };
-            let env = decode(record).map_err(|e| format!("record {index}: {e}"))?;
+            if n > max_record || at + 4 + n > len {
+                return Err(format!("record {index} is cut short at byte {at}"));
+            }
+            let mut record = vec![0u8; n as usize];
+            r.read_exact(&mut record)
+                .map_err(|_| format!("record {index} is cut short at byte {at}"))?;
+            let env = decode(&record).map_err(|e| format!("record {index}: {e}"))?;
             if env.fleet_id != self.fleet_id {
                 return Err(format!(
                     "record {index} is of fleet `{}`, not `{}`",
@@ -202,64 +277,161 @@ impl HistoryStore {
             let Some(window) = window else {
                 return Err(format!("record {index} holds no keyframe window"));
             };
-            history.add_replayed(KeyframeWindow::from_wire(window), limits);
-            at += 4 + record.len();
+            let kf = KeyframeWindow::from_wire(window);
+            let written = Written {
+                completeness: kf.completeness(),
+                bytes: 4 + n,
+            };
+            let key = time_key(kf.end_s());
+            // A later record of a window is a more complete copy of it.
+            if history.add_replayed(kf, limits) != Replayed::AlreadyHeld {
+                file.windows.insert(key, written);
+            }
+            at += 4 + n;
             index += 1;
         }
-        Ok(())
+        Ok(len)
     }
 
-    /// Writes robot `robot`'s history if it changed since it was last
-    /// written (`force`: even if not). Returns whether it wrote.
-    pub fn save(
-        &mut self,
-        robot: u32,
-        history: &PeerHistory,
-        force: bool,
-    ) -> Result<bool, StoreError> {
-        if !force && self.written.get(&robot) == Some(&history.revision) {
-            return Ok(false);
-        }
-        let mut out = Vec::with_capacity(history.bytes() + 64);
-        out.extend_from_slice(&FILE_MAGIC);
-        out.extend_from_slice(&FILE_VERSION.to_le_bytes());
-        for (seq, kf) in history.keyframes.values().enumerate() {
-            let env = Envelope {
-                fleet_id: self.fleet_id.clone(),
-                robot_id: robot,
-                seq: seq as u64,
-                stamp_s: kf.end_s(),
-                sent_wall_ns: 0,
-                body: Body::HistoryReplay(Box::new(HistoryReplay {
-                    for_robots: Vec::new(),
-                    window: Some(kf.to_wire()),
-                    part: None,
-                    completes: Vec::new(),
-                    answered: Vec::new(),
-                })),
-            };
-            let bytes = encode(&env).map_err(|e| StoreError::Encode {
-                robot,
-                why: e.to_string(),
-            })?;
-            out.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
-            out.extend_from_slice(&bytes);
-        }
+    /// Brings robot `robot`'s file up to date with `history`: appends the
+    /// windows new or more complete since they were last written, or
+    /// rewrites the file when it would grow past [`COMPACT_FACTOR`] times
+    /// what the history needs (or is not known to end in a whole record).
+    pub fn save(&mut self, robot: u32, history: &PeerHistory) -> Result<Saved, StoreError> {
         let path = self.path_of(robot);
-        let tmp = path.with_extension("fvhs.tmp");
+        let file = self.files.entry(robot).or_default();
+        if file.len.is_some() && file.revision == Some(history.revision) {
+            return Ok(Saved::Unchanged);
+        }
+        // The records the history needs: the ones in the file, and the new.
+        let mut needed = 0u64;
+        let mut new = Vec::new();
+        for (&key, kf) in &history.keyframes {
+            match file.windows.get(&key) {
+                Some(w) if w.completeness == kf.completeness() => needed += w.bytes,
+                _ => {
+                    let rec = record(&self.fleet_id, robot, key, kf)?;
+                    needed += rec.len() as u64;
+                    new.push((key, kf.completeness(), rec));
+                }
+            }
+        }
+        let grown: u64 = new.iter().map(|(_, _, r)| r.len() as u64).sum();
         let io = |source| StoreError::Io {
             path: path.clone(),
             source,
         };
-        {
-            let mut f = std::fs::File::create(&tmp).map_err(io)?;
-            f.write_all(&out).map_err(io)?;
-            f.sync_data().map_err(io)?;
+        let on_disk = std::fs::metadata(&path).map(|m| m.len()).ok();
+        let saved = match file.len {
+            Some(len)
+                if on_disk == Some(len)
+                    && len + grown <= COMPACT_FACTOR * needed + COMPACT_SLACK =>
+            {
+                if new.is_empty() {
+                    Saved::Unchanged
+                } else {
+                    let mut f = std::fs::OpenOptions::new()
+                        .append(true)
+                        .open(&path)
+                        .map_err(io)?;
+                    for (_, _, rec) in &new {
+                        f.write_all(rec).map_err(io)?;
+                    }
+                    f.sync_data().map_err(io)?;
+                    file.len = Some(len + grown);
+                    Saved::Appended(grown)
+                }
+            }
+            _ => {
+                // Whole: every window the history holds, the file replaced.
+                let mut out = Vec::with_capacity(needed as usize + HEADER_LEN as usize);
+                out.extend_from_slice(&FILE_MAGIC);
+                out.extend_from_slice(&FILE_VERSION.to_le_bytes());
+                let mut windows = BTreeMap::new();
+                for (&key, kf) in &history.keyframes {
+                    let rec = record(&self.fleet_id, robot, key, kf)?;
+                    let bytes = rec.len() as u64;
+                    out.extend_from_slice(&rec);
+                    windows.insert(
+                        key,
+                        Written {
+                            completeness: kf.completeness(),
+                            bytes,
+                        },
+                    );
+                }
+                let tmp = path.with_extension("fvhs.tmp");
+                {
+                    let mut f = std::fs::File::create(&tmp).map_err(io)?;
+                    f.write_all(&out).map_err(io)?;
+                    f.sync_data().map_err(io)?;
+                }
+                std::fs::rename(&tmp, &path).map_err(io)?;
+                file.windows = windows;
+                file.len = Some(out.len() as u64);
+                file.revision = Some(history.revision);
+                return Ok(Saved::Rewritten(out.len() as u64));
+            }
+        };
+        for (key, completeness, rec) in new {
+            file.windows.insert(
+                key,
+                Written {
+                    completeness,
+                    bytes: rec.len() as u64,
+                },
+            );
         }
-        std::fs::rename(&tmp, &path).map_err(io)?;
-        self.written.insert(robot, history.revision);
-        Ok(true)
+        file.revision = Some(history.revision);
+        Ok(saved)
     }
+}
+
+/// Moves a file that could not be read to its end out of the way, so the
+/// next write (which keeps what was read before the problem) loses nothing
+/// of it: another fleet's file, or records past a damaged one. Says where
+/// it went.
+fn set_aside(robot: u32, path: &Path) -> String {
+    let stamp = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let aside = path.with_file_name(format!("robot{robot}.fvhs.unreadable-{stamp}"));
+    match std::fs::rename(path, &aside) {
+        Ok(()) => format!("kept as {}", aside.display()),
+        Err(e) => format!("could not be set aside ({e}): the next write replaces it"),
+    }
+}
+
+/// One record: the length prefix and the encoded window of robot `robot`
+/// (its time key as the sequence number).
+fn record(
+    fleet_id: &str,
+    robot: u32,
+    key: u64,
+    kf: &KeyframeWindow,
+) -> Result<Vec<u8>, StoreError> {
+    let env = Envelope {
+        fleet_id: fleet_id.to_owned(),
+        robot_id: robot,
+        seq: key,
+        stamp_s: kf.end_s(),
+        sent_wall_ns: 0,
+        body: Body::HistoryReplay(Box::new(HistoryReplay {
+            for_robots: Vec::new(),
+            window: Some(kf.to_wire()),
+            part: None,
+            completes: Vec::new(),
+            answered: Vec::new(),
+        })),
+    };
+    let bytes = encode(&env).map_err(|e| StoreError::Encode {
+        robot,
+        why: e.to_string(),
+    })?;
+    let mut rec = Vec::with_capacity(4 + bytes.len());
+    rec.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
+    rec.extend_from_slice(&bytes);
+    Ok(rec)
 }
 
 #[cfg(test)]
@@ -279,21 +451,191 @@ mod tests {
     /// A history of 5 keyframe windows with their tracks and descriptors.
     fn history() -> PeerHistory {
         let mut h = PeerHistory::default();
-        for f in 0..=50u64 {
+        grow(&mut h, 0..=50, &limits(), true);
+        h
+    }
+
+    /// Adds the frames `frames` to `h`, a keyframe window every 10th from
+    /// the 10th on (with its descriptors if `descriptors`).
+    fn grow(
+        h: &mut PeerHistory,
+        frames: std::ops::RangeInclusive<u64>,
+        limits: &HistoryLimits,
+        descriptors: bool,
+    ) {
+        for f in frames {
             let Body::Tracks(t) = samples::tracks(f, 20).body else {
                 continue;
             };
-            h.add_tracks(t, &limits());
+            h.add_tracks(t, limits);
             if f >= 10 && f % 10 == 0 {
                 if let Body::Snapshot(s) = samples::snapshot(f, 11, 0, true).body {
-                    h.add_snapshot(s, &limits());
+                    h.add_snapshot(s, limits);
                 }
-                if let Body::Descriptors(d) = samples::descriptors(f, 20, true).body {
-                    h.add_descriptors(d, &limits());
+                if descriptors {
+                    add_descriptors(h, f, limits);
                 }
             }
         }
-        h
+    }
+
+    fn add_descriptors(h: &mut PeerHistory, frame: u64, limits: &HistoryLimits) {
+        if let Body::Descriptors(d) = samples::descriptors(frame, 20, true).body {
+            h.add_descriptors(d, limits);
+        }
+    }
+
+    fn load(dir: &Path) -> (HistoryStore, Loaded) {
+        let mut store = HistoryStore::open(dir, "fleet").unwrap();
+        let loaded = store.load(&limits()).unwrap();
+        (store, loaded)
+    }
+
+    #[test]
+    fn a_write_appends_only_the_windows_new_or_more_complete() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut h = history();
+        let mut store = HistoryStore::open(dir.path(), "fleet").unwrap();
+        let Saved::Rewritten(first) = store.save(3, &h).unwrap() else {
+            panic!("a new file is written whole");
+        };
+        let size = || {
+            std::fs::metadata(dir.path().join("robot3.fvhs"))
+                .unwrap()
+                .len()
+        };
+        assert_eq!(size(), first);
+
+        // One window more, its descriptors late: one record appended.
+        grow(&mut h, 51..=60, &limits(), false);
+        assert_eq!(h.keyframes.len(), 6);
+        assert!(!h.keyframes.values().last().unwrap().is_whole());
+        let Saved::Appended(one) = store.save(3, &h).unwrap() else {
+            panic!("appended");
+        };
+        assert!(one < first / 4, "{one} of {first}");
+        assert_eq!(size(), first + one);
+        assert_eq!(store.save(3, &h).unwrap(), Saved::Unchanged);
+
+        // The descriptors arrive: that window's record again, whole now.
+        add_descriptors(&mut h, 60, &limits());
+        assert!(h.keyframes.values().last().unwrap().is_whole());
+        let Saved::Appended(again) = store.save(3, &h).unwrap() else {
+            panic!("appended");
+        };
+        assert!(again > one, "with the descriptors: {again} > {one}");
+        assert_eq!(size(), first + one + again);
+
+        // Read back: the most complete copy of each window, and nothing to
+        // write until something changes.
+        let (mut back, loaded) = load(dir.path());
+        assert!(loaded.unreadable.is_empty(), "{:?}", loaded.unreadable);
+        assert_eq!(loaded.histories[&3].keyframes, h.keyframes);
+        assert_eq!(
+            back.save(3, &loaded.histories[&3]).unwrap(),
+            Saved::Unchanged
+        );
+    }
+
+    #[test]
+    fn a_file_grown_past_its_factor_is_written_whole_again() {
+        let dir = tempfile::tempdir().unwrap();
+        // Room for about 20 windows: the oldest leave as new ones come, and
+        // the log keeps their records until it is rewritten.
+        let bounded = HistoryLimits {
+            max_bytes: history().bytes() * 4,
+            ..limits()
+        };
+        let mut h = PeerHistory::default();
+        let mut store = HistoryStore::open(dir.path(), "fleet").unwrap();
+        let (mut rewrites, mut written, mut whole) = (0, 0, 0);
+        for k in 0..300u64 {
+            grow(&mut h, k * 10 + 1..=k * 10 + 10, &bounded, true);
+            match store.save(1, &h).unwrap() {
+                Saved::Rewritten(n) => {
+                    rewrites += 1;
+                    written += n;
+                }
+                Saved::Appended(n) => written += n,
+                Saved::Unchanged => {}
+            }
+            let len = std::fs::metadata(store.path_of(1)).unwrap().len();
+            let needed: u64 = store.files[&1]
+                .windows
+                .iter()
+                .filter(|(k, _)| h.keyframes.contains_key(k))
+                .map(|(_, w)| w.bytes)
+                .sum();
+            assert!(
+                len <= COMPACT_FACTOR * needed + COMPACT_SLACK,
+                "{len} for {needed}"
+            );
+            // What writing the whole file every time would have cost.
+            whole += needed + HEADER_LEN;
+        }
+        assert!(h.dropped_keyframes > 250, "{}", h.dropped_keyframes);
+        assert!(h.keyframes.len() > 15, "{}", h.keyframes.len());
+        assert!(
+            rewrites > 1,
+            "compacted at least once after the first write"
+        );
+        // Appending costs about a record per window (and the compactions
+        // about as much again), not the whole file per write.
+        let record = store.files[&1]
+            .windows
+            .values()
+            .map(|w| w.bytes)
+            .max()
+            .unwrap();
+        assert!(
+            written <= 3 * 300 * record,
+            "{written} bytes, {record} per record"
+        );
+        assert!(
+            written * 5 < whole,
+            "{written} bytes against {whole} written whole"
+        );
+        let mut back = HistoryStore::open(dir.path(), "fleet").unwrap();
+        let loaded = back.load(&bounded).unwrap();
+        let keys = |h: &PeerHistory| h.keyframes.keys().copied().collect::<Vec<_>>();
+        assert_eq!(keys(&loaded.histories[&1]), keys(&h));
+    }
+
+    #[test]
+    fn a_record_cut_by_a_crash_is_dropped_and_the_next_write_replaces_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let h = history();
+        let mut store = HistoryStore::open(dir.path(), "fleet").unwrap();
+        store.save(2, &h).unwrap();
+        let path = store.path_of(2);
+        let good = std::fs::read(&path).unwrap();
+        // Half of an appended record: its length says more than follows.
+        let mut cut = good.clone();
+        cut.extend_from_slice(&1000u32.to_le_bytes());
+        cut.extend_from_slice(&[7; 100]);
+        std::fs::write(&path, &cut).unwrap();
+
+        let (mut store, loaded) = load(dir.path());
+        assert!(
+            loaded.unreadable[0].why.contains("cut short"),
+            "{:?}",
+            loaded.unreadable
+        );
+        assert_eq!(loaded.histories[&2].keyframes, h.keyframes);
+        let mut more = loaded.histories[&2].clone();
+        grow(&mut more, 51..=60, &limits(), true);
+        assert!(matches!(store.save(2, &more).unwrap(), Saved::Rewritten(_)));
+        let (_, again) = load(dir.path());
+        assert!(again.unreadable.is_empty(), "{:?}", again.unreadable);
+        assert_eq!(again.histories[&2].keyframes, more.keyframes);
+
+        // A file changed behind the store's back is written whole too.
+        std::fs::write(&path, &good).unwrap();
+        let mut most = more.clone();
+        grow(&mut most, 61..=70, &limits(), true);
+        assert!(matches!(store.save(2, &most).unwrap(), Saved::Rewritten(_)));
+        let (_, last) = load(dir.path());
+        assert_eq!(last.histories[&2].keyframes, most.keyframes);
     }
 
     #[test]
@@ -302,9 +644,12 @@ mod tests {
         let h = history();
         assert_eq!(h.keyframes.len(), 5);
         let mut store = HistoryStore::open(dir.path(), "fleet").unwrap();
-        assert!(store.save(3, &h, false).unwrap());
-        assert!(!store.save(3, &h, false).unwrap(), "unchanged");
-        assert!(store.save(7, &PeerHistory::default(), false).unwrap());
+        assert!(matches!(store.save(3, &h).unwrap(), Saved::Rewritten(_)));
+        assert_eq!(store.save(3, &h).unwrap(), Saved::Unchanged);
+        assert!(matches!(
+            store.save(7, &PeerHistory::default()).unwrap(),
+            Saved::Rewritten(_)
+        ));
         let mut again = HistoryStore::open(dir.path(), "fleet").unwrap();
         let loaded = again.load(&limits()).unwrap();
         assert!(loaded.unreadable.is_empty(), "{:?}", loaded.unreadable);
@@ -312,7 +657,10 @@ mod tests {
         assert_eq!(loaded.histories.keys().collect::<Vec<_>>(), [&3]);
         assert_eq!(loaded.histories[&3].keyframes, h.keyframes);
         // What was read is not written again until it changes.
-        assert!(!again.save(3, &loaded.histories[&3], false).unwrap());
+        assert_eq!(
+            again.save(3, &loaded.histories[&3]).unwrap(),
+            Saved::Unchanged
+        );
         // No temporary file is left behind.
         let names: Vec<String> = std::fs::read_dir(dir.path())
             .unwrap()
@@ -325,7 +673,7 @@ mod tests {
     fn bad_files_are_reported_and_what_was_read_before_the_damage_is_kept() {
         let dir = tempfile::tempdir().unwrap();
         let mut store = HistoryStore::open(dir.path(), "fleet").unwrap();
-        store.save(1, &history(), true).unwrap();
+        store.save(1, &history()).unwrap();
         let good = std::fs::read(store.path_of(1)).unwrap();
         let load = || {
             HistoryStore::open(dir.path(), "fleet")
@@ -367,7 +715,8 @@ mod tests {
         // A file of another fleet, a file under another robot's name, a
         // foreign file, a huge length: reported, nothing invented.
         let mut other = HistoryStore::open(dir.path(), "other").unwrap();
-        other.save(1, &history(), true).unwrap();
+        other.save(1, &history()).unwrap();
+        let theirs = std::fs::read(store.path_of(1)).unwrap();
         let l = load();
         assert!(
             l.unreadable[0].why.contains("fleet `other`"),
@@ -375,6 +724,30 @@ mod tests {
             l.unreadable
         );
         assert!(!l.histories.contains_key(&1));
+        // Set aside, whole, where our next write cannot replace it.
+        assert!(
+            l.unreadable[0].why.contains("kept as"),
+            "{:?}",
+            l.unreadable
+        );
+        assert!(!store.path_of(1).exists());
+        let aside: Vec<Vec<u8>> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap())
+            .filter(|e| {
+                e.file_name()
+                    .to_string_lossy()
+                    .starts_with("robot1.fvhs.unreadable-")
+            })
+            .map(|e| std::fs::read(e.path()).unwrap())
+            .collect();
+        assert!(aside.contains(&theirs));
+        let again = load();
+        assert!(
+            again.unreadable.is_empty(),
+            "an aside file is not read: {:?}",
+            again.unreadable
+        );
         std::fs::write(store.path_of(1), &good).unwrap();
         std::fs::copy(store.path_of(1), store.path_of(2)).unwrap();
         let l = load();
@@ -392,7 +765,7 @@ mod tests {
         std::fs::write(store.path_of(2), &huge).unwrap();
         assert!(load().unreadable[0].why.contains("cut short"));
         // A file over its bound is not read at all.
-        assert!(good.len() > FILE_BOUND_SLACK + 2);
+        assert!(good.len() > FILE_BOUND_SLACK + FILE_BOUND_FACTOR);
         let tight = HistoryLimits {
             max_bytes: 1,
             ..limits()

@@ -16,7 +16,7 @@ use crate::config::{AgentConfig, ClockMode, FaultDrop, FaultedMessage, FaultsCon
 use crate::estimator::{Estimator, FrameOutput};
 use crate::fleet_clock::{Lockstep, Pacer, TickGrid};
 use crate::history_catchup::{CatchUp, CatchUpStats, Replayer};
-use crate::history_store::HistoryStore;
+use crate::history_store::{HistoryStore, Saved};
 use crate::inbox::{DropReason, Inbox, NetStats, PeerRates};
 use crate::node_images::ImageFrames;
 use crate::outbox::Outbox;
@@ -174,8 +174,15 @@ pub struct StoreStats {
     pub restored_windows: BTreeMap<u32, usize>,
     /// Files (or their tails) that could not be read, and why.
     pub unreadable: Vec<String>,
-    /// History files written.
+    /// Writes to history files: appends and rewrites.
     pub writes: u64,
+    /// Of those, files written whole (the first write of a file, and
+    /// compactions).
+    pub rewrites: u64,
+    /// Bytes written, appends and rewrites.
+    pub bytes_written: u64,
+    /// Wall time spent writing, s (on the agent's thread).
+    pub write_wall_s: f64,
     /// Writes that failed (each logged; the run goes on).
     pub write_errors: u64,
 }
@@ -474,7 +481,7 @@ impl Node {
     }
 
     /// Writes the histories that changed, if `store_period_s` passed since
-    /// the last write (`force`: now, and every history).
+    /// the last write (`force`: now, whatever the period).
     fn store_histories(&mut self, now_s: f64, force: bool) {
         let Some((store, period_s, last_s)) = self.store.as_mut() else {
             return;
@@ -490,9 +497,20 @@ impl Node {
         let stats = self.report.store.get_or_insert_with(StoreStats::default);
         let peers = self.report.histories.iter().map(|(&r, h)| (r, h));
         for (robot, history) in peers.chain(own) {
-            match store.save(robot, history, force) {
-                Ok(true) => stats.writes += 1,
-                Ok(false) => {}
+            let started = Instant::now();
+            let saved = store.save(robot, history);
+            stats.write_wall_s += started.elapsed().as_secs_f64();
+            match saved {
+                Ok(Saved::Unchanged) => {}
+                Ok(Saved::Appended(bytes)) => {
+                    stats.writes += 1;
+                    stats.bytes_written += bytes;
+                }
+                Ok(Saved::Rewritten(bytes)) => {
+                    stats.writes += 1;
+                    stats.rewrites += 1;
+                    stats.bytes_written += bytes;
+                }
                 Err(e) => {
                     stats.write_errors += 1;
                     if stats.write_errors <= 5 {
