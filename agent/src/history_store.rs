@@ -15,8 +15,9 @@
 //! A file is a log: each write appends the windows that are new, or more
 //! complete than the copy last written (a part that arrived late), and syncs
 //! them. Reading takes a window's most complete record. Rewriting every
-//! history at every write cost 180 times what it kept (measured: a peer
-//! history of 77 MB per hour, rewritten every 10 s). A file is replaced whole
+//! history at every write grew with the square of the mission (measured: 23.5
+//! MB written per agent for the 4 MB it kept over 263 s; appending writes the
+//! 4 MB once). A file is replaced whole
 //! (written beside it, then renamed, so a crash leaves the old or the new one)
 //! only when its superseded records and the windows its history dropped make
 //! it more than [`COMPACT_FACTOR`] times what it must hold, when it could not

@@ -152,7 +152,9 @@ fn with_range(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::montecarlo::aggregate::{aggregate_variant, RobotOutcome, DIVERGED_ATE_POS_M};
+    use crate::montecarlo::aggregate::{
+        aggregate_variant, RobotOutcome, VariantAggregate, DIVERGED_ATE_POS_M,
+    };
 
     fn outcome(ate_pos: f64) -> RobotOutcome {
         let mut o = RobotOutcome::with_ate_pos(ate_pos);
@@ -160,6 +162,19 @@ mod tests {
         o.metrics.nees_pos = Some(3.14289);
         o.metrics.cpu_s = Some(1.25);
         o
+    }
+
+    /// A study of two seeds over `variants`.
+    fn study_of(variants: Vec<(String, VariantAggregate)>) -> StudySummary {
+        StudySummary {
+            scenario: "loop".into(),
+            runs: 2,
+            seeds: vec![1, 2],
+            diverged_ate_pos_m: DIVERGED_ATE_POS_M,
+            wall_s: None,
+            variants,
+            failures: vec![],
+        }
     }
 
     #[test]
@@ -173,21 +188,13 @@ mod tests {
             metrics: MetricSet::default(),
             error: Some("boom".into()),
         };
-        let study = StudySummary {
-            scenario: "loop".into(),
-            runs: 2,
-            seeds: vec![1, 2],
-            diverged_ate_pos_m: DIVERGED_ATE_POS_M,
-            wall_s: None,
-            variants: vec![
-                ("indp".into(), aggregate_variant(&robots, &runs)),
-                (
-                    "indp-slam".into(),
-                    aggregate_variant(&robots[..1], &[vec![failed], vec![outcome(0.5)]]),
-                ),
-            ],
-            failures: vec![],
-        };
+        let study = study_of(vec![
+            ("indp".into(), aggregate_variant(&robots, &runs)),
+            (
+                "indp-slam".into(),
+                aggregate_variant(&robots[..1], &[vec![failed], vec![outcome(0.5)]]),
+            ),
+        ]);
         let table = render_table(&study);
         let lines: Vec<&str> = table.lines().filter(|l| l.starts_with("| ")).collect();
         assert_eq!(lines.len(), 2 + 3 + 2, "{table}");
@@ -238,21 +245,13 @@ mod tests {
             vec![agent(159, 1000), agent(159, 3000)],
             vec![agent(157, 2000), agent(159, 2000)],
         ];
-        let study = StudySummary {
-            scenario: "loop".into(),
-            runs: 2,
-            seeds: vec![1, 2],
-            diverged_ate_pos_m: DIVERGED_ATE_POS_M,
-            wall_s: None,
-            variants: vec![
-                (
-                    "indp".into(),
-                    aggregate_variant(&robots, &[vec![outcome(0.1), outcome(0.2)]]),
-                ),
-                ("dc-full-history".into(), aggregate_variant(&robots, &runs)),
-            ],
-            failures: vec![],
-        };
+        let study = study_of(vec![
+            (
+                "indp".into(),
+                aggregate_variant(&robots, &[vec![outcome(0.1), outcome(0.2)]]),
+            ),
+            ("dc-full-history".into(), aggregate_variant(&robots, &runs)),
+        ]);
         assert_eq!(study.variants[1].1.histories_complete, Some(3));
         assert_eq!(study.variants[0].1.histories_complete, None);
         let table = render_table(&study);
