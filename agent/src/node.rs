@@ -25,7 +25,9 @@ use crate::peer_history::{HistoryLimits, PeerHistory};
 use crate::runner::{initial_state, options_for, record, RobotRun, RunError, Variant};
 use crate::transport::{Received, Transport, TransportError};
 use common::measurement::FeatureFrame;
-use common::messages::{encode, AgentState, Body, Envelope};
+use common::messages::{
+    encode, AgentState, Body, Envelope, HistoryReplay, RequestRef, MAX_REPLAY_ROBOTS,
+};
 use simulator::{Fleet, Scenario, SimEvent};
 use std::collections::{BTreeMap, VecDeque};
 use std::path::Path;
@@ -300,6 +302,10 @@ struct Node {
     peer_poses: BTreeMap<u32, PeerPose>,
     /// History catch-up, asking and answering (`None`: switched off).
     catch_up: Option<(CatchUp, Replayer)>,
+    /// With catch-up off: requests addressed to us since the last answer.
+    /// We keep no archive, so the answer says we found nothing; unanswered,
+    /// peers would ask again every `catch_up_retry_s` for good.
+    unanswerable: Vec<RequestRef>,
     /// Histories kept on disk (`None`: memory only), the fleet seconds
     /// between writes and the time of the last.
     store: Option<(HistoryStore, f64, f64)>,
@@ -525,6 +531,18 @@ impl Node {
     /// replays the budget allows.
     fn catch_up(&mut self, now_s: f64) {
         let Some((asking, replayer)) = self.catch_up.as_mut() else {
+            if !self.unanswerable.is_empty() {
+                let completes = std::mem::take(&mut self.unanswerable);
+                let nothing = Body::HistoryReplay(Box::new(HistoryReplay {
+                    for_robots: Vec::new(),
+                    window: None,
+                    part: None,
+                    completes,
+                    answered: Vec::new(),
+                }));
+                let env = self.outbox.catch_up(now_s, nothing);
+                self.publish_one(env);
+            }
             return;
         };
         let requests = asking.requests(now_s, &self.report.histories);
@@ -750,11 +768,19 @@ impl Node {
                     h.add_snapshot(s, &self.limits);
                 }
                 Body::Heartbeat(_) => {}
-                Body::HistoryRequest(r) => {
-                    if let Some((_, replayer)) = self.catch_up.as_mut() {
-                        replayer.request(env.robot_id, &r);
+                Body::HistoryRequest(r) => match self.catch_up.as_mut() {
+                    Some((_, replayer)) => replayer.request(env.robot_id, &r),
+                    None if r.to_robot == self.robot_id
+                        && env.robot_id != self.robot_id
+                        && self.unanswerable.len() < MAX_REPLAY_ROBOTS =>
+                    {
+                        self.unanswerable.push(RequestRef {
+                            robot: env.robot_id,
+                            request_id: r.request_id,
+                        });
                     }
-                }
+                    None => {}
+                },
                 Body::HistoryReplay(r) => {
                     if let Some((asking, _)) = self.catch_up.as_mut() {
                         asking.accept(env.robot_id, *r, now_s, h, &self.limits);
@@ -865,6 +891,7 @@ pub fn run_node(
         log,
         peer_poses: BTreeMap::new(),
         catch_up: None,
+        unanswerable: Vec::new(),
         store: None,
         faults: cfg.faults.for_run(fleet.seed),
         robot_id: cfg.robot_id,

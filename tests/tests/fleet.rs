@@ -602,6 +602,46 @@ fn alone_again(out: &Path, again: &Path, store: bool) -> PathBuf {
     p
 }
 
+/// An agent with history catch-up off keeps no archive of its windows. It
+/// answers the requests addressed to it with "found nothing", so its peers
+/// close them instead of asking again every `catch_up_retry_s` for the whole
+/// run (they sent 74 requests in 145 s before), and still settle at the end.
+#[test]
+fn a_peer_without_catch_up_says_it_has_nothing_so_nobody_keeps_asking() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 24.0);
+    let out = dir.path().join("mixed");
+    let cfgs = configs(&sc, &out, &["--transport", "zenoh"]);
+    let text = std::fs::read_to_string(&cfgs[2]).unwrap();
+    assert!(text.contains("  catch_up: true"), "{text}");
+    std::fs::write(
+        &cfgs[2],
+        text.replace("  catch_up: true", "  catch_up: false"),
+    )
+    .unwrap();
+    let mut agents = start_agents(&cfgs, &out);
+    for (i, a) in agents.iter_mut().enumerate() {
+        assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
+    }
+    let stats = |i: usize| read_json(&out.join(format!("robot{i}/transport_stats.json")));
+    assert!(stats(2)["catch_up"].is_null());
+    for i in 0..2 {
+        let st = stats(i);
+        let c = &st["catch_up"];
+        let count = |k: &str| c[k].as_u64().unwrap_or(u64::MAX);
+        // A first request to each peer when it is heard, the sweep at the
+        // end; the one to robot 2 may find it gone (dropped, not retried).
+        assert!(count("requests_sent") <= 6, "robot {i}: {c}");
+        assert_eq!(count("requests_retried"), 0, "robot {i}: {c}");
+        assert!(count("requests_completed") >= 3, "robot {i}: {c}");
+        assert_eq!(
+            st["settle"]["complete"], true,
+            "robot {i}: {}",
+            st["settle"]
+        );
+    }
+}
+
 /// With `--history-store` each agent keeps its peers' keyframe windows, and
 /// its own, on disk. Started again after its peers have landed and gone
 /// (no peer left to catch up from), robot 2 reads them back, holds every
