@@ -29,7 +29,7 @@
 //! `robot<N>.fvhs.unreadable-<unix time>`, so nothing is lost): a file over
 //! its bound, another fleet's, a bad header; a bad record ends the file's
 //! reading with what was read before it kept, and the next write makes a new
-//! file of that.
+//! file of that. A last record cut short is only reported.
 
 use crate::peer_history::{time_key, HistoryLimits, KeyframeWindow, PeerHistory, Replayed};
 use common::messages::{decode, encode, Body, Envelope, HistoryReplay, Limits};
@@ -191,8 +191,13 @@ impl HistoryStore {
             let mut file = FileState::default();
             match self.read_file(robot, &path, limits, &mut history, &mut file) {
                 Ok(len) => file.len = Some(len),
-                Err(why) => {
-                    let why = format!("{why}; {}", set_aside(robot, &path));
+                Err(stop) => {
+                    // A cut last record (a crash in an append) holds nothing
+                    // worth keeping; anything else is kept aside.
+                    let why = match stop {
+                        Stop::CutShort(why) => why,
+                        Stop::Unreadable(why) => format!("{why}; {}", set_aside(robot, &path)),
+                    };
                     loaded.unreadable.push(Unreadable {
                         path: path.clone(),
                         why,
@@ -219,14 +224,15 @@ impl HistoryStore {
         limits: &HistoryLimits,
         history: &mut PeerHistory,
         file: &mut FileState,
-    ) -> Result<u64, String> {
+    ) -> Result<u64, Stop> {
+        let bad = Stop::Unreadable;
         let bound = limits.max_bytes.saturating_mul(FILE_BOUND_FACTOR) + FILE_BOUND_SLACK;
-        let f = std::fs::File::open(path).map_err(|e| e.to_string())?;
-        let len = f.metadata().map_err(|e| e.to_string())?.len();
+        let f = std::fs::File::open(path).map_err(|e| bad(e.to_string()))?;
+        let len = f.metadata().map_err(|e| bad(e.to_string()))?.len();
         if len > bound as u64 {
-            return Err(format!(
+            return Err(bad(format!(
                 "{len} bytes, over the {bound} its history's bound allows"
-            ));
+            )));
         }
         let mut r = std::io::BufReader::new(f);
         let mut header = [0u8; HEADER_LEN as usize];
@@ -234,49 +240,52 @@ impl HistoryStore {
             Ok(()) if header[..4] == FILE_MAGIC => {
                 let version = u16::from_le_bytes([header[4], header[5]]);
                 if !READABLE_VERSIONS.contains(&version) {
-                    return Err(format!(
+                    return Err(bad(format!(
                         "format version {version}; this build reads {READABLE_VERSIONS:?}"
-                    ));
+                    )));
                 }
             }
-            _ => return Err("not a history file (no FVHS header)".into()),
+            _ => return Err(bad("not a history file (no FVHS header)".into())),
         }
-        // A record is one message: nothing longer is decoded, so a damaged
-        // length allocates nothing.
+        // A record is one message: a damaged length makes it allocate one
+        // message at most.
         let max_record = Limits::default().max_message_bytes as u64;
         let mut at = HEADER_LEN;
         let mut index = 0usize;
         while at < len {
+            let cut = || Stop::CutShort(format!("record {index} is cut short at byte {at}"));
             let mut prefix = [0u8; 4];
-            let n = match r.read_exact(&mut prefix) {
-                Ok(()) => u64::from(u32::from_le_bytes(prefix)),
-                Err(_) => return Err(format!("record {index} is cut short at byte {at}")),
-            };
-            if n > max_record || at + 4 + n > len {
-                return Err(format!("record {index} is cut short at byte {at}"));
+            r.read_exact(&mut prefix).map_err(|_| cut())?;
+            let n = u64::from(u32::from_le_bytes(prefix));
+            if n > max_record {
+                return Err(bad(format!(
+                    "record {index} at byte {at} claims {n} bytes, more than a message may hold"
+                )));
+            }
+            if at + 4 + n > len {
+                return Err(cut());
             }
             let mut record = vec![0u8; n as usize];
-            r.read_exact(&mut record)
-                .map_err(|_| format!("record {index} is cut short at byte {at}"))?;
-            let env = decode(&record).map_err(|e| format!("record {index}: {e}"))?;
+            r.read_exact(&mut record).map_err(|_| cut())?;
+            let env = decode(&record).map_err(|e| bad(format!("record {index}: {e}")))?;
             if env.fleet_id != self.fleet_id {
-                return Err(format!(
+                return Err(bad(format!(
                     "record {index} is of fleet `{}`, not `{}`",
                     env.fleet_id, self.fleet_id
-                ));
+                )));
             }
             if env.robot_id != robot {
-                return Err(format!(
+                return Err(bad(format!(
                     "record {index} is robot {}'s, in robot {robot}'s file",
                     env.robot_id
-                ));
+                )));
             }
             let window = match env.body {
                 Body::HistoryReplay(r) => r.window,
                 _ => None,
             };
             let Some(window) = window else {
-                return Err(format!("record {index} holds no keyframe window"));
+                return Err(bad(format!("record {index} holds no keyframe window")));
             };
             let kf = KeyframeWindow::from_wire(window);
             let written = Written {
@@ -386,6 +395,16 @@ impl HistoryStore {
         file.revision = Some(history.revision);
         Ok(saved)
     }
+}
+
+/// Why reading a file stopped before its end.
+#[derive(Debug)]
+enum Stop {
+    /// Its last record is cut short: a crash in an append. What was read is
+    /// all there is; the next write replaces the file.
+    CutShort(String),
+    /// Anything else: another fleet's, damaged, not a history file.
+    Unreadable(String),
 }
 
 /// Moves a file that could not be read to its end out of the way, so the
@@ -617,6 +636,8 @@ mod tests {
         std::fs::write(&path, &cut).unwrap();
 
         let (mut store, loaded) = load(dir.path());
+        // Nothing to keep of a cut last record: the file is not set aside.
+        assert!(!loaded.unreadable[0].why.contains("kept as"));
         assert!(
             loaded.unreadable[0].why.contains("cut short"),
             "{:?}",
@@ -764,7 +785,9 @@ mod tests {
         huge.extend_from_slice(&u32::MAX.to_le_bytes());
         huge.extend_from_slice(&[0; 64]);
         std::fs::write(store.path_of(2), &huge).unwrap();
-        assert!(load().unreadable[0].why.contains("cut short"));
+        assert!(load().unreadable[0]
+            .why
+            .contains("more than a message may hold"));
         // A file over its bound is not read at all.
         assert!(good.len() > FILE_BOUND_SLACK + FILE_BOUND_FACTOR);
         let tight = HistoryLimits {
