@@ -7,7 +7,10 @@
 //! With `history.store_dir` set, each history (one file per robot, ours
 //! included) is written there as it grows and read back at start.
 //!
-//! A file is `FVHS`, a little-endian `u16` format version, then records: a
+//! A file is `FVHS`, a little-endian `u16` format version, the mission (a
+//! little-endian `u16` length and UTF-8: the scenario and seed the fleet
+//! runs, so a store left from another mission under the same fleet id is not
+//! taken for this one's), then records: a
 //! little-endian `u32` length and one encoded message (the wire format of a
 //! replayed window, [`HistoryReplay`], so a record is decoded with the same
 //! bounds and checks as a message from the network).
@@ -27,7 +30,7 @@
 //!
 //! What cannot be read is reported and set aside (renamed
 //! `robot<N>.fvhs.unreadable-<unix time>`, so nothing is lost): a file over
-//! its bound, another fleet's, a bad header; a bad record ends the file's
+//! its bound, another fleet's or mission's, a bad header; a bad record ends the file's
 //! reading with what was read before it kept, and the next write makes a new
 //! file of that. A last record cut short is only reported.
 
@@ -41,15 +44,19 @@ use thiserror::Error;
 /// The first bytes of a history file.
 const FILE_MAGIC: [u8; 4] = *b"FVHS";
 
-/// The format version this build writes and reads (version 1 files, each
-/// written whole, read the same way).
+/// The format version this build writes and reads. Version 2 names the
+/// mission after the version; version 1 files (no mission, each written
+/// whole) are read as any mission's.
 const FILE_VERSION: u16 = 2;
 
 /// The format versions this build reads.
 const READABLE_VERSIONS: [u16; 2] = [1, FILE_VERSION];
 
-/// Bytes of the header: magic and version.
-const HEADER_LEN: u64 = FILE_MAGIC.len() as u64 + 2;
+/// Bytes of the magic and the version.
+const PREFIX_LEN: u64 = FILE_MAGIC.len() as u64 + 2;
+
+/// Longest mission name, bytes.
+pub const MAX_MISSION_BYTES: usize = 256;
 
 /// A file is rewritten when it would exceed this many times the bytes of the
 /// records its history needs, plus [`COMPACT_SLACK`].
@@ -142,19 +149,34 @@ struct FileState {
 pub struct HistoryStore {
     dir: PathBuf,
     fleet_id: String,
+    /// The header of the files written: magic, version and mission.
+    header: Vec<u8>,
+    mission: String,
     files: BTreeMap<u32, FileState>,
 }
 
 impl HistoryStore {
-    /// The store in `dir` (made if missing) for the fleet `fleet_id`.
-    pub fn open(dir: &Path, fleet_id: &str) -> Result<Self, StoreError> {
+    /// The store in `dir` (made if missing) for the fleet `fleet_id` on
+    /// `mission` (cut to [`MAX_MISSION_BYTES`]).
+    pub fn open(dir: &Path, fleet_id: &str, mission: &str) -> Result<Self, StoreError> {
         std::fs::create_dir_all(dir).map_err(|source| StoreError::Io {
             path: dir.to_path_buf(),
             source,
         })?;
+        let mut end = mission.len().min(MAX_MISSION_BYTES);
+        while !mission.is_char_boundary(end) {
+            end -= 1;
+        }
+        let mission = &mission[..end];
+        let mut header = FILE_MAGIC.to_vec();
+        header.extend_from_slice(&FILE_VERSION.to_le_bytes());
+        header.extend_from_slice(&(mission.len() as u16).to_le_bytes());
+        header.extend_from_slice(mission.as_bytes());
         Ok(Self {
             dir: dir.to_path_buf(),
             fleet_id: fleet_id.to_owned(),
+            header,
+            mission: mission.to_owned(),
             files: BTreeMap::new(),
         })
     }
@@ -190,7 +212,7 @@ impl HistoryStore {
             let mut history = PeerHistory::default();
             let mut file = FileState::default();
             match self.read_file(robot, &path, limits, &mut history, &mut file) {
-                Ok(len) => file.len = Some(len),
+                Ok(len) => file.len = len,
                 Err(stop) => {
                     // A cut last record (a crash in an append) holds nothing
                     // worth keeping; anything else is kept aside.
@@ -215,8 +237,9 @@ impl HistoryStore {
     }
 
     /// Reads robot `robot`'s file into `history`, noting its records in
-    /// `file`; the file's length, or why it stopped early (the windows before
-    /// that are kept).
+    /// `file`; the file's length (`None` for an older format, which the next
+    /// write replaces), or why it stopped early (the windows before that are
+    /// kept).
     fn read_file(
         &self,
         robot: u32,
@@ -224,7 +247,7 @@ impl HistoryStore {
         limits: &HistoryLimits,
         history: &mut PeerHistory,
         file: &mut FileState,
-    ) -> Result<u64, Stop> {
+    ) -> Result<Option<u64>, Stop> {
         let bad = Stop::Unreadable;
         let bound = limits.max_bytes.saturating_mul(FILE_BOUND_FACTOR) + FILE_BOUND_SLACK;
         let f = std::fs::File::open(path).map_err(|e| bad(e.to_string()))?;
@@ -235,22 +258,10 @@ impl HistoryStore {
             )));
         }
         let mut r = std::io::BufReader::new(f);
-        let mut header = [0u8; HEADER_LEN as usize];
-        match r.read_exact(&mut header) {
-            Ok(()) if header[..4] == FILE_MAGIC => {
-                let version = u16::from_le_bytes([header[4], header[5]]);
-                if !READABLE_VERSIONS.contains(&version) {
-                    return Err(bad(format!(
-                        "format version {version}; this build reads {READABLE_VERSIONS:?}"
-                    )));
-                }
-            }
-            _ => return Err(bad("not a history file (no FVHS header)".into())),
-        }
+        let (mut at, current) = self.read_header(&mut r)?;
         // A record is one message: a damaged length makes it allocate one
         // message at most.
         let max_record = Limits::default().max_message_bytes as u64;
-        let mut at = HEADER_LEN;
         let mut index = 0usize;
         while at < len {
             let cut = || Stop::CutShort(format!("record {index} is cut short at byte {at}"));
@@ -300,7 +311,41 @@ impl HistoryStore {
             at += 4 + n;
             index += 1;
         }
-        Ok(len)
+        Ok(current.then_some(len))
+    }
+
+    /// Reads a file's header; the bytes it takes and whether it is of the
+    /// current format, or why the file is not this store's.
+    fn read_header(&self, r: &mut impl Read) -> Result<(u64, bool), Stop> {
+        let bad = Stop::Unreadable;
+        let mut prefix = [0u8; PREFIX_LEN as usize];
+        if r.read_exact(&mut prefix).is_err() || prefix[..4] != FILE_MAGIC {
+            return Err(bad("not a history file (no FVHS header)".into()));
+        }
+        let version = u16::from_le_bytes([prefix[4], prefix[5]]);
+        if !READABLE_VERSIONS.contains(&version) {
+            return Err(bad(format!(
+                "format version {version}; this build reads {READABLE_VERSIONS:?}"
+            )));
+        }
+        if version == 1 {
+            return Ok((PREFIX_LEN, false));
+        }
+        let mut n = [0u8; 2];
+        r.read_exact(&mut n)
+            .map_err(|_| bad("the header is cut short".into()))?;
+        let n = usize::from(u16::from_le_bytes(n));
+        if n > MAX_MISSION_BYTES {
+            return Err(bad(format!("a mission name of {n} bytes")));
+        }
+        let mut name = vec![0u8; n];
+        r.read_exact(&mut name)
+            .map_err(|_| bad("the header is cut short".into()))?;
+        let name = String::from_utf8_lossy(&name);
+        if name != self.mission {
+            return Err(bad(format!("of mission `{name}`, not `{}`", self.mission)));
+        }
+        Ok((PREFIX_LEN + 2 + n as u64, true))
     }
 
     /// Brings robot `robot`'s file up to date with `history`: appends the
@@ -354,9 +399,8 @@ impl HistoryStore {
             }
             _ => {
                 // Whole: every window the history holds, the file replaced.
-                let mut out = Vec::with_capacity(needed as usize + HEADER_LEN as usize);
-                out.extend_from_slice(&FILE_MAGIC);
-                out.extend_from_slice(&FILE_VERSION.to_le_bytes());
+                let mut out = Vec::with_capacity(needed as usize + self.header.len());
+                out.extend_from_slice(&self.header);
                 let mut windows = BTreeMap::new();
                 for (&key, kf) in &history.keyframes {
                     let rec = record(&self.fleet_id, robot, key, kf)?;
@@ -460,6 +504,8 @@ mod tests {
     use crate::history_retention::Retention;
     use common::messages::samples;
 
+    const MISSION: &str = "loop, seed 1";
+
     fn limits() -> HistoryLimits {
         HistoryLimits {
             max_bytes: 64 << 20,
@@ -506,7 +552,7 @@ mod tests {
     }
 
     fn load(dir: &Path) -> (HistoryStore, Loaded) {
-        let mut store = HistoryStore::open(dir, "fleet").unwrap();
+        let mut store = HistoryStore::open(dir, "fleet", MISSION).unwrap();
         let loaded = store.load(&limits()).unwrap();
         (store, loaded)
     }
@@ -515,7 +561,7 @@ mod tests {
     fn a_write_appends_only_the_windows_new_or_more_complete() {
         let dir = tempfile::tempdir().unwrap();
         let mut h = history();
-        let mut store = HistoryStore::open(dir.path(), "fleet").unwrap();
+        let mut store = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
         let Saved::Rewritten(first) = store.save(3, &h).unwrap() else {
             panic!("a new file is written whole");
         };
@@ -567,7 +613,7 @@ mod tests {
             ..limits()
         };
         let mut h = PeerHistory::default();
-        let mut store = HistoryStore::open(dir.path(), "fleet").unwrap();
+        let mut store = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
         let (mut rewrites, mut written, mut whole) = (0, 0, 0);
         for k in 0..300u64 {
             grow(&mut h, k * 10 + 1..=k * 10 + 10, &bounded, true);
@@ -591,7 +637,7 @@ mod tests {
                 "{len} for {needed}"
             );
             // What writing the whole file every time would have cost.
-            whole += needed + HEADER_LEN;
+            whole += needed + store.header.len() as u64;
         }
         assert!(h.dropped_keyframes > 250, "{}", h.dropped_keyframes);
         assert!(h.keyframes.len() > 15, "{}", h.keyframes.len());
@@ -615,17 +661,55 @@ mod tests {
             written * 5 < whole,
             "{written} bytes against {whole} written whole"
         );
-        let mut back = HistoryStore::open(dir.path(), "fleet").unwrap();
+        let mut back = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
         let loaded = back.load(&bounded).unwrap();
         let keys = |h: &PeerHistory| h.keyframes.keys().copied().collect::<Vec<_>>();
         assert_eq!(keys(&loaded.histories[&1]), keys(&h));
     }
 
     #[test]
+    fn another_missions_file_is_set_aside_and_a_version_1_file_is_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let h = history();
+        let mut before = HistoryStore::open(dir.path(), "fleet", "loop, seed 2").unwrap();
+        before.save(4, &h).unwrap();
+        let (_, loaded) = load(dir.path());
+        let why = &loaded.unreadable[0].why;
+        assert!(
+            why.contains("of mission `loop, seed 2`, not `loop, seed 1`"),
+            "{why}"
+        );
+        assert!(why.contains("kept as"), "{why}");
+        assert!(loaded.histories.is_empty());
+
+        // Format 1: no mission after the version; read as this mission's,
+        // and its first write makes a file of format 2.
+        let mut store = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
+        store.save(4, &h).unwrap();
+        let v2 = std::fs::read(store.path_of(4)).unwrap();
+        let mut v1 = b"FVHS".to_vec();
+        v1.extend_from_slice(&1u16.to_le_bytes());
+        v1.extend_from_slice(&v2[store.header.len()..]);
+        std::fs::write(store.path_of(4), &v1).unwrap();
+        let (mut back, loaded) = load(dir.path());
+        assert!(loaded.unreadable.is_empty(), "{:?}", loaded.unreadable);
+        assert_eq!(loaded.histories[&4].keyframes, h.keyframes);
+        let mut more = h.clone();
+        grow(&mut more, 51..=60, &limits(), true);
+        back.save(4, &more).unwrap();
+        let (_, again) = load(dir.path());
+        assert!(again.unreadable.is_empty(), "{:?}", again.unreadable);
+        assert_eq!(again.histories[&4].keyframes, more.keyframes);
+        assert!(std::fs::read(store.path_of(4))
+            .unwrap()
+            .starts_with(&store.header));
+    }
+
+    #[test]
     fn a_record_cut_by_a_crash_is_dropped_and_the_next_write_replaces_the_file() {
         let dir = tempfile::tempdir().unwrap();
         let h = history();
-        let mut store = HistoryStore::open(dir.path(), "fleet").unwrap();
+        let mut store = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
         store.save(2, &h).unwrap();
         let path = store.path_of(2);
         let good = std::fs::read(&path).unwrap();
@@ -665,14 +749,14 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let h = history();
         assert_eq!(h.keyframes.len(), 5);
-        let mut store = HistoryStore::open(dir.path(), "fleet").unwrap();
+        let mut store = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
         assert!(matches!(store.save(3, &h).unwrap(), Saved::Rewritten(_)));
         assert_eq!(store.save(3, &h).unwrap(), Saved::Unchanged);
         assert!(matches!(
             store.save(7, &PeerHistory::default()).unwrap(),
             Saved::Rewritten(_)
         ));
-        let mut again = HistoryStore::open(dir.path(), "fleet").unwrap();
+        let mut again = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
         let loaded = again.load(&limits()).unwrap();
         assert!(loaded.unreadable.is_empty(), "{:?}", loaded.unreadable);
         // An empty history leaves no entry.
@@ -694,19 +778,20 @@ mod tests {
     #[test]
     fn bad_files_are_reported_and_what_was_read_before_the_damage_is_kept() {
         let dir = tempfile::tempdir().unwrap();
-        let mut store = HistoryStore::open(dir.path(), "fleet").unwrap();
+        let mut store = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
         store.save(1, &history()).unwrap();
         let good = std::fs::read(store.path_of(1)).unwrap();
         let load = || {
-            HistoryStore::open(dir.path(), "fleet")
+            HistoryStore::open(dir.path(), "fleet", MISSION)
                 .unwrap()
                 .load(&limits())
                 .unwrap()
         };
 
         // Cut inside the third record: two windows are kept.
+        let head = store.header.len();
         let record = |i: usize| {
-            let mut at = 6;
+            let mut at = head;
             for _ in 0..i {
                 let n = u32::from_le_bytes(good[at..at + 4].try_into().unwrap()) as usize;
                 at += 4 + n;
@@ -736,7 +821,7 @@ mod tests {
 
         // A file of another fleet, a file under another robot's name, a
         // foreign file, a huge length: reported, nothing invented.
-        let mut other = HistoryStore::open(dir.path(), "other").unwrap();
+        let mut other = HistoryStore::open(dir.path(), "other", MISSION).unwrap();
         other.save(1, &history()).unwrap();
         let theirs = std::fs::read(store.path_of(1)).unwrap();
         let l = load();
@@ -781,7 +866,7 @@ mod tests {
         );
         std::fs::write(store.path_of(2), b"not a history").unwrap();
         assert!(load().unreadable[0].why.contains("FVHS"));
-        let mut huge = good[..6].to_vec();
+        let mut huge = good[..head].to_vec();
         huge.extend_from_slice(&u32::MAX.to_le_bytes());
         huge.extend_from_slice(&[0; 64]);
         std::fs::write(store.path_of(2), &huge).unwrap();
@@ -794,7 +879,7 @@ mod tests {
             max_bytes: 1,
             ..limits()
         };
-        let l = HistoryStore::open(dir.path(), "fleet")
+        let l = HistoryStore::open(dir.path(), "fleet", MISSION)
             .unwrap()
             .load(&tight)
             .unwrap();

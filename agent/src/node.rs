@@ -445,11 +445,11 @@ impl Node {
     fn restore(
         &mut self,
         dir: &Path,
-        fleet_id: &str,
+        (fleet_id, mission): (&str, &str),
         period_s: f64,
         max_peers: usize,
     ) -> Result<(), NodeError> {
-        let mut store = HistoryStore::open(dir, fleet_id)?;
+        let mut store = HistoryStore::open(dir, fleet_id, mission)?;
         let loaded = store.load(&self.limits)?;
         let mut stats = StoreStats::default();
         for u in loaded.unreadable {
@@ -909,9 +909,11 @@ pub fn run_node(
         ));
     }
     if let Some(dir) = &cfg.history.store_dir {
+        // The fleet's mission: every robot runs the same scenario and seed.
+        let mission = format!("{}, seed {}", fleet.scenario.name, fleet.seed);
         node.restore(
             dir,
-            &cfg.fleet_id,
+            (&cfg.fleet_id, &mission),
             cfg.history.store_period_s,
             cfg.history.max_peers,
         )?;
