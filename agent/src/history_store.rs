@@ -258,27 +258,14 @@ impl HistoryStore {
             )));
         }
         let mut r = std::io::BufReader::new(f);
-        let (mut at, current) = self.read_header(&mut r)?;
-        // A record is one message: a damaged length makes it allocate one
-        // message at most.
-        let max_record = Limits::default().max_message_bytes as u64;
-        let mut index = 0usize;
-        while at < len {
-            let cut = || Stop::CutShort(format!("record {index} is cut short at byte {at}"));
-            let mut prefix = [0u8; 4];
-            r.read_exact(&mut prefix).map_err(|_| cut())?;
-            let n = u64::from(u32::from_le_bytes(prefix));
-            if n > max_record {
-                return Err(bad(format!(
-                    "record {index} at byte {at} claims {n} bytes, more than a message may hold"
-                )));
+        let header = parse_header(&mut r)?;
+        if let Some(name) = header.mission.as_deref() {
+            if name != self.mission {
+                return Err(bad(format!("of mission `{name}`, not `{}`", self.mission)));
             }
-            if at + 4 + n > len {
-                return Err(cut());
-            }
-            let mut record = vec![0u8; n as usize];
-            r.read_exact(&mut record).map_err(|_| cut())?;
-            let env = decode(&record).map_err(|e| bad(format!("record {index}: {e}")))?;
+        }
+        let mut records = Records::after(header.len, len, r);
+        while let Some((index, env, bytes)) = records.next_record()? {
             if env.fleet_id != self.fleet_id {
                 return Err(bad(format!(
                     "record {index} is of fleet `{}`, not `{}`",
@@ -291,61 +278,20 @@ impl HistoryStore {
                     env.robot_id
                 )));
             }
-            let window = match env.body {
-                Body::HistoryReplay(r) => r.window,
-                _ => None,
-            };
-            let Some(window) = window else {
+            let Some(kf) = window_of(env) else {
                 return Err(bad(format!("record {index} holds no keyframe window")));
             };
-            let kf = KeyframeWindow::from_wire(window);
             let written = Written {
                 completeness: kf.completeness(),
-                bytes: 4 + n,
+                bytes,
             };
             let key = time_key(kf.end_s());
             // A later record of a window is a more complete copy of it.
             if history.add_replayed(kf, limits) != Replayed::AlreadyHeld {
                 file.windows.insert(key, written);
             }
-            at += 4 + n;
-            index += 1;
         }
-        Ok(current.then_some(len))
-    }
-
-    /// Reads a file's header; the bytes it takes and whether it is of the
-    /// current format, or why the file is not this store's.
-    fn read_header(&self, r: &mut impl Read) -> Result<(u64, bool), Stop> {
-        let bad = Stop::Unreadable;
-        let mut prefix = [0u8; PREFIX_LEN as usize];
-        if r.read_exact(&mut prefix).is_err() || prefix[..4] != FILE_MAGIC {
-            return Err(bad("not a history file (no FVHS header)".into()));
-        }
-        let version = u16::from_le_bytes([prefix[4], prefix[5]]);
-        if !READABLE_VERSIONS.contains(&version) {
-            return Err(bad(format!(
-                "format version {version}; this build reads {READABLE_VERSIONS:?}"
-            )));
-        }
-        if version == 1 {
-            return Ok((PREFIX_LEN, false));
-        }
-        let mut n = [0u8; 2];
-        r.read_exact(&mut n)
-            .map_err(|_| bad("the header is cut short".into()))?;
-        let n = usize::from(u16::from_le_bytes(n));
-        if n > MAX_MISSION_BYTES {
-            return Err(bad(format!("a mission name of {n} bytes")));
-        }
-        let mut name = vec![0u8; n];
-        r.read_exact(&mut name)
-            .map_err(|_| bad("the header is cut short".into()))?;
-        let name = String::from_utf8_lossy(&name);
-        if name != self.mission {
-            return Err(bad(format!("of mission `{name}`, not `{}`", self.mission)));
-        }
-        Ok((PREFIX_LEN + 2 + n as u64, true))
+        Ok((header.version == FILE_VERSION).then_some(len))
     }
 
     /// Brings robot `robot`'s file up to date with `history`: appends the
@@ -449,6 +395,206 @@ enum Stop {
     CutShort(String),
     /// Anything else: another fleet's, damaged, not a history file.
     Unreadable(String),
+}
+
+/// What a history file holds, as `agent store` shows it: read with the
+/// same bounds as at start, but whatever its fleet and mission.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct FileSummary {
+    /// The file.
+    pub path: PathBuf,
+    /// Its bytes.
+    pub bytes: u64,
+    /// Its format version (`None`: not a history file).
+    pub format: Option<u16>,
+    /// The mission its header names (format 2 on).
+    pub mission: Option<String>,
+    /// The fleet id and robot of its first record.
+    pub fleet_id: Option<String>,
+    /// The robot whose windows it holds.
+    pub robot: Option<u32>,
+    /// Records read.
+    pub records: usize,
+    /// Distinct windows among them, and of those the ones held whole.
+    pub windows: usize,
+    /// Windows held whole (most complete record of each).
+    pub whole: usize,
+    /// End times of the first and last window, s.
+    pub span_s: Option<(f64, f64)>,
+    /// Why reading stopped before the end, if it did.
+    pub problem: Option<String>,
+}
+
+/// Reads `path` as a history file and sums up what it holds.
+pub fn inspect(path: &Path) -> FileSummary {
+    let mut out = FileSummary {
+        path: path.to_path_buf(),
+        ..FileSummary::default()
+    };
+    let opened = std::fs::File::open(path).and_then(|f| Ok((f.metadata()?.len(), f)));
+    let (len, f) = match opened {
+        Ok(x) => x,
+        Err(e) => {
+            out.problem = Some(e.to_string());
+            return out;
+        }
+    };
+    out.bytes = len;
+    let mut r = std::io::BufReader::new(f);
+    let stop = |e: Stop| match e {
+        Stop::CutShort(why) | Stop::Unreadable(why) => why,
+    };
+    let header = match parse_header(&mut r) {
+        Ok(h) => h,
+        Err(e) => {
+            out.problem = Some(stop(e));
+            return out;
+        }
+    };
+    out.format = Some(header.version);
+    out.mission = header.mission;
+    let mut windows: BTreeMap<u64, KeyframeWindow> = BTreeMap::new();
+    let mut records = Records::after(header.len, len, r);
+    loop {
+        match records.next_record() {
+            Ok(Some((_, env, _))) => {
+                out.records += 1;
+                out.fleet_id.get_or_insert_with(|| env.fleet_id.clone());
+                out.robot.get_or_insert(env.robot_id);
+                if let Some(kf) = window_of(env) {
+                    let key = time_key(kf.end_s());
+                    let better = windows
+                        .get(&key)
+                        .is_none_or(|held| kf.completeness() > held.completeness());
+                    if better {
+                        windows.insert(key, kf);
+                    }
+                }
+            }
+            Ok(None) => break,
+            Err(e) => {
+                out.problem = Some(stop(e));
+                break;
+            }
+        }
+    }
+    out.windows = windows.len();
+    out.whole = windows.values().filter(|kf| kf.is_whole()).count();
+    out.span_s = windows
+        .values()
+        .next()
+        .zip(windows.values().next_back())
+        .map(|(a, b)| (a.end_s(), b.end_s()));
+    out
+}
+
+/// A file's header.
+struct Header {
+    /// Its bytes.
+    len: u64,
+    /// The format version.
+    version: u16,
+    /// The mission it names (`None` in format 1).
+    mission: Option<String>,
+}
+
+/// Reads a file's header, or says why it is not a history file this build
+/// reads.
+fn parse_header(r: &mut impl Read) -> Result<Header, Stop> {
+    let bad = Stop::Unreadable;
+    let mut prefix = [0u8; PREFIX_LEN as usize];
+    if r.read_exact(&mut prefix).is_err() || prefix[..4] != FILE_MAGIC {
+        return Err(bad("not a history file (no FVHS header)".into()));
+    }
+    let version = u16::from_le_bytes([prefix[4], prefix[5]]);
+    if !READABLE_VERSIONS.contains(&version) {
+        return Err(bad(format!(
+            "format version {version}; this build reads {READABLE_VERSIONS:?}"
+        )));
+    }
+    if version == 1 {
+        return Ok(Header {
+            len: PREFIX_LEN,
+            version,
+            mission: None,
+        });
+    }
+    let cut = || bad("the header is cut short".into());
+    let mut n = [0u8; 2];
+    r.read_exact(&mut n).map_err(|_| cut())?;
+    let n = usize::from(u16::from_le_bytes(n));
+    if n > MAX_MISSION_BYTES {
+        return Err(bad(format!("a mission name of {n} bytes")));
+    }
+    let mut name = vec![0u8; n];
+    r.read_exact(&mut name).map_err(|_| cut())?;
+    Ok(Header {
+        len: PREFIX_LEN + 2 + n as u64,
+        version,
+        mission: Some(String::from_utf8_lossy(&name).into_owned()),
+    })
+}
+
+/// A file's records, read one at a time, each decoded with the bounds and
+/// checks of a network message.
+struct Records<R> {
+    r: R,
+    /// Offset of the next record.
+    at: u64,
+    /// The file's length.
+    len: u64,
+    /// Index of the next record.
+    index: usize,
+}
+
+impl<R: Read> Records<R> {
+    /// The records of a file of `len` bytes, `r` standing after its header of
+    /// `header_len` bytes.
+    fn after(header_len: u64, len: u64, r: R) -> Self {
+        Self {
+            r,
+            at: header_len,
+            len,
+            index: 0,
+        }
+    }
+
+    /// The next record: its index, its message and its bytes (length prefix
+    /// included); `None` at the end of the file.
+    fn next_record(&mut self) -> Result<Option<(usize, Envelope, u64)>, Stop> {
+        if self.at >= self.len {
+            return Ok(None);
+        }
+        let (index, at) = (self.index, self.at);
+        let cut = || Stop::CutShort(format!("record {index} is cut short at byte {at}"));
+        let mut prefix = [0u8; 4];
+        self.r.read_exact(&mut prefix).map_err(|_| cut())?;
+        let n = u64::from(u32::from_le_bytes(prefix));
+        // A record is one message: a damaged length makes it allocate one
+        // message at most.
+        if n > Limits::default().max_message_bytes as u64 {
+            return Err(Stop::Unreadable(format!(
+                "record {index} at byte {at} claims {n} bytes, more than a message may hold"
+            )));
+        }
+        if at + 4 + n > self.len {
+            return Err(cut());
+        }
+        let mut record = vec![0u8; n as usize];
+        self.r.read_exact(&mut record).map_err(|_| cut())?;
+        let env = decode(&record).map_err(|e| Stop::Unreadable(format!("record {index}: {e}")))?;
+        self.at += 4 + n;
+        self.index += 1;
+        Ok(Some((index, env, 4 + n)))
+    }
+}
+
+/// The keyframe window a record carries.
+fn window_of(env: Envelope) -> Option<KeyframeWindow> {
+    match env.body {
+        Body::HistoryReplay(r) => r.window.map(KeyframeWindow::from_wire),
+        _ => None,
+    }
 }
 
 /// Moves a file that could not be read to its end out of the way, so the
@@ -703,6 +849,39 @@ mod tests {
         assert!(std::fs::read(store.path_of(4))
             .unwrap()
             .starts_with(&store.header));
+    }
+
+    #[test]
+    fn inspecting_a_file_shows_its_mission_fleet_windows_and_damage() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut h = history();
+        let mut store = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
+        store.save(5, &h).unwrap();
+        grow(&mut h, 51..=60, &limits(), false);
+        store.save(5, &h).unwrap();
+        add_descriptors(&mut h, 60, &limits());
+        store.save(5, &h).unwrap();
+        let path = store.path_of(5);
+        let s = inspect(&path);
+        assert_eq!(s.format, Some(2));
+        assert_eq!(s.mission.as_deref(), Some(MISSION));
+        assert_eq!(s.fleet_id.as_deref(), Some("fleet"));
+        assert_eq!(s.robot, Some(5));
+        assert_eq!((s.records, s.windows, s.whole), (7, 6, 6));
+        let (first, last) = s.span_s.unwrap();
+        assert!(last > first);
+        assert_eq!(s.problem, None);
+        assert_eq!(s.bytes, std::fs::metadata(&path).unwrap().len());
+
+        let mut cut = std::fs::read(&path).unwrap();
+        cut.truncate(cut.len() - 10);
+        std::fs::write(&path, &cut).unwrap();
+        let s = inspect(&path);
+        assert_eq!((s.records, s.windows, s.whole), (6, 6, 5));
+        assert!(s.problem.unwrap().contains("record 6 is cut short"));
+        std::fs::write(&path, b"hello").unwrap();
+        assert!(inspect(&path).problem.unwrap().contains("FVHS"));
+        assert!(inspect(&dir.path().join("none")).problem.is_some());
     }
 
     #[test]

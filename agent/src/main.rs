@@ -49,6 +49,21 @@ enum Command {
     /// Make the fleet's TLS certificates for the `quic` and `tls` Zenoh configurations: a CA
     /// (reused if the folder has one) and a key and certificate per robot or router.
     Certs(CertsArgs),
+    /// Show what history store files hold (`history.store_dir`): format,
+    /// mission, fleet, robot, windows and how many are whole, their time span,
+    /// size, and any damage. A folder shows each file in it, the ones set
+    /// aside as unreadable too.
+    Store(StoreArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct StoreArgs {
+    /// History files or store folders.
+    #[arg(required = true)]
+    paths: Vec<PathBuf>,
+    /// Print JSON (one object per file) instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -180,6 +195,7 @@ fn run_main() -> Result<()> {
         (Some(Command::Probe(args)), _) => probe(args),
         (Some(Command::Acl(args)), _) => print_acl(args),
         (Some(Command::Certs(args)), _) => make_certs(args),
+        (Some(Command::Store(args)), _) => show_store(args),
         #[cfg(feature = "vision")]
         (Some(Command::Dataset(args)), _) => agent::dataset_cli::run_dataset_command(args),
         (None, Some(config)) => run_agent(config, cli.progress),
@@ -246,6 +262,70 @@ fn print_acl(args: &AclArgs) -> Result<()> {
     let role = args.agent.map_or(AclRole::Router, AclRole::Agent);
     let acl = access_control(&args.fleet, &certs, role)?;
     println!("{}", serde_json::to_string_pretty(&acl)?);
+    Ok(())
+}
+
+/// `agent store`: a line (or a JSON object) per history file.
+fn show_store(args: &StoreArgs) -> Result<()> {
+    use agent::history_store::inspect;
+    let mut files = Vec::new();
+    for p in &args.paths {
+        if p.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(p)
+                .with_context(|| format!("reading {}", p.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|f| {
+                    f.file_name()
+                        .is_some_and(|n| n.to_string_lossy().contains(".fvhs"))
+                })
+                .filter(|f| !f.to_string_lossy().ends_with(".tmp"))
+                .collect();
+            found.sort();
+            files.extend(found);
+        } else {
+            files.push(p.clone());
+        }
+    }
+    let summaries: Vec<_> = files.iter().map(|f| inspect(f)).collect();
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&summaries)?);
+        return Ok(());
+    }
+    println!(
+        "{:<36} {:>6} {:>6}  {:<28} {:<16} {:>7} {:>7} {:>6} {:>19} {:>8}  problem",
+        "file",
+        "format",
+        "robot",
+        "mission",
+        "fleet",
+        "records",
+        "windows",
+        "whole",
+        "span s",
+        "MB"
+    );
+    let dash = || "-".to_string();
+    for s in &summaries {
+        let name = s
+            .path
+            .file_name()
+            .map_or_else(dash, |n| n.to_string_lossy().into_owned());
+        println!(
+            "{:<36} {:>6} {:>6}  {:<28} {:<16} {:>7} {:>7} {:>6} {:>19} {:>8.2}  {}",
+            name,
+            s.format.map_or_else(dash, |v| v.to_string()),
+            s.robot.map_or_else(dash, |v| v.to_string()),
+            s.mission.clone().unwrap_or_else(dash),
+            s.fleet_id.clone().unwrap_or_else(dash),
+            s.records,
+            s.windows,
+            s.whole,
+            s.span_s
+                .map_or_else(dash, |(a, b)| format!("{a:.1}-{b:.1}")),
+            s.bytes as f64 / 1e6,
+            s.problem.clone().unwrap_or_else(dash),
+        );
+    }
     Ok(())
 }
 

@@ -676,6 +676,31 @@ fn an_agent_started_again_after_its_peers_are_gone_reads_their_histories_from_di
         })
         .collect();
     assert!(made.iter().all(|&m| m > 15), "{made:?}");
+    // `agent store` shows what robot 2's folder holds: every robot's windows,
+    // whole, of this mission, undamaged.
+    let shown = Command::new(bin("agent"))
+        .args(["store", "--json"])
+        .arg(store.join("robot2"))
+        .output()
+        .unwrap();
+    assert!(
+        shown.status.success(),
+        "{}",
+        String::from_utf8_lossy(&shown.stderr)
+    );
+    let files: Value = serde_json::from_slice(&shown.stdout).unwrap();
+    let files = files.as_array().unwrap();
+    assert_eq!(files.len(), 3, "{files:?}");
+    for (p, f) in files.iter().enumerate() {
+        assert_eq!(f["robot"], p, "{f}");
+        assert_eq!(f["windows"].as_u64(), Some(made[p]), "{f}");
+        assert_eq!(f["whole"], f["windows"], "{f}");
+        assert!(f["problem"].is_null(), "{f}");
+        assert!(
+            f["mission"].as_str().unwrap_or("").ends_with("seed 3"),
+            "{f}"
+        );
+    }
     let run_alone = |name: &str, keep: bool| {
         let again = dir.path().join(name);
         let cfg = alone_again(&out, &again, keep);
