@@ -16,7 +16,7 @@ use crate::config::{AgentConfig, ClockMode, FaultDrop, FaultedMessage, FaultsCon
 use crate::estimator::{Estimator, FrameOutput};
 use crate::fleet_clock::{Lockstep, Pacer, TickGrid};
 use crate::history_catchup::{CatchUp, CatchUpStats, Replayer};
-use crate::history_store::{HistoryStore, Saved};
+use crate::history_store::{Done, HistoryStore, Saved, StoreError, StoreWriter};
 use crate::inbox::{DropReason, Inbox, NetStats, PeerRates};
 use crate::node_images::ImageFrames;
 use crate::outbox::Outbox;
@@ -169,6 +169,45 @@ struct Settling {
     announced: Option<Instant>,
 }
 
+/// The history store of a node, its writer thread and its period.
+#[derive(Debug)]
+struct Store {
+    store: HistoryStore,
+    writer: Option<StoreWriter>,
+    period_s: f64,
+    last_s: f64,
+}
+
+/// Takes a finished write into the stats; a failed one makes the store write
+/// that file whole next time.
+fn settle(store: &mut HistoryStore, stats: &mut StoreStats, done: Done) {
+    stats.write_wall_s += done.wall_s;
+    match done.result {
+        Ok(Saved::Unchanged) => {}
+        Ok(Saved::Appended(bytes)) => {
+            stats.writes += 1;
+            stats.bytes_written += bytes;
+        }
+        Ok(Saved::Rewritten(bytes)) => {
+            stats.writes += 1;
+            stats.rewrites += 1;
+            stats.bytes_written += bytes;
+        }
+        Err(e) => {
+            store.failed(done.robot);
+            stats.write_errors += 1;
+            warn_store(stats, &e);
+        }
+    }
+}
+
+/// Logs a store error, the first few only.
+fn warn_store(stats: &StoreStats, e: &StoreError) {
+    if stats.write_errors <= 5 {
+        tracing::warn!("history store: {e}");
+    }
+}
+
 /// What the history store did in a run.
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct StoreStats {
@@ -183,8 +222,17 @@ pub struct StoreStats {
     pub rewrites: u64,
     /// Bytes written, appends and rewrites.
     pub bytes_written: u64,
-    /// Wall time spent writing, s (on the agent's thread).
+    /// Wall time of the file writes, s (on the writer thread).
     pub write_wall_s: f64,
+    /// Wall time the agent's thread spent on the store's writes, s:
+    /// encoding the records and queueing them.
+    pub agent_thread_s: f64,
+    /// Most bytes queued for the writer thread at once.
+    pub queued_bytes_peak: u64,
+    /// Writes put off to the next period because the writer thread had
+    /// [`crate::history_store::MAX_QUEUED_BYTES`] queued (a disk slower than
+    /// the histories grow).
+    pub writes_deferred: u64,
     /// Writes that failed (each logged; the run goes on).
     pub write_errors: u64,
 }
@@ -308,7 +356,7 @@ struct Node {
     unanswerable: Vec<RequestRef>,
     /// Histories kept on disk (`None`: memory only), the fleet seconds
     /// between writes and the time of the last.
-    store: Option<(HistoryStore, f64, f64)>,
+    store: Option<Store>,
     faults: FaultsConfig,
     /// This agent's robot id (the receiver in the fault draws).
     robot_id: u32,
@@ -482,46 +530,83 @@ impl Node {
             stats.restored_windows.insert(robot, windows);
         }
         self.report.store = Some(stats);
-        self.store = Some((store, period_s, f64::NEG_INFINITY));
+        // Without a writer thread (none could be started) the agent's
+        // thread writes, as it must then.
+        let writer = StoreWriter::spawn()
+            .map_err(|e| tracing::warn!("history store: no writer thread ({e}); writing inline"))
+            .ok();
+        self.store = Some(Store {
+            store,
+            writer,
+            period_s,
+            last_s: f64::NEG_INFINITY,
+        });
         Ok(())
     }
 
     /// Writes the histories that changed, if `store_period_s` passed since
-    /// the last write (`force`: now, whatever the period).
-    fn store_histories(&mut self, now_s: f64, force: bool) {
-        let Some((store, period_s, last_s)) = self.store.as_mut() else {
+    /// the last write (`last`: now, whatever the period, and waits for the
+    /// writes to end). The records are encoded on this thread; the writer
+    /// thread does the file work.
+    fn store_histories(&mut self, now_s: f64, last: bool) {
+        let Some(st) = self.store.as_mut() else {
             return;
         };
-        if !force && now_s - *last_s < *period_s {
+        let stats = self.report.store.get_or_insert_with(StoreStats::default);
+        if let Some(w) = st.writer.as_ref() {
+            for done in w.finished() {
+                settle(&mut st.store, stats, done);
+            }
+        }
+        if !last && now_s - st.last_s < st.period_s {
             return;
         }
-        *last_s = now_s;
+        st.last_s = now_s;
+        let started = Instant::now();
         let own = self
             .catch_up
             .as_ref()
             .map(|(_, r)| (self.robot_id, r.archive()));
-        let stats = self.report.store.get_or_insert_with(StoreStats::default);
         let peers = self.report.histories.iter().map(|(&r, h)| (r, h));
         for (robot, history) in peers.chain(own) {
-            let started = Instant::now();
-            let saved = store.save(robot, history);
-            stats.write_wall_s += started.elapsed().as_secs_f64();
-            match saved {
-                Ok(Saved::Unchanged) => {}
-                Ok(Saved::Appended(bytes)) => {
-                    stats.writes += 1;
-                    stats.bytes_written += bytes;
-                }
-                Ok(Saved::Rewritten(bytes)) => {
-                    stats.writes += 1;
-                    stats.rewrites += 1;
-                    stats.bytes_written += bytes;
-                }
+            let job = match st.store.plan(robot, history) {
+                Ok(Some(job)) => job,
+                Ok(None) => continue,
                 Err(e) => {
                     stats.write_errors += 1;
-                    if stats.write_errors <= 5 {
-                        tracing::warn!("history store: {e}");
+                    warn_store(stats, &e);
+                    continue;
+                }
+            };
+            match st.writer.as_ref() {
+                Some(w) => {
+                    stats.queued_bytes_peak = stats
+                        .queued_bytes_peak
+                        .max((w.queued_bytes() + job.len()) as u64);
+                    if let Err(job) = w.submit(job, last) {
+                        // The disk is behind: this history waits for the next
+                        // period, written whole then.
+                        st.store.failed(job.robot());
+                        stats.writes_deferred += 1;
                     }
+                }
+                None => {
+                    let t = Instant::now();
+                    let result = job.run();
+                    let done = Done {
+                        robot,
+                        result,
+                        wall_s: t.elapsed().as_secs_f64(),
+                    };
+                    settle(&mut st.store, stats, done);
+                }
+            }
+        }
+        stats.agent_thread_s += started.elapsed().as_secs_f64();
+        if last {
+            if let Some(w) = st.writer.take() {
+                for done in w.finish() {
+                    settle(&mut st.store, stats, done);
                 }
             }
         }
