@@ -334,9 +334,10 @@ impl HistoryStore {
     /// `history` (`None`: nothing to write): the windows new or more complete
     /// since they were last written, appended, or the whole file when it
     /// would grow past [`COMPACT_FACTOR`] times what the history needs (or is
-    /// not known to end in a whole record). The records are encoded here; the
-    /// store takes the write as done, so a job that fails must be reported
-    /// with [`HistoryStore::failed`].
+    /// not known to end in a whole record). New records are encoded here (a
+    /// compaction copies the others from the file); the store takes the write
+    /// as done, so a job that fails must be reported with
+    /// [`HistoryStore::failed`].
     pub fn plan(
         &mut self,
         robot: u32,
@@ -349,7 +350,7 @@ impl HistoryStore {
         }
         // The records the history needs: the ones in the file, and the new.
         let mut needed = 0u64;
-        let mut new = Vec::new();
+        let mut new: Vec<NewRecord> = Vec::new();
         for (&key, kf) in &history.keyframes {
             match file.windows.get(&key) {
                 Some(w) if w.completeness == kf.completeness() => needed += w.bytes,
@@ -367,22 +368,8 @@ impl HistoryStore {
                 if new.is_empty() {
                     return Ok(None);
                 }
-                let mut bytes = Vec::with_capacity(grown as usize);
-                let mut offset = len;
-                for (key, completeness, rec) in new {
-                    bytes.extend_from_slice(&rec);
-                    let n = rec.len() as u64;
-                    file.windows.insert(
-                        key,
-                        Written {
-                            completeness,
-                            bytes: n,
-                            offset,
-                        },
-                    );
-                    offset += n;
-                }
-                file.len = Some(len + grown);
+                let (bytes, end) = lay_out(new, len, &mut file.windows);
+                file.len = Some(end);
                 Ok(Some(WriteJob {
                     robot,
                     path,
@@ -408,22 +395,9 @@ impl HistoryStore {
                         offset += w.bytes;
                     }
                 }
-                let mut bytes = Vec::with_capacity(grown as usize);
-                for (key, completeness, rec) in new {
-                    bytes.extend_from_slice(&rec);
-                    let n = rec.len() as u64;
-                    windows.insert(
-                        key,
-                        Written {
-                            completeness,
-                            bytes: n,
-                            offset,
-                        },
-                    );
-                    offset += n;
-                }
+                let (bytes, end) = lay_out(new, offset, &mut windows);
                 file.windows = windows;
-                file.len = Some(offset);
+                file.len = Some(end);
                 Ok(Some(WriteJob {
                     robot,
                     path,
@@ -474,6 +448,33 @@ impl HistoryStore {
             file.revision = None;
         }
     }
+}
+
+/// A new record: its window's key, completeness and bytes.
+type NewRecord = (u64, (usize, bool), Vec<u8>);
+
+/// Lays `new` records out one after the other from `offset`, noting each in
+/// `windows`: their bytes, and the offset after them.
+fn lay_out(
+    new: Vec<NewRecord>,
+    mut offset: u64,
+    windows: &mut BTreeMap<u64, Written>,
+) -> (Vec<u8>, u64) {
+    let mut bytes = Vec::with_capacity(new.iter().map(|(_, _, r)| r.len()).sum());
+    for (key, completeness, rec) in new {
+        let n = rec.len() as u64;
+        bytes.extend_from_slice(&rec);
+        windows.insert(
+            key,
+            Written {
+                completeness,
+                bytes: n,
+                offset,
+            },
+        );
+        offset += n;
+    }
+    (bytes, offset)
 }
 
 /// The file work of one [`HistoryStore::plan`]: no encoding left, only I/O,
