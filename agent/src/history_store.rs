@@ -152,7 +152,17 @@ struct FileState {
     windows: BTreeMap<u64, Written>,
     /// The history's revision when the file was last brought up to date.
     revision: Option<u64>,
+    /// Writes failed in a row.
+    failures: u32,
+    /// Plans still to pass over before the next try (after failures: a disk
+    /// that is full or gone is not asked again, and the file encoded again,
+    /// every period).
+    skip: u32,
 }
+
+/// Most plans passed over after failures in a row (5 min at the default
+/// 10 s period).
+const MAX_SKIP: u32 = 31;
 
 /// One agent's folder of histories.
 #[derive(Debug)]
@@ -318,12 +328,18 @@ impl HistoryStore {
                 return Ok(Saved::Unchanged);
             };
             match job.run() {
-                Err(StoreError::Changed { .. }) => self.failed(robot),
+                Err(StoreError::Changed { .. }) => {
+                    self.failed(robot);
+                    self.retry_now();
+                }
                 Err(e) => {
                     self.failed(robot);
                     return Err(e);
                 }
-                Ok(saved) => return Ok(saved),
+                Ok(saved) => {
+                    self.succeeded(robot);
+                    return Ok(saved);
+                }
             }
         }
         let path = self.path_of(robot);
@@ -346,6 +362,10 @@ impl HistoryStore {
         let path = self.path_of(robot);
         let file = self.files.entry(robot).or_default();
         if file.len.is_some() && file.revision == Some(history.revision) {
+            return Ok(None);
+        }
+        if file.skip > 0 {
+            file.skip -= 1;
             return Ok(None);
         }
         // The records the history needs: the ones in the file, and the new.
@@ -440,12 +460,31 @@ impl HistoryStore {
         }
     }
 
-    /// A job of robot `robot`'s file was not done, or failed: what the file
-    /// holds is no longer known, so the next plan writes it whole.
+    /// A job of robot `robot`'s file failed: what the file holds is no
+    /// longer known, so the next try writes it whole. After the second
+    /// failure in a row, the next try waits: 1, 3, 7, ... up to [`MAX_SKIP`]
+    /// plans.
     pub fn failed(&mut self, robot: u32) {
         if let Some(file) = self.files.get_mut(&robot) {
             file.len = None;
             file.revision = None;
+            file.failures = file.failures.saturating_add(1);
+            file.skip = ((1u32 << (file.failures - 1).min(5)) - 1).min(MAX_SKIP);
+        }
+    }
+
+    /// A job of robot `robot`'s file was written.
+    pub fn succeeded(&mut self, robot: u32) {
+        if let Some(file) = self.files.get_mut(&robot) {
+            file.failures = 0;
+        }
+    }
+
+    /// The next plans try every file, whatever failed before (the last write
+    /// of a run).
+    pub fn retry_now(&mut self) {
+        for file in self.files.values_mut() {
+            file.skip = 0;
         }
     }
 }
@@ -620,8 +659,8 @@ pub struct Done {
     pub wall_s: f64,
 }
 
-/// Bytes of write jobs queued for [`StoreWriter`] beyond which a new job
-/// waits for the next period (a job is always taken when nothing is queued).
+/// Bytes of write jobs queued for [`StoreWriter`] from which no new job is
+/// planned (so at most this plus one job's bytes wait in memory).
 pub const MAX_QUEUED_BYTES: usize = 64 << 20;
 
 /// A thread that does the store's file work, so an agent's frames never wait
@@ -668,16 +707,10 @@ impl StoreWriter {
         })
     }
 
-    /// Queues `job`, unless [`MAX_QUEUED_BYTES`] are queued already (the disk
-    /// is slower than the histories grow): then it is handed back, and the
-    /// caller reports it [`HistoryStore::failed`] so a later plan covers it.
-    /// `wait`: queue it whatever is queued (the last write of a run).
-    pub fn submit(&self, job: WriteJob, wait: bool) -> Result<(), WriteJob> {
+    /// Queues `job`; it is handed back if the thread is gone. The caller
+    /// keeps the queue bounded: no plan while [`StoreWriter::busy`].
+    pub fn submit(&self, job: WriteJob) -> Result<(), WriteJob> {
         use std::sync::atomic::Ordering;
-        let queued = self.queued.load(Ordering::Acquire);
-        if !wait && queued > 0 && queued + job.len() > MAX_QUEUED_BYTES {
-            return Err(job);
-        }
         let Some(jobs) = self.jobs.as_ref() else {
             return Err(job);
         };
@@ -686,6 +719,13 @@ impl StoreWriter {
             self.queued.fetch_sub(e.0.len(), Ordering::AcqRel);
             e.0
         })
+    }
+
+    /// Whether [`MAX_QUEUED_BYTES`] wait for the disk: a plan now would hold
+    /// its records in memory behind them (the disk is slower than the
+    /// histories grow), so it waits for a later period.
+    pub fn busy(&self) -> bool {
+        self.queued_bytes() >= MAX_QUEUED_BYTES
     }
 
     /// Bytes queued and not written yet.
@@ -1092,7 +1132,7 @@ mod tests {
         // The first plan is the whole file, then one appended window a period.
         for k in 0..4u64 {
             let job = store.plan(2, &h).unwrap().unwrap();
-            assert!(writer.submit(job, false).is_ok());
+            assert!(writer.submit(job).is_ok());
             done.extend(writer.finished());
             grow(&mut h, 51 + k * 10..=60 + k * 10, &limits(), true);
         }
@@ -1100,7 +1140,7 @@ mod tests {
         // Planned, not handed to the writer: the store must write it whole.
         store.failed(2);
         let job = store.plan(2, &h).unwrap().unwrap();
-        assert!(writer.submit(job, true).is_ok());
+        assert!(writer.submit(job).is_ok());
         done.extend(writer.finish());
         assert_eq!(done.len(), 5, "{done:?}");
         assert!(done.iter().all(|d| d.result.is_ok()), "{done:?}");
@@ -1112,6 +1152,39 @@ mod tests {
         let (_, loaded) = load(dir.path());
         assert!(loaded.unreadable.is_empty(), "{:?}", loaded.unreadable);
         assert_eq!(loaded.histories[&2].keyframes, h.keyframes);
+    }
+
+    #[test]
+    fn a_file_that_cannot_be_written_is_tried_less_and_less_often_then_written_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut store = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
+        let h = history();
+        // A folder where the new file is made: every whole write fails (as on
+        // a full or vanished disk; the tests run as root, so permissions
+        // would not stop it).
+        let blocker = store.path_of(7).with_extension("fvhs.tmp");
+        std::fs::create_dir(&blocker).unwrap();
+        let mut tries = Vec::new();
+        for period in 0..20 {
+            if let Some(job) = store.plan(7, &h).unwrap() {
+                assert!(job.run().is_err());
+                store.failed(7);
+                tries.push(period);
+            }
+        }
+        assert_eq!(tries, [0, 1, 3, 7, 15]);
+        // The disk is back; the last write of a run tries at once.
+        std::fs::remove_dir(&blocker).unwrap();
+        store.retry_now();
+        let job = store.plan(7, &h).unwrap().unwrap();
+        assert_eq!(job.kind(), "whole");
+        assert!(matches!(job.run(), Ok(Saved::Rewritten(_))));
+        store.succeeded(7);
+        let (_, loaded) = load(dir.path());
+        assert_eq!(loaded.histories[&7].keyframes, h.keyframes);
+        // Once written, a failure is tried again at the next period.
+        store.failed(7);
+        assert!(store.plan(7, &h).unwrap().is_some());
     }
 
     #[test]

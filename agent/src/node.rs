@@ -182,6 +182,9 @@ struct Store {
 /// that file whole next time.
 fn settle(store: &mut HistoryStore, stats: &mut StoreStats, done: Done) {
     stats.write_wall_s += done.wall_s;
+    if done.result.is_ok() {
+        store.succeeded(done.robot);
+    }
     match done.result {
         Ok(Saved::Unchanged) => {}
         Ok(Saved::Appended(bytes)) => {
@@ -229,9 +232,9 @@ pub struct StoreStats {
     pub agent_thread_s: f64,
     /// Most bytes queued for the writer thread at once.
     pub queued_bytes_peak: u64,
-    /// Writes put off to the next period because the writer thread had
-    /// [`crate::history_store::MAX_QUEUED_BYTES`] queued (a disk slower than
-    /// the histories grow).
+    /// Histories whose write was put off to a later period because the
+    /// writer thread had [`crate::history_store::MAX_QUEUED_BYTES`] queued (a
+    /// disk slower than the histories grow).
     pub writes_deferred: u64,
     /// Writes that failed (each logged; the run goes on).
     pub write_errors: u64,
@@ -563,12 +566,20 @@ impl Node {
         }
         st.last_s = now_s;
         let started = Instant::now();
+        if last {
+            st.store.retry_now();
+        }
         let own = self
             .catch_up
             .as_ref()
             .map(|(_, r)| (self.robot_id, r.archive()));
         let peers = self.report.histories.iter().map(|(&r, h)| (r, h));
         for (robot, history) in peers.chain(own) {
+            if !last && st.writer.as_ref().is_some_and(StoreWriter::busy) {
+                // The disk is behind: this history waits for a later period.
+                stats.writes_deferred += 1;
+                continue;
+            }
             let job = match st.store.plan(robot, history) {
                 Ok(Some(job)) => job,
                 Ok(None) => continue,
@@ -578,29 +589,33 @@ impl Node {
                     continue;
                 }
             };
-            match st.writer.as_ref() {
+            let job = match st.writer.as_ref() {
                 Some(w) => {
-                    stats.queued_bytes_peak = stats
-                        .queued_bytes_peak
-                        .max((w.queued_bytes() + job.len()) as u64);
-                    if let Err(job) = w.submit(job, last) {
-                        // The disk is behind: this history waits for the next
-                        // period, written whole then.
-                        st.store.failed(job.robot());
-                        stats.writes_deferred += 1;
+                    let queued = (w.queued_bytes() + job.len()) as u64;
+                    match w.submit(job) {
+                        Ok(()) => {
+                            stats.queued_bytes_peak = stats.queued_bytes_peak.max(queued);
+                            continue;
+                        }
+                        Err(job) => {
+                            tracing::warn!(
+                                "history store: the writer thread is gone; writing inline"
+                            );
+                            st.writer = None;
+                            job
+                        }
                     }
                 }
-                None => {
-                    let t = Instant::now();
-                    let result = job.run();
-                    let done = Done {
-                        robot,
-                        result,
-                        wall_s: t.elapsed().as_secs_f64(),
-                    };
-                    settle(&mut st.store, stats, done);
-                }
-            }
+                None => job,
+            };
+            let t = Instant::now();
+            let result = job.run();
+            let done = Done {
+                robot,
+                result,
+                wall_s: t.elapsed().as_secs_f64(),
+            };
+            settle(&mut st.store, stats, done);
         }
         stats.agent_thread_s += started.elapsed().as_secs_f64();
         if last {
