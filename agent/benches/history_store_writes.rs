@@ -6,7 +6,8 @@
 //!
 //! `cargo bench -p agent --bench history_store_writes [-- MIB [DIR]]` (default
 //! 64 MiB, the default `history.max_mib_per_peer`, in a temporary folder; give
-//! `DIR` on the disk to measure, e.g. a robot's SD card). Prints, per write,
+//! `DIR` on the disk to measure, e.g. a robot's SD card: a new folder is made
+//! in it and removed after). Prints, per write,
 //! the time of `plan` (encoding the records: the agent's thread) and of `run`
 //! (writing and syncing the file: the writer thread), medians.
 use agent::history_retention::Retention;
@@ -46,11 +47,13 @@ fn main() -> anyhow::Result<()> {
         .filter(|a| !a.starts_with('-'))
         .collect();
     let mib: f64 = args.first().and_then(|a| a.parse().ok()).unwrap_or(64.0);
-    let tmp = tempfile::tempdir()?;
-    let dir = args
-        .get(1)
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| tmp.path().to_path_buf());
+    // A new folder (inside DIR when given), removed at the end: a store's
+    // files already there are never touched.
+    let tmp = match args.get(1) {
+        Some(d) => tempfile::tempdir_in(d)?,
+        None => tempfile::tempdir()?,
+    };
+    let dir = tmp.path().to_path_buf();
     let limits = HistoryLimits {
         max_bytes: (mib * 1024.0 * 1024.0) as usize,
         recent_s: 2.0,
@@ -129,6 +132,5 @@ fn main() -> anyhow::Result<()> {
             n
         );
     }
-    std::fs::remove_file(dir.join("robot1.fvhs")).ok();
     Ok(())
 }
