@@ -348,12 +348,12 @@ pub fn write_run_outputs(run: &RobotRun, dir: &std::path::Path) -> std::io::Resu
     common::trajectory::write_covariances(dir.join("covariance.txt"), &run.covariance)
         .map_err(to_io)?;
     let mut timing = std::io::BufWriter::new(std::fs::File::create(dir.join("timing.csv"))?);
-    writeln!(timing, "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed,matching_ms,common_vio_ms,common_slam_ms,constraint_ms,common_vio_used,common_vio_rejected,common_slam_used,constraints_used,participants,historical_participants,ci_participants,omega_own,ci_update_ms,cpu_ms")?;
+    writeln!(timing, "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed,matching_ms,common_vio_ms,common_slam_ms,constraint_ms,common_vio_used,common_vio_rejected,common_slam_used,constraints_used,participants,historical_participants,ci_participants,omega_own,ci_update_ms,cpu_ms,evidence_ms")?;
     for f in &run.frames {
         let t = &f.timing;
         writeln!(
             timing,
-            "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{:.6},{:.4},{:.4}",
+            "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{:.6},{:.4},{:.4},{:.4}",
             f.t,
             t.propagate_ms,
             t.msckf_ms,
@@ -382,7 +382,8 @@ pub fn write_run_outputs(run: &RobotRun, dir: &std::path::Path) -> std::io::Resu
             f.coop.ci_participants,
             f.coop.omega_own,
             f.coop.ci_update_ms,
-            t.cpu_ms
+            t.cpu_ms,
+            f.coop.evidence_ms
         )?;
     }
     timing.flush()

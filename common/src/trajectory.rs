@@ -159,6 +159,49 @@ pub fn read_trajectory(path: impl AsRef<Path>) -> Result<Vec<StampedPose>, Traje
     }
 }
 
+/// `traj` flown `laps` times, every other lap backwards: the poses of each
+/// lap after the first, with their times continuing from the previous lap's
+/// end (a backward lap retraces the previous one, at the same speeds), so
+/// the motion stays continuous and a fitted spline slows to a stop at each
+/// turn. Long missions from short recordings, for soak tests. `laps` of 0 or
+/// 1, or fewer than two poses, give `traj` unchanged.
+pub fn laps(traj: &[StampedPose], laps: u32) -> Vec<StampedPose> {
+    let mut out = traj.to_vec();
+    let (Some(first), Some(last)) = (traj.first(), traj.last()) else {
+        return out;
+    };
+    if traj.len() < 2 || laps < 2 {
+        return out;
+    }
+    out.reserve(traj.len() * (laps as usize - 1));
+    let mut end = last.t;
+    for lap in 1..laps {
+        let backwards = lap % 2 == 1;
+        let leg: Vec<StampedPose> = if backwards {
+            // From the second to last pose back to the first.
+            traj.iter()
+                .rev()
+                .skip(1)
+                .map(|p| StampedPose {
+                    t: end + (last.t - p.t),
+                    ..*p
+                })
+                .collect()
+        } else {
+            traj.iter()
+                .skip(1)
+                .map(|p| StampedPose {
+                    t: end + (p.t - first.t),
+                    ..*p
+                })
+                .collect()
+        };
+        end += last.t - first.t;
+        out.extend(leg);
+    }
+    out
+}
+
 /// The pose at time `t`, interpolated between the two samples around it
 /// (orientation `R_a Exp(s Log(R_aᵀ R_b))`, position linear), or `None` if `t`
 /// is outside `[first, last]` of `traj`. `traj` must be sorted by time, as the

@@ -6,7 +6,7 @@ use super::{Cooperation, Link, LinkSource, Peers, CONSTRAINT_FLAG};
 use crate::estimator::peer_window::PeerWindow;
 use crate::estimator::updater_common::{CommonTrack, PeerObservation};
 use crate::estimator::updater_common_slam::SlamConstraint;
-use crate::peer_history::{time_key, PeerHistory};
+use crate::peer_history::{time_key, KeyframeWindow, PeerHistory};
 use nalgebra::Vector2;
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -137,47 +137,38 @@ impl Cooperation {
             if !self.allowed(link, slam) {
                 continue;
             }
-            // Measurements of the peer's track not used yet.
-            let used = self.peers.get(&link.peer).map(|s| &s.used);
-            let fresh =
-                |t_s: f64| !used.is_some_and(|u| u.contains(&(time_key(t_s), link.peer_track)));
             match link.source {
                 LinkSource::Window => {
-                    let count = peers.get(&link.peer).map_or(0, |h| {
-                        h.recent()
-                            .iter()
-                            .filter(|f| {
-                                fresh(f.t_s) && f.features.iter().any(|p| p.id == link.peer_track)
-                            })
-                            .count()
-                    });
+                    let count = peers
+                        .get(&link.peer)
+                        .map_or(0, |h| self.fresh_in_window(link, h));
                     if count > 0 {
                         window.push((count, *link));
                     }
                 }
                 LinkSource::Keyframe(k) => {
-                    let Some(kf) = peers.get(&link.peer).and_then(|h| h.keyframes.get(&k)) else {
-                        continue;
-                    };
-                    let count = kf
-                        .frames
-                        .iter()
-                        .filter(|f| {
-                            fresh(f.t_s) && f.observations.iter().any(|o| o.id == link.peer_track)
-                        })
-                        .count();
-                    if count >= 2 {
+                    if let Some(kf) = peers.get(&link.peer).and_then(|h| h.keyframes.get(&k)) {
                         historical.push((link.peer, kf.position_variance_m2, *link));
                     }
                 }
             }
         }
         // Most certain window first; ties to the newest keyframe (larger key).
+        // A track seen on many passes of a long mission is linked to many
+        // keyframe windows of its place: only the first few in this order are
+        // looked into for fresh measurements, not all of them.
         historical.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)).then(b.2.cmp(&a.2)));
         let mut per_peer: BTreeMap<u32, usize> = BTreeMap::new();
         for (peer, _, link) in historical {
             let n = per_peer.entry(peer).or_default();
-            if *n < self.opts.max_keyframes_per_track {
+            if *n >= self.opts.max_keyframes_per_track {
+                continue;
+            }
+            let kf = peers.get(&peer).and_then(|h| match link.source {
+                LinkSource::Keyframe(k) => h.keyframes.get(&k),
+                LinkSource::Window => None,
+            });
+            if kf.is_some_and(|kf| self.fresh_in_keyframe(&link, kf) >= 2) {
                 *n += 1;
                 out.push(link);
             }
@@ -192,6 +183,36 @@ impl Cooperation {
             .saturating_sub(out.len().min(1));
         out.extend(window.into_iter().take(room.max(1)).map(|(_, l)| l));
         out
+    }
+
+    /// Measurements of the linked peer track not used yet, in the peer's
+    /// recent frames.
+    fn fresh_in_window(&self, link: &Link, h: &PeerHistory) -> usize {
+        h.recent()
+            .iter()
+            .filter(|f| {
+                self.is_fresh(link, f.t_s) && f.features.iter().any(|p| p.id == link.peer_track)
+            })
+            .count()
+    }
+
+    /// Measurements of the linked peer track not used yet, in keyframe window
+    /// `kf`.
+    pub(super) fn fresh_in_keyframe(&self, link: &Link, kf: &KeyframeWindow) -> usize {
+        kf.frames
+            .iter()
+            .filter(|f| {
+                self.is_fresh(link, f.t_s) && f.observations.iter().any(|o| o.id == link.peer_track)
+            })
+            .count()
+    }
+
+    /// Whether the linked peer track's measurement at `t_s` is unused.
+    fn is_fresh(&self, link: &Link, t_s: f64) -> bool {
+        !self
+            .peers
+            .get(&link.peer)
+            .is_some_and(|s| s.used.contains(&(time_key(t_s), link.peer_track)))
     }
 
     /// Whether a link may be used for this class under the options.

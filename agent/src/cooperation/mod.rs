@@ -102,6 +102,9 @@ pub struct Cooperation {
     vocabulary: Option<Arc<Vocabulary>>,
     peers: BTreeMap<u32, PeerState>,
     links: BTreeMap<u64, Vec<Link>>,
+    /// Our tracks whose peers' measurements were used this frame: their
+    /// keyframe links are checked for exhaustion in `retain_tracks`.
+    used_tracks: BTreeSet<u64>,
     /// Counters.
     pub stats: CooperationStats,
     /// Pixel-to-normalized scale of the epipolar thresholds (our focal length).
@@ -120,6 +123,7 @@ impl Cooperation {
             vocabulary,
             peers: BTreeMap::new(),
             links: BTreeMap::new(),
+            used_tracks: BTreeSet::new(),
             stats: CooperationStats::default(),
             focal_px: focal_px.max(1.0),
         }
@@ -175,12 +179,47 @@ impl Cooperation {
         for &id in constraints {
             mark(true, id, Some(true));
         }
+        self.used_tracks
+            .extend(vio.iter().chain(slam).chain(constraints).copied());
+    }
+
+    /// Forgets the keyframe links of the tracks used this frame that can
+    /// never be chosen again (see `chosen_links`): their window is gone, or
+    /// it is whole and holds fewer than two unused measurements of the peer's
+    /// track. A landmark kept in view over many passes of a long mission is
+    /// linked to more and more windows of its place, and every frame would
+    /// look through the used-up ones first (measured: links per track from
+    /// 12 to 28 over 20 minutes, the evidence from 0.23 to 0.50 ms a frame).
+    fn drop_exhausted_links(&mut self, peers: &Peers) {
+        for id in std::mem::take(&mut self.used_tracks) {
+            let Some(list) = self.links.get(&id) else {
+                continue;
+            };
+            let keep: Vec<bool> = list
+                .iter()
+                .map(|l| match l.source {
+                    LinkSource::Window => true,
+                    LinkSource::Keyframe(k) => peers
+                        .get(&l.peer)
+                        .and_then(|h| h.keyframes.get(&k))
+                        .is_some_and(|kf| !kf.is_whole() || self.fresh_in_keyframe(l, kf) >= 2),
+                })
+                .collect();
+            if keep.iter().all(|k| *k) {
+                continue;
+            }
+            if let Some(list) = self.links.get_mut(&id) {
+                let mut flags = keep.into_iter();
+                list.retain(|_| flags.next().unwrap_or(true));
+            }
+        }
     }
 
     /// Forgets the links of our tracks that ended, and used marks older than
     /// what any peer still keeps.
     pub fn retain_tracks(&mut self, alive: impl Fn(u64) -> bool, peers: &Peers) {
         self.links.retain(|id, _| alive(*id));
+        self.drop_exhausted_links(peers);
         let historical = self.opts.historical;
         for (peer, s) in self.peers.iter_mut() {
             let Some(h) = peers.get(peer) else {

@@ -223,6 +223,15 @@ fn a_loop_closure_finds_the_keyframe_and_its_measurements() {
     coop.mark_used(&ev, &[linked[0]], &[], &[]);
     let again = coop.evidence(&linked[..1], &[], &peers);
     assert!(again.vio.is_empty());
+    // The link is used up (its window is whole): forgotten at the frame's
+    // end, while the other tracks' links to the window stay.
+    assert!(peers[&3].keyframes[&key].is_whole());
+    coop.retain_tracks(|_| true, &peers);
+    assert!(coop.links_of(linked[0]).is_empty());
+    assert!(!coop.links_of(linked[1]).is_empty());
+    let after = coop.evidence(&linked[..2], &[], &peers);
+    assert_eq!(after.vio.len(), 1);
+    assert_eq!(after.vio[0].id, linked[1]);
 }
 
 #[test]

@@ -34,6 +34,9 @@ pub struct CoopFrameStats {
     pub omega_own: f64,
     /// Matching and loop-closure detection, ms.
     pub matching_ms: f64,
+    /// Gathering the peers' measurements behind our tracks' links (the
+    /// evidence), ms.
+    pub evidence_ms: f64,
     /// Common VIO rows (triangulation, projection, gating), ms.
     pub common_vio_ms: f64,
     /// Common SLAM measurement rows, ms.

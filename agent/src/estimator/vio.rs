@@ -328,11 +328,13 @@ impl Estimator {
             ..
         } = &classes;
         let slam_ids: Vec<u64> = state.features.keys().copied().collect();
+        let t = Instant::now();
         let ev = self
             .coop
             .as_ref()
             .map(|c| c.evidence(msckf_ids, &slam_ids, peers))
             .unwrap_or_default();
+        coop.evidence_ms = ms(t);
 
         // 5. MSCKF update with the independent VIO features.
         let t = Instant::now();
@@ -432,6 +434,7 @@ impl Estimator {
         timing.cpu_ms = cpu_ms(cpu_start);
 
         timing.cooperation_ms = coop.matching_ms
+            + coop.evidence_ms
             + coop.common_vio_ms
             + coop.common_slam_ms
             + coop.constraint_ms

@@ -199,3 +199,24 @@ fn interpolation_is_slerp_and_linear_and_none_outside_the_span() {
     assert!(interpolate_pose(&traj, f64::NAN).is_none());
     assert!(interpolate_pose(&[], 1.0).is_none());
 }
+
+#[test]
+fn laps_retrace_the_path_backwards_then_forwards_with_time_running_on() {
+    let pose = |t: f64, x: f64| StampedPose {
+        t,
+        rot: crate::so3::exp_so3(&nalgebra::Vector3::new(0.0, 0.0, x)),
+        pos: nalgebra::Vector3::new(x, 2.0 * x, 0.0),
+    };
+    let traj = vec![pose(10.0, 0.0), pose(10.5, 1.0), pose(12.0, 3.0)];
+    assert_eq!(laps(&traj, 1), traj);
+    assert_eq!(laps(&traj, 0), traj);
+    assert_eq!(laps(&traj[..1], 5), traj[..1].to_vec());
+    let three = laps(&traj, 3);
+    let times: Vec<f64> = three.iter().map(|p| p.t).collect();
+    // Back: 3 -> 1 -> 0 at the forward speeds, then forward again.
+    assert_eq!(times, [10.0, 10.5, 12.0, 13.5, 14.0, 14.5, 16.0]);
+    let xs: Vec<f64> = three.iter().map(|p| p.pos.x).collect();
+    assert_eq!(xs, [0.0, 1.0, 3.0, 1.0, 0.0, 1.0, 3.0]);
+    assert_eq!(three[3].rot, traj[1].rot);
+    assert!(three.windows(2).all(|w| w[1].t > w[0].t));
+}

@@ -12,7 +12,7 @@ use crate::truth::RobotTruth;
 use crate::world::{camera_pose, ViewBounds, World};
 use common::calibration::CameraCalibration;
 use common::measurement::ImuSample;
-use common::trajectory::{read_trajectory, TrajectoryError};
+use common::trajectory::{laps, read_trajectory, TrajectoryError};
 use nalgebra::Vector3;
 use rand_chacha::ChaCha8Rng;
 use std::path::PathBuf;
@@ -81,7 +81,7 @@ impl Fleet {
             let path = scenario
                 .trajectory_path(i)
                 .ok_or(SimError::NoSuchRobot(i))?;
-            let poses = read_trajectory(&path)?;
+            let poses = laps(&read_trajectory(&path)?, spec.laps);
             let truth =
                 RobotTruth::new(&poses, spec.start_time_s).map_err(|source| SimError::Spline {
                     robot: i,

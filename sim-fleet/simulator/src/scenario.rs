@@ -103,6 +103,15 @@ pub struct RobotSpec {
     /// Optional name; defaults to the trajectory file stem.
     #[serde(default)]
     pub name: Option<String>,
+    /// Times the trajectory is flown, every other time backwards so the
+    /// motion stays continuous (a long mission from a short recording); 1
+    /// when unset.
+    #[serde(default = "one_lap")]
+    pub laps: u32,
+}
+
+fn one_lap() -> u32 {
+    1
 }
 
 /// Sensor settings.
