@@ -342,3 +342,42 @@ fn estimator_settings_that_cannot_run_are_named_at_load() {
     let e = load("{ min_clones_to_update: 0 }").unwrap_err();
     assert!(e.contains("min_clones_to_update"), "{e}");
 }
+
+#[test]
+fn a_robot_flying_laps_retraces_its_path_continuously() {
+    let dir = tempfile::tempdir().unwrap();
+    let one = Fleet::build(&scenario(dir.path(), ""), 1).unwrap();
+    let text = "name: loop\nseed: 7\nrobots:\n  - trajectory: loop.txt\n    laps: 3\n";
+    let path = dir.path().join("laps.yaml");
+    std::fs::write(&path, text).unwrap();
+    let three = Fleet::build(&Scenario::load(&path).unwrap(), 1).unwrap();
+    let (a, b) = (&one.truths[0], &three.truths[0]);
+    let lap = a.end_time() - a.start_time();
+    assert!((b.start_time() - a.start_time()).abs() < 1e-9);
+    let laps3 = b.end_time() - b.start_time();
+    assert!((laps3 - 3.0 * lap).abs() < 0.5, "{laps3} for laps of {lap}");
+    // The robot stops at the turn (the recording's end) and flies back: a
+    // second later it is where it was a second before the turn.
+    let at = |t: &crate::truth::RobotTruth, s: f64| t.state(s).unwrap().pos;
+    let turn = (0..=400)
+        .map(|k| a.end_time() - 1.0 + 0.005 * f64::from(k))
+        .min_by(|x, y| {
+            let v = |s: f64| b.state(s).unwrap().vel.norm();
+            v(*x).total_cmp(&v(*y))
+        })
+        .unwrap();
+    assert!(b.state(turn).unwrap().vel.norm() < 0.05);
+    let mid = a.start_time() + 0.5 * lap;
+    assert!((at(b, 2.0 * turn - mid) - at(a, mid)).norm() < 0.02);
+    assert!((at(b, turn + 1.0) - at(a, turn - 1.0)).norm() < 0.02);
+    // Continuous through the turn (the spline is C2): velocity changes by at
+    // most the turn's deceleration from one 10 ms step to the next. This loop
+    // ends at full speed, so the turn is a hard stop (a recording that ends
+    // slow, as EuRoC's V1 flights do, turns gently).
+    let mut prev = b.state(turn - 1.0).unwrap().vel;
+    for k in 1..=200 {
+        let v = b.state(turn - 1.0 + 0.01 * f64::from(k)).unwrap().vel;
+        assert!((v - prev).norm() < 0.3, "at {k}: {v:?} after {prev:?}");
+        prev = v;
+    }
+}
