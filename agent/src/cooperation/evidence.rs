@@ -188,31 +188,28 @@ impl Cooperation {
     /// Measurements of the linked peer track not used yet, in the peer's
     /// recent frames.
     fn fresh_in_window(&self, link: &Link, h: &PeerHistory) -> usize {
+        let fresh = self.is_fresh(link);
         h.recent()
             .iter()
-            .filter(|f| {
-                self.is_fresh(link, f.t_s) && f.features.iter().any(|p| p.id == link.peer_track)
-            })
+            .filter(|f| fresh(f.t_s) && f.features.iter().any(|p| p.id == link.peer_track))
             .count()
     }
 
     /// Measurements of the linked peer track not used yet, in keyframe window
     /// `kf`.
     pub(super) fn fresh_in_keyframe(&self, link: &Link, kf: &KeyframeWindow) -> usize {
+        let fresh = self.is_fresh(link);
         kf.frames
             .iter()
-            .filter(|f| {
-                self.is_fresh(link, f.t_s) && f.observations.iter().any(|o| o.id == link.peer_track)
-            })
+            .filter(|f| fresh(f.t_s) && f.observations.iter().any(|o| o.id == link.peer_track))
             .count()
     }
 
-    /// Whether the linked peer track's measurement at `t_s` is unused.
-    fn is_fresh(&self, link: &Link, t_s: f64) -> bool {
-        !self
-            .peers
-            .get(&link.peer)
-            .is_some_and(|s| s.used.contains(&(time_key(t_s), link.peer_track)))
+    /// Whether the linked peer track's measurement at a time (s) is unused
+    /// (the peer's used marks looked up once).
+    fn is_fresh<'a>(&'a self, link: &'a Link) -> impl Fn(f64) -> bool + 'a {
+        let used = self.peers.get(&link.peer).map(|s| &s.used);
+        move |t_s| !used.is_some_and(|u| u.contains(&(time_key(t_s), link.peer_track)))
     }
 
     /// Whether a link may be used for this class under the options.
