@@ -154,6 +154,11 @@ struct FileState {
     revision: Option<u64>,
     /// Writes failed in a row.
     failures: u32,
+    /// Failures counted since the store opened: a job carries the count of
+    /// its planning, so the failures of jobs planned before the last
+    /// counted one (queued appends that can only fail after it) are not
+    /// counted again.
+    failures_total: u64,
     /// Plans still to pass over before the next try (after failures: a disk
     /// that is full or gone is not asked again, and the file encoded again,
     /// every period).
@@ -393,6 +398,7 @@ impl HistoryStore {
                 Ok(Some(WriteJob {
                     robot,
                     path,
+                    planned_after: file.failures_total,
                     kind: JobKind::Append {
                         expected_len: len,
                         bytes,
@@ -421,6 +427,7 @@ impl HistoryStore {
                 Ok(Some(WriteJob {
                     robot,
                     path,
+                    planned_after: file.failures_total,
                     kind: JobKind::Compact {
                         expected_len: len,
                         header: self.header.clone(),
@@ -454,6 +461,7 @@ impl HistoryStore {
                 Ok(Some(WriteJob {
                     robot,
                     path,
+                    planned_after: file.failures_total,
                     kind: JobKind::Replace { bytes: out },
                 }))
             }
@@ -469,7 +477,23 @@ impl HistoryStore {
             file.len = None;
             file.revision = None;
             file.failures = file.failures.saturating_add(1);
+            file.failures_total += 1;
             file.skip = ((1u32 << (file.failures - 1).min(5)) - 1).min(MAX_SKIP);
+        }
+    }
+
+    /// A job of robot `robot`'s file failed, planned when `planned_after`
+    /// failures of it had been counted ([`WriteJob::planned_after`]). A job
+    /// planned before the last counted failure says nothing new (the queued
+    /// appends behind a failed write fail with it): the file is written
+    /// whole next time, and the back-off does not grow.
+    pub fn failed_job(&mut self, robot: u32, planned_after: u64) {
+        match self.files.get_mut(&robot) {
+            Some(file) if planned_after < file.failures_total => {
+                file.len = None;
+                file.revision = None;
+            }
+            _ => self.failed(robot),
         }
     }
 
@@ -523,6 +547,8 @@ pub struct WriteJob {
     robot: u32,
     path: PathBuf,
     kind: JobKind,
+    /// The file's failures counted when the job was planned.
+    planned_after: u64,
 }
 
 #[derive(Debug)]
@@ -545,6 +571,12 @@ impl WriteJob {
     /// Whose file.
     pub fn robot(&self) -> u32 {
         self.robot
+    }
+
+    /// The failures of its file counted when it was planned (for
+    /// [`HistoryStore::failed_job`]).
+    pub fn planned_after(&self) -> u64 {
+        self.planned_after
     }
 
     /// What the job does: `append`, `whole` (every record encoded: a new
@@ -653,6 +685,8 @@ impl WriteJob {
 pub struct Done {
     /// Whose file.
     pub robot: u32,
+    /// Its file's failures counted when the job was planned.
+    pub planned_after: u64,
     /// What was written, or why not.
     pub result: Result<Saved, StoreError>,
     /// Wall time of the write, s (on the writer's thread).
@@ -691,6 +725,7 @@ impl StoreWriter {
                     counter.fetch_sub(job.len(), Ordering::AcqRel);
                     let done = Done {
                         robot: job.robot,
+                        planned_after: job.planned_after,
                         result,
                         wall_s: started.elapsed().as_secs_f64(),
                     };
@@ -1185,6 +1220,37 @@ mod tests {
         // Once written, a failure is tried again at the next period.
         store.failed(7);
         assert!(store.plan(7, &h).unwrap().is_some());
+    }
+
+    #[test]
+    fn the_appends_queued_behind_a_failed_write_do_not_lengthen_the_back_off() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut store = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
+        let mut h = history();
+        assert!(matches!(store.save(4, &h), Ok(Saved::Rewritten(_))));
+        // Three periods' appends queued for the writer thread, then the file
+        // is cut before the first runs: all three fail, for one cause.
+        let mut jobs = Vec::new();
+        for k in 0..3u64 {
+            grow(&mut h, 51 + k * 10..=60 + k * 10, &limits(), true);
+            jobs.push(store.plan(4, &h).unwrap().unwrap());
+        }
+        let path = store.path_of(4);
+        let len = std::fs::metadata(&path).unwrap().len();
+        let f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+        f.set_len(len - 3).unwrap();
+        for job in &jobs {
+            assert!(job.run().is_err());
+            store.failed_job(4, job.planned_after());
+        }
+        // One failure in a row: the next period tries again, whole.
+        let job = store.plan(4, &h).unwrap().unwrap();
+        assert_eq!(job.kind(), "whole");
+        // Planned after the counted failure, its failure counts: the second
+        // in a row, so one period is passed over.
+        store.failed_job(4, job.planned_after());
+        assert!(store.plan(4, &h).unwrap().is_none());
+        assert!(store.plan(4, &h).unwrap().is_some());
     }
 
     #[test]

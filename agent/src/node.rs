@@ -197,7 +197,7 @@ fn settle(store: &mut HistoryStore, stats: &mut StoreStats, done: Done) {
             stats.bytes_written += bytes;
         }
         Err(e) => {
-            store.failed(done.robot);
+            store.failed_job(done.robot, done.planned_after);
             stats.write_errors += 1;
             warn_store(stats, &e);
         }
@@ -612,6 +612,7 @@ impl Node {
             let result = job.run();
             let done = Done {
                 robot,
+                planned_after: job.planned_after(),
                 result,
                 wall_s: t.elapsed().as_secs_f64(),
             };
