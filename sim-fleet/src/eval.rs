@@ -46,6 +46,14 @@ pub struct EvalArgs {
     /// Do not write plots.
     #[arg(long)]
     pub no_plots: bool,
+    /// Also cut the run into bins of this many seconds from its first pose:
+    /// RMS and largest error and mean NEES per bin (how a long run evolves).
+    #[arg(long)]
+    pub bins_s: Option<f64>,
+    /// The agent's `timing.csv` of the run: its per-frame cost in the same
+    /// bins (CPU ms mean, p95 and largest; matching and evidence ms).
+    #[arg(long, requires = "bins_s")]
+    pub timing: Option<PathBuf>,
 }
 
 /// Errors of one associated pose, for plots (see [`EvalReport::per_pose`]).
@@ -110,6 +118,8 @@ struct EvalJson<'a> {
     rpe: &'a [RpeResult],
     align: Alignment,
     pairs: usize,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    bins: Option<&'a [bins::Bin]>,
 }
 
 /// Evaluates `est` against `gt`: association ([`associate`] with
@@ -198,6 +208,11 @@ impl EvalReport {
     /// The JSON object of `--json`: `ate_ori_deg`, `ate_pos_m`, `nees_ori`,
     /// `nees_pos`, `rpe`, `align`, `pairs` (unknown values are `null`).
     pub fn to_json(&self) -> serde_json::Result<String> {
+        self.to_json_with(None)
+    }
+
+    /// [`EvalReport::to_json`], with the `bins` of `--bins-s` if given.
+    pub fn to_json_with(&self, bins: Option<&[bins::Bin]>) -> serde_json::Result<String> {
         serde_json::to_string(&EvalJson {
             ate_ori_deg: self.ate_ori_deg,
             ate_pos_m: self.ate_pos_m,
@@ -206,6 +221,7 @@ impl EvalReport {
             rpe: &self.rpe,
             align: self.align,
             pairs: self.pairs,
+            bins,
         })
     }
 
@@ -262,6 +278,9 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
     if let Some(bad) = args.segments.iter().find(|s| !(s.is_finite() && **s > 0.0)) {
         bail!("RPE segment lengths must be positive, got {bad}");
     }
+    if let Some(b) = args.bins_s.filter(|b| !(b.is_finite() && *b > 0.0)) {
+        bail!("--bins-s must be a positive number of seconds, got {b}");
+    }
     let gt = read_trajectory(&args.gt).context("reading the ground truth")?;
     let est = read_trajectory(&args.est).context("reading the estimate")?;
     let covs = match &args.cov {
@@ -283,10 +302,20 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
     if covs.is_some() && report.nees_unmatched == report.pairs {
         tracing::warn!("no covariance matches an estimate time within 1e-6 s: no NEES");
     }
+    let timing = match &args.timing {
+        Some(path) => Some(bins::read_timing(path)?),
+        None => None,
+    };
+    let bins = args
+        .bins_s
+        .map(|b| bins::bins(&report.per_pose, timing.as_ref(), b));
     if args.json {
-        println!("{}", report.to_json()?);
+        println!("{}", report.to_json_with(bins.as_deref())?);
     } else {
         print!("{}", report.table());
+        if let Some(b) = &bins {
+            print!("{}", bins::table(b));
+        }
     }
     if !args.no_plots {
         let dir = args
@@ -316,6 +345,8 @@ fn span(traj: &[StampedPose]) -> String {
         _ => "nothing (empty)".to_string(),
     }
 }
+
+pub mod bins;
 
 #[cfg(test)]
 mod tests;
