@@ -73,6 +73,10 @@ pub struct AgentConfig {
     /// Whether to write the MCAP log.
     #[serde(default = "yes")]
     pub mcap_log: bool,
+    /// Wall seconds between status lines in the agent's log (fleet time,
+    /// frames and their CPU ms, lag, peers, histories held, traffic); 0: none.
+    #[serde(default = "default_status_period_s")]
+    pub status_period_s: f64,
     /// Camera images (rendered or real): the frontend and their logging.
     #[serde(default)]
     pub images: ImagesConfig,
@@ -198,6 +202,13 @@ impl Default for ImagesConfig {
 
 fn default_fleet() -> String {
     "fleet".into()
+}
+
+/// A status line a minute: enough to follow a mission, little in the log.
+pub const DEFAULT_STATUS_PERIOD_S: f64 = 60.0;
+
+fn default_status_period_s() -> f64 {
+    DEFAULT_STATUS_PERIOD_S
 }
 
 fn yes() -> bool {
@@ -690,6 +701,12 @@ impl AgentConfig {
         options.validate().map_err(|e| format!("estimator: {e}"))?;
         if self.input.source == InputSource::Mcap && self.input.mcap.is_none() {
             return Err("input.source is mcap but input.mcap is not set".into());
+        }
+        if !(self.status_period_s.is_finite() && self.status_period_s >= 0.0) {
+            return Err(format!(
+                "status_period_s must be a number of seconds >= 0, 0 for none (got {})",
+                self.status_period_s
+            ));
         }
         let c = &self.clock;
         if !(c.realtime_rate.is_finite() && c.realtime_rate > 0.0) {

@@ -36,4 +36,5 @@ pub mod outbox;
 pub mod peer_events;
 pub mod peer_history;
 pub mod runner;
+pub mod status_log;
 pub mod transport;

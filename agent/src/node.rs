@@ -23,6 +23,7 @@ use crate::outbox::Outbox;
 use crate::peer_events::{PeerEvent, PeerEvents};
 use crate::peer_history::{HistoryLimits, PeerHistory};
 use crate::runner::{initial_state, options_for, record, RobotRun, RunError, Variant};
+use crate::status_log::{Counters, StatusLog};
 use crate::transport::{Received, Transport, TransportError};
 use common::measurement::FeatureFrame;
 use common::messages::{
@@ -372,6 +373,24 @@ struct Node {
 impl Node {
     fn wall_s(&self) -> f64 {
         self.started.elapsed().as_secs_f64()
+    }
+
+    /// The counters of a status line ([`StatusLog`]).
+    fn counters(&self, lag_s: f64) -> Counters {
+        let r = &self.report;
+        Counters {
+            wall_s: self.wall_s(),
+            fleet_s: self.fleet_t,
+            frames: r.run.frames.len(),
+            peers_alive: r.peers.alive().len(),
+            windows: r.histories.values().map(|h| h.keyframes.len()).sum(),
+            history_bytes: r.histories.values().map(PeerHistory::bytes).sum(),
+            sent_bytes: r.net.bytes_sent(),
+            received_bytes: r.net.bytes_received(),
+            dropped: r.net.dropped.values().sum(),
+            rejected: r.run.rejected.len(),
+            lag_s,
+        }
     }
 
     fn note(&mut self, e: Option<PeerEvent>) {
@@ -1020,6 +1039,7 @@ pub fn run_node(
         )?;
     }
     let mut images: Option<ImageFrames> = None;
+    let mut status = StatusLog::new(cfg.status_period_s);
 
     // Wait for the expected peers (their presence means their subscribers exist).
     let deadline = Instant::now() + Duration::from_secs_f64(cfg.clock.start_timeout_s);
@@ -1201,6 +1221,21 @@ pub fn run_node(
         }
         tick += 1;
         node.report.ticks = tick;
+        if let Some(s) = status.as_mut() {
+            let lag_s = if cfg.clock.mode == ClockMode::Realtime {
+                pacer.lag_s(t_end)
+            } else {
+                0.0
+            };
+            let frames = &node.report.run.frames;
+            if let Some(line) = s.due(
+                node.wall_s(),
+                || node.counters(lag_s),
+                |k| frames.get(k).map_or(0.0, |f| f.timing.cpu_ms),
+            ) {
+                tracing::info!(robot = cfg.robot_id, "status: {line}");
+            }
+        }
         if tick % 10 == 0 || tick == ticks_end {
             progress(Progress {
                 tick,

@@ -64,6 +64,7 @@ fn fleet_frames(scenario: &Path, n: usize, seed: u64, s: Setup) -> Result<Vec<Fr
     let mut configs = agent_configs(&args(scenario, seed, s.variant, &out), scenario, n, &out)?;
     for c in &mut configs {
         c.mcap_log = false;
+        c.status_period_s = 0.0;
         c.estimator.projection = Some(s.projection);
         c.estimator.common_slam = s.common_slam.or(c.estimator.common_slam);
         c.estimator.slam_constraint = s.slam_constraint.or(c.estimator.slam_constraint);

@@ -339,6 +339,7 @@ pub fn agent_configs(
                     }
                 },
                 mcap_log: true,
+                status_period_s: agent::config::DEFAULT_STATUS_PERIOD_S,
                 images: Default::default(),
                 faults: args.history.faults(),
             }

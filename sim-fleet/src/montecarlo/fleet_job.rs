@@ -47,8 +47,10 @@ pub fn run(
     let n = scenario.robots.len();
     let mut configs = agent_configs(&args, scenario_path, n, dir).map_err(|e| format!("{e:#}"))?;
     for c in &mut configs {
-        // Monte-Carlo runs keep the text outputs; the MCAP log is for one run.
+        // Monte-Carlo runs keep the text outputs; the MCAP log and the status
+        // lines are for one run.
         c.mcap_log = false;
+        c.status_period_s = 0.0;
     }
     let stop = Arc::new(AtomicBool::new(false));
     let reports = run_inproc(&configs, &stop, None).map_err(|e| format!("{e:#}"))?;
