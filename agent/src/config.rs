@@ -557,9 +557,9 @@ pub struct HistoryConfig {
     /// `retention` says.
     #[serde(default = "default_history_mib")]
     pub max_mib_per_peer: f64,
-    /// Which keyframe windows go first: `oldest` (default) or `informed` (the
-    /// least certain window of a place seen more than once, then the least
-    /// certain overall; see `history_retention`).
+    /// Which keyframe windows go first: `informed` (default: the least
+    /// certain window of a place seen more than once, then the least certain
+    /// overall; see `history_retention`) or `oldest`.
     #[serde(default)]
     pub retention: crate::history_retention::Retention,
     /// Recent (non-keyframe) track frames kept per peer, s.
@@ -909,15 +909,15 @@ mod tests {
     }
 
     #[test]
-    fn history_retention_is_oldest_unless_asked() {
+    fn history_retention_is_informed_unless_asked() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.yaml");
         std::fs::write(&p, MINIMAL).unwrap();
         let c = AgentConfig::load(&p).unwrap();
-        assert_eq!(c.history.retention, Retention::Oldest);
-        std::fs::write(&p, format!("{MINIMAL}history:\n  retention: informed\n")).unwrap();
-        let c = AgentConfig::load(&p).unwrap();
         assert_eq!(c.history.retention, Retention::Informed);
+        std::fs::write(&p, format!("{MINIMAL}history:\n  retention: oldest\n")).unwrap();
+        let c = AgentConfig::load(&p).unwrap();
+        assert_eq!(c.history.retention, Retention::Oldest);
         assert_eq!(c.history.max_mib_per_peer, 64.0);
         assert_eq!(c.history.store_dir, None);
         std::fs::write(&p, format!("{MINIMAL}history:\n  store_dir: kept\n")).unwrap();

@@ -109,9 +109,9 @@ pub struct HistoryArgs {
     /// agent's, 64).
     #[arg(long, value_name = "MIB")]
     pub history_mib_per_peer: Option<f64>,
-    /// Which keyframe windows a full history drops first: `oldest` (the agent's
-    /// default) or `informed` (the least certain view of a place seen more than
-    /// once, then the least certain window).
+    /// Which keyframe windows a full history drops first: `informed` (the
+    /// agent's default: the least certain view of a place seen more than once,
+    /// then the least certain window) or `oldest`.
     #[arg(long, value_name = "POLICY")]
     pub history_retention: Option<Retention>,
     /// Switch history catch-up off: agents never ask again for the keyframe
