@@ -306,9 +306,12 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
         Some(path) => Some(bins::read_timing(path)?),
         None => None,
     };
-    let bins = args
-        .bins_s
-        .map(|b| bins::bins(&report.per_pose, timing.as_ref(), b));
+    let bins = match args.bins_s {
+        Some(b) => {
+            Some(bins::bins(&report.per_pose, timing.as_ref(), b).map_err(anyhow::Error::msg)?)
+        }
+        None => None,
+    };
     if args.json {
         println!("{}", report.to_json_with(bins.as_deref())?);
     } else {

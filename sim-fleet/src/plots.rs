@@ -269,7 +269,7 @@ fn nees(root: &Area, report: &EvalReport, t0: f64) -> DrawResult {
 }
 
 /// The `q` quantile (0..=1, nearest rank) of the finite values, 0 without any.
-fn percentile(values: impl Iterator<Item = f64>, q: f64) -> f64 {
+pub(crate) fn percentile(values: impl Iterator<Item = f64>, q: f64) -> f64 {
     let mut v: Vec<f64> = values.filter(|v| v.is_finite()).collect();
     v.sort_by(f64::total_cmp);
     let rank = (q * v.len() as f64).ceil() as usize;

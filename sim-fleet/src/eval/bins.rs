@@ -148,22 +148,40 @@ fn parse_timing(text: &str) -> Result<TimingRows, String> {
     Ok(rows)
 }
 
+/// Most bins of one evaluation: the files' times are not trusted to be close
+/// to each other.
+pub const MAX_BINS: usize = 100_000;
+
 /// Cuts `per_pose` (and `timing`, if given) into bins of `bin_s` seconds from
 /// the first pose's time. Frames of `timing` before that time go to the first
-/// bin, after the last pose's bin to bins of their own.
-pub fn bins(per_pose: &[PoseError], timing: Option<&TimingRows>, bin_s: f64) -> Vec<Bin> {
+/// bin, after the last pose's bin to bins of their own. No poses or a width
+/// that is not a positive number give no bins; a span of more than
+/// [`MAX_BINS`] bins is an error.
+pub fn bins(
+    per_pose: &[PoseError],
+    timing: Option<&TimingRows>,
+    bin_s: f64,
+) -> Result<Vec<Bin>, String> {
     let Some(first) = per_pose.first() else {
-        return Vec::new();
+        return Ok(Vec::new());
     };
     if !(bin_s.is_finite() && bin_s > 0.0) {
-        return Vec::new();
+        return Ok(Vec::new());
     }
     let t0 = first.t;
-    let index = |t: f64| (((t - t0) / bin_s).floor().max(0.0)) as usize;
-    let mut n = per_pose.last().map_or(1, |p| index(p.t) + 1);
-    if let Some(last) = timing.and_then(|rows| rows.t.last()) {
-        n = n.max(index(*last) + 1);
+    let bin_of = |t: f64| ((t - t0) / bin_s).floor().max(0.0);
+    let mut last = per_pose.last().map_or(0.0, |p| bin_of(p.t));
+    if let Some(t) = timing.and_then(|rows| rows.t.last()) {
+        last = last.max(bin_of(*t));
     }
+    if last.is_nan() || last >= MAX_BINS as f64 {
+        return Err(format!(
+            "{last} bins of {bin_s} s from the first pose at {t0} s: at most {MAX_BINS} \
+             (a pose or timing row far from the others?)"
+        ));
+    }
+    let n = last as usize + 1;
+    let index = |t: f64| bin_of(t) as usize;
     let mut poses: Vec<Vec<&PoseError>> = vec![Vec::new(); n];
     for p in per_pose {
         poses[index(p.t)].push(p);
@@ -174,7 +192,7 @@ pub fn bins(per_pose: &[PoseError], timing: Option<&TimingRows>, bin_s: f64) -> 
             frames[index(t)].push(k);
         }
     }
-    poses
+    Ok(poses
         .into_iter()
         .zip(frames)
         .enumerate()
@@ -200,7 +218,7 @@ pub fn bins(per_pose: &[PoseError], timing: Option<&TimingRows>, bin_s: f64) -> 
                 cost: timing.and_then(|rows| cost(rows, &fs)),
             }
         })
-        .collect()
+        .collect())
 }
 
 /// The cost of frames `ks` of `rows` (`None` without frames).
@@ -211,15 +229,12 @@ fn cost(rows: &TimingRows, ks: &[usize]) -> Option<BinCost> {
     let mean = |col: &[f64]| -> Option<f64> {
         (!col.is_empty()).then(|| ks.iter().map(|&k| col[k]).sum::<f64>() / ks.len() as f64)
     };
-    let mut cpu: Vec<f64> = ks.iter().map(|&k| rows.cpu_ms[k]).collect();
-    cpu.sort_unstable_by(f64::total_cmp);
-    // Nearest rank.
-    let p95 = cpu[((0.95 * cpu.len() as f64).ceil() as usize).clamp(1, cpu.len()) - 1];
+    let cpu = || ks.iter().map(|&k| rows.cpu_ms[k]);
     Some(BinCost {
         frames: ks.len(),
         cpu_ms_mean: mean(&rows.cpu_ms).unwrap_or(0.0),
-        cpu_ms_p95: p95,
-        cpu_ms_max: cpu[cpu.len() - 1],
+        cpu_ms_p95: crate::plots::percentile(cpu(), 0.95),
+        cpu_ms_max: cpu().fold(f64::NEG_INFINITY, f64::max),
         matching_ms_mean: mean(&rows.matching_ms),
         evidence_ms_mean: mean(&rows.evidence_ms),
     })
@@ -296,7 +311,7 @@ mod tests {
             .join("\n");
         let rows = parse_timing(&text).unwrap();
         assert!(rows.evidence_ms.is_empty());
-        let b = bins(&per_pose, Some(&rows), 10.0);
+        let b = bins(&per_pose, Some(&rows), 10.0).unwrap();
         assert_eq!(b.len(), 3);
         assert_eq!(
             b.iter().map(|b| b.poses).collect::<Vec<_>>(),
@@ -332,8 +347,19 @@ mod tests {
 
     #[test]
     fn no_poses_or_a_bad_width_give_no_bins() {
-        assert!(bins(&[], None, 10.0).is_empty());
-        assert!(bins(&[pose(1.0, 0.1)], None, 0.0).is_empty());
-        assert!(bins(&[pose(1.0, 0.1)], None, f64::NAN).is_empty());
+        assert!(bins(&[], None, 10.0).unwrap().is_empty());
+        assert!(bins(&[pose(1.0, 0.1)], None, 0.0).unwrap().is_empty());
+        assert!(bins(&[pose(1.0, 0.1)], None, f64::NAN).unwrap().is_empty());
+    }
+
+    #[test]
+    fn a_time_far_from_the_others_is_refused_not_allocated() {
+        let poses = [pose(1.0, 0.1), pose(2.0, 0.1)];
+        let rows = parse_timing("t,cpu_ms\n1,1\n1e15,1").unwrap();
+        let err = bins(&poses, Some(&rows), 1.0).unwrap_err();
+        assert!(err.contains("at most 100000"), "{err}");
+        let far = [pose(1.0, 0.1), pose(1e300, 0.1)];
+        assert!(bins(&far, None, 600.0).is_err());
+        assert_eq!(bins(&poses, Some(&rows), 1e14).unwrap().len(), 10);
     }
 }
