@@ -390,6 +390,7 @@ impl Node {
             dropped: r.net.dropped.values().sum(),
             rejected: r.run.rejected.len(),
             lag_s,
+            latency_samples: r.latencies_ms.len(),
         }
     }
 
@@ -1232,6 +1233,7 @@ pub fn run_node(
                 node.wall_s(),
                 || node.counters(lag_s),
                 |k| frames.get(k).map_or(0.0, |f| f.timing.cpu_ms),
+                &node.report.latencies_ms,
             ) {
                 tracing::info!(robot = cfg.robot_id, "status: {line}");
             }

@@ -30,6 +30,8 @@ pub struct Counters {
     pub rejected: usize,
     /// Real time: how far behind the wall clock, s (0 in lockstep).
     pub lag_s: f64,
+    /// One-way latencies sampled so far (received messages).
+    pub latency_samples: usize,
 }
 
 /// One status line: the counters and what changed over the period.
@@ -51,6 +53,9 @@ pub struct Status {
     pub received_kb_s: f64,
     /// Dropped in the period.
     pub dropped: u64,
+    /// One-way latency of the period's messages, ms: 99th percentile and
+    /// largest (`None`: none sampled).
+    pub latency_ms: Option<(f64, f64)>,
 }
 
 impl fmt::Display for Status {
@@ -64,7 +69,7 @@ impl fmt::Display for Status {
             f,
             ", {} frames in {:.0} s ({:.2} ms mean, {:.2} max), lag {:.3} s, {} peers, \
              {} windows held ({:.1} MB), sent {:.1} KB/s, received {:.1} KB/s, {} dropped, \
-             {} rejected in all",
+             {} rejected in all, latency p99 {} ms (max {})",
             self.frames,
             self.period_s,
             self.cpu_ms_mean,
@@ -76,7 +81,11 @@ impl fmt::Display for Status {
             self.sent_kb_s,
             self.received_kb_s,
             self.dropped,
-            n.rejected
+            n.rejected,
+            self.latency_ms
+                .map_or_else(|| "-".to_string(), |(p99, _)| format!("{p99:.1}")),
+            self.latency_ms
+                .map_or_else(|| "-".to_string(), |(_, max)| format!("{max:.1}")),
         )
     }
 }
@@ -101,12 +110,14 @@ impl StatusLog {
     /// The status line, if one is due at `wall_s` (seconds since the agent
     /// started): `counters` are read only then; `cpu_ms(k)` is the thread CPU
     /// time of frame `k` (the period's frames are the ones output since the
-    /// last line).
+    /// last line); `latencies_ms` are the latencies sampled so far (the
+    /// period's are the ones after the last line's count).
     pub fn due(
         &mut self,
         wall_s: f64,
         counters: impl FnOnce() -> Counters,
         cpu_ms: impl Fn(usize) -> f64,
+        latencies_ms: &[f64],
     ) -> Option<Status> {
         let period_s = wall_s - self.last.wall_s;
         if period_s < self.period_s {
@@ -126,6 +137,19 @@ impl StatusLog {
             max = max.max(c);
         }
         let rate = |now: u64, then: u64| now.saturating_sub(then) as f64 / 1e3 / period_s;
+        let mut lat: Vec<f64> = latencies_ms
+            .get(last.latency_samples.min(latencies_ms.len())..)
+            .unwrap_or_default()
+            .iter()
+            .copied()
+            .filter(|v| v.is_finite())
+            .collect();
+        lat.sort_unstable_by(f64::total_cmp);
+        // Nearest rank.
+        let latency_ms = lat.last().map(|&max| {
+            let rank = (0.99 * lat.len() as f64).ceil() as usize;
+            (lat[rank.clamp(1, lat.len()) - 1], max)
+        });
         Some(Status {
             now,
             period_s,
@@ -135,6 +159,7 @@ impl StatusLog {
             sent_kb_s: rate(now.sent_bytes, last.sent_bytes),
             received_kb_s: rate(now.received_bytes, last.received_bytes),
             dropped: now.dropped.saturating_sub(last.dropped),
+            latency_ms,
         })
     }
 }
@@ -153,9 +178,13 @@ mod tests {
             frames,
             sent_bytes: sent,
             dropped: frames as u64 / 50,
+            latency_samples: frames.min(300),
             ..Counters::default()
         };
-        let mut due = |c: Counters| log.due(c.wall_s, || c, cpu);
+        let lat: Vec<f64> = (0..300)
+            .map(|k| if k < 100 { 1.0 } else { f64::from(k) })
+            .collect();
+        let mut due = |c: Counters| log.due(c.wall_s, || c, cpu, &lat[..c.latency_samples]);
         assert!(due(at(9.9, 99, 0)).is_none());
         let first = due(at(10.0, 100, 50_000)).unwrap();
         assert_eq!(
@@ -164,6 +193,7 @@ mod tests {
         );
         assert!((first.sent_kb_s - 5.0).abs() < 1e-12);
         assert_eq!(first.dropped, 2);
+        assert_eq!(first.latency_ms, Some((1.0, 1.0)));
         assert!(due(at(15.0, 150, 60_000)).is_none());
         let second = due(at(20.0, 200, 150_000)).unwrap();
         assert_eq!(
@@ -171,6 +201,11 @@ mod tests {
             (100, 3.0, 3.0)
         );
         assert!((second.sent_kb_s - 10.0).abs() < 1e-12);
+        // Samples 100..200 of the second period: 100..199 ms; p99 is the 99th.
+        assert_eq!(second.latency_ms, Some((198.0, 199.0)));
+        assert!(second
+            .to_string()
+            .ends_with("latency p99 198.0 ms (max 199.0)"));
         let line = second.to_string();
         assert!(
             line.starts_with("fleet 120.0 s, 100 frames in 10 s (3.00 ms mean"),
