@@ -38,8 +38,9 @@ pub type HistoricalFrame = WindowFrame;
 pub struct KeyframeWindow {
     /// The window (camera poses, covariance, landmarks).
     pub snapshot: StateSnapshot,
-    /// Track measurements made at the window's clone times.
-    pub frames: Vec<HistoricalFrame>,
+    /// Track measurements made at the window's clone times, oldest first;
+    /// each frame's sorted by track id (see [`KeyframeWindow::measurements_of`]).
+    frames: Vec<HistoricalFrame>,
     /// The keyframe's descriptors (for the peer's vocabulary database).
     pub descriptors: Vec<DescriptorEntry>,
     /// Where its newest camera was and looked (`None` without a finite pose).
@@ -55,6 +56,8 @@ impl KeyframeWindow {
         frames: Vec<HistoricalFrame>,
         descriptors: Vec<DescriptorEntry>,
     ) -> Self {
+        let mut frames = frames;
+        frames.iter_mut().for_each(sort_by_track);
         Self {
             place: history_retention::place_of(&snapshot),
             position_variance_m2: history_retention::position_variance_m2(&snapshot),
@@ -62,6 +65,26 @@ impl KeyframeWindow {
             frames,
             descriptors,
         }
+    }
+
+    /// The track measurements, one frame per clone at most, oldest first.
+    pub fn frames(&self) -> &[HistoricalFrame] {
+        &self.frames
+    }
+
+    /// The frames that measured the peer's track `id`, with that measurement,
+    /// oldest first. The evidence for every linked track looks through its
+    /// keyframe windows each camera frame, and a long mission links a track to
+    /// many: a binary search per frame, not a scan of its measurements.
+    pub fn measurements_of(
+        &self,
+        id: u64,
+    ) -> impl Iterator<Item = (&HistoricalFrame, &HistoricalObservation)> + '_ {
+        self.frames.iter().filter_map(move |f| {
+            // The first of equal ids, as a scan would find it (the sort is stable).
+            let i = f.observations.partition_point(|o| o.id < id);
+            f.observations.get(i).filter(|o| o.id == id).map(|o| (f, o))
+        })
     }
 
     /// The window as a replay carries it.
@@ -151,6 +174,8 @@ impl KeyframeWindow {
         for f in part.frames {
             let at_clone = self.snapshot.clones.iter().any(|c| c.t_s == f.t_s);
             if at_clone && !self.frames.iter().any(|g| g.t_s == f.t_s) {
+                let mut f = f;
+                sort_by_track(&mut f);
                 self.frames.push(f);
                 added = true;
             }
@@ -180,6 +205,12 @@ impl KeyframeWindow {
                 .sum::<usize>()
             + self.descriptors.len() * std::mem::size_of::<DescriptorEntry>()
     }
+}
+
+/// Sorts a frame's measurements by track id (stable: a malformed frame's
+/// repeated id keeps its first measurement first).
+fn sort_by_track(f: &mut HistoricalFrame) {
+    f.observations.sort_by_key(|o| o.id);
 }
 
 /// The share of `max_bytes` the recent frames, and again the recent
@@ -222,6 +253,9 @@ pub struct PeerHistory {
     /// Keyframe windows by their newest clone time (bit pattern of the f64, which
     /// orders like the time for non-negative times; see [`time_key`]).
     pub keyframes: BTreeMap<u64, KeyframeWindow>,
+    /// The key in `keyframes` of the newest stored window of each frame index:
+    /// keyframe descriptors find their window without a scan of the history.
+    by_frame_index: BTreeMap<u64, u64>,
     /// Keyframe descriptors that arrived before their snapshot, by frame index.
     pending_keyframe_descriptors: BTreeMap<u64, Vec<DescriptorEntry>>,
     /// Bytes held by `keyframes`.
@@ -333,12 +367,12 @@ impl PeerHistory {
             return;
         }
         let key = batch.frame_index;
-        match self
-            .keyframes
-            .values_mut()
-            .rev()
-            .find(|k| k.snapshot.frame_index == key)
-        {
+        let window = self
+            .by_frame_index
+            .get(&key)
+            .and_then(|k| self.keyframes.get_mut(k))
+            .filter(|k| k.snapshot.frame_index == key);
+        match window {
             Some(kf) => {
                 // Descriptors that come after their snapshot (another topic,
                 // reordered) change the window: its bytes count against the
@@ -418,6 +452,15 @@ impl PeerHistory {
             self.stored_span = Some((lo.min(a.t_s), hi.max(b.t_s)));
         }
         let key = time_key(kf.end_s());
+        // The newest window of a frame index keeps it (a restarted peer counts
+        // its frames from zero again).
+        let newest = self
+            .by_frame_index
+            .entry(kf.snapshot.frame_index)
+            .or_insert(key);
+        if !self.keyframes.contains_key(newest) || *newest < key {
+            *newest = key;
+        }
         if let Some(old) = self.keyframes.insert(key, kf) {
             // A replaced window: counted once in what was stored.
             self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
@@ -430,11 +473,15 @@ impl PeerHistory {
     /// Drops keyframe windows while the history exceeds its bound.
     fn keep_within(&mut self, limits: &HistoryLimits) {
         while self.history_bytes > limits.max_bytes {
-            let Some(old) = history_retention::victim(&self.keyframes, limits.retention)
-                .and_then(|k| self.keyframes.remove(&k))
+            let Some((key, old)) = history_retention::victim(&self.keyframes, limits.retention)
+                .and_then(|k| self.keyframes.remove_entry(&k))
             else {
                 break;
             };
+            let index = old.snapshot.frame_index;
+            if self.by_frame_index.get(&index) == Some(&key) {
+                self.by_frame_index.remove(&index);
+            }
             self.history_bytes = self.history_bytes.saturating_sub(old.bytes());
             self.dropped_keyframes += 1;
         }
@@ -712,6 +759,82 @@ mod tests {
         assert_eq!(h.history_bytes, kf.bytes());
         assert!(h.history_bytes > bytes);
         assert!(h.revision > revision, "the store and the index must see it");
+    }
+
+    #[test]
+    fn a_tracks_measurements_are_found_in_every_frame_whatever_the_order_sent() {
+        let snap = snapshot(2.0, true);
+        let obs = |ids: &[u64]| -> Vec<HistoricalObservation> {
+            ids.iter()
+                .map(|&id| HistoricalObservation {
+                    id,
+                    xy_norm: [id as f32, 0.0],
+                })
+                .collect()
+        };
+        // Ids out of order, and a malformed frame with a repeated id: the
+        // first of the repeats is the one found, as a scan would.
+        let mut repeated = obs(&[5, 3]);
+        repeated.push(HistoricalObservation {
+            id: 3,
+            xy_norm: [-1.0, 0.0],
+        });
+        let frames = vec![
+            HistoricalFrame {
+                t_s: snap.clones[0].t_s,
+                observations: obs(&[9, 3, 7, 1]),
+            },
+            HistoricalFrame {
+                t_s: snap.clones[1].t_s,
+                observations: obs(&[2, 4]),
+            },
+            HistoricalFrame {
+                t_s: snap.clones[2].t_s,
+                observations: repeated,
+            },
+        ];
+        let kf = KeyframeWindow::new(snap.clone(), frames.clone(), Vec::new());
+        for id in 0..11 {
+            let found: Vec<(f64, f32)> = kf
+                .measurements_of(id)
+                .map(|(f, o)| (f.t_s, o.xy_norm[0]))
+                .collect();
+            let scanned: Vec<(f64, f32)> = frames
+                .iter()
+                .filter_map(|f| {
+                    let o = f.observations.iter().find(|o| o.id == id)?;
+                    Some((f.t_s, o.xy_norm[0]))
+                })
+                .collect();
+            assert_eq!(found, scanned, "track {id}");
+        }
+        assert_eq!(kf.measurements_of(3).count(), 2);
+    }
+
+    #[test]
+    fn keyframe_descriptors_find_the_newest_window_of_their_frame_index() {
+        // A peer that restarted counts its frames from zero again: frame index
+        // 20 names a window at 2 s from before the restart and one at 9 s.
+        let l = limits(usize::MAX);
+        let mut h = PeerHistory::default();
+        h.add_snapshot(snapshot(2.0, true), &l);
+        let mut again = snapshot(9.0, true);
+        again.frame_index = 20;
+        h.add_snapshot(again, &l);
+        let entries = vec![DescriptorEntry {
+            id: 1,
+            bits: [7; 4],
+        }];
+        let batch = |entries| DescriptorBatch {
+            frame_index: 20,
+            t_s: 9.0,
+            keyframe: true,
+            entries,
+        };
+        h.add_descriptors(batch(entries.clone()), &l);
+        let newest = h.keyframes.values().next_back().unwrap();
+        assert_eq!(newest.descriptors, entries);
+        assert!(h.keyframes.values().next().unwrap().descriptors.is_empty());
     }
 
     #[test]

@@ -30,6 +30,8 @@ pub struct Evidence {
     /// Whether a participant is a historical keyframe window.
     pub historical: Vec<bool>,
     pub(super) consumed: BTreeMap<(u8, u64), Consumed>,
+    /// Keyframe links found used up: `(our track, link)` (see `chosen_links`).
+    pub(super) exhausted: Vec<(u64, Link)>,
 }
 
 impl Cooperation {
@@ -40,13 +42,15 @@ impl Cooperation {
         let mut index: BTreeMap<(u32, LinkSource), Option<usize>> = BTreeMap::new();
         let mut taken: BTreeSet<(u32, u64, u64)> = BTreeSet::new();
         let classes: [(&[u64], bool); 2] = [(vio_ids, false), (slam_ids, true)];
-        let mut chosen: Vec<(u64, bool, Vec<Link>)> = classes
-            .iter()
-            .flat_map(|(ids, slam)| {
-                ids.iter()
-                    .map(move |&id| (id, *slam, self.chosen_links(id, *slam, peers)))
-            })
-            .collect();
+        let mut exhausted = Vec::new();
+        let mut chosen: Vec<(u64, bool, Vec<Link>)> = Vec::new();
+        for (ids, slam) in classes {
+            for &id in ids {
+                let links = self.chosen_links(id, slam, peers, &mut exhausted);
+                chosen.push((id, slam, links));
+            }
+        }
+        ev.exhausted = exhausted;
         // The frame's participants first, then our tracks linked to them, the
         // VIO ones up to the bound (in the MSCKF's order, longest first).
         let windows = busiest_windows(&chosen, self.opts.max_ci_participants);
@@ -75,7 +79,7 @@ impl Cooperation {
                     continue;
                 };
                 let used = self.peers.get(&link.peer).map(|s| &s.used);
-                let is_used = |k: &(u64, u64)| used.is_some_and(|u| u.contains(k));
+                let is_used = |k: &(u64, u64)| used.is_some_and(|u| u.contains(k.0, k.1));
                 if slam && self.opts.slam_constraint && constraint.is_none() {
                     let w = &ev.participants[p];
                     if let Some(j) = w.landmarks.iter().position(|l| l.id == link.peer_track) {
@@ -129,7 +133,16 @@ impl Cooperation {
     /// in view, or saw on several passes, is in several of its keyframe
     /// windows; each window is one more CI participant, which inflates our
     /// covariance once more, so only the most informative are used.
-    fn chosen_links(&self, id: u64, slam: bool, peers: &Peers) -> Vec<Link> {
+    /// A link to a whole window with fewer than two unused measurements can
+    /// never be chosen again (its measurements only get used up): it goes to
+    /// `exhausted`, to be forgotten.
+    fn chosen_links(
+        &self,
+        id: u64,
+        slam: bool,
+        peers: &Peers,
+        exhausted: &mut Vec<(u64, Link)>,
+    ) -> Vec<Link> {
         let mut out: Vec<Link> = Vec::new();
         let mut window: Vec<(usize, Link)> = Vec::new();
         let mut historical: Vec<(u32, f64, Link)> = Vec::new();
@@ -168,9 +181,14 @@ impl Cooperation {
                 LinkSource::Keyframe(k) => h.keyframes.get(&k),
                 LinkSource::Window => None,
             });
-            if kf.is_some_and(|kf| self.fresh_in_keyframe(&link, kf) >= 2) {
+            let Some(kf) = kf else {
+                continue;
+            };
+            if self.fresh_in_keyframe(&link, kf) >= 2 {
                 *n += 1;
                 out.push(link);
+            } else if kf.is_whole() {
+                exhausted.push((id, link));
             }
         }
         // The peers that saw the feature longest, at most `max_peers_per_track`:
@@ -199,9 +217,8 @@ impl Cooperation {
     /// `kf`.
     pub(super) fn fresh_in_keyframe(&self, link: &Link, kf: &KeyframeWindow) -> usize {
         let fresh = self.is_fresh(link);
-        kf.frames
-            .iter()
-            .filter(|f| fresh(f.t_s) && f.observations.iter().any(|o| o.id == link.peer_track))
+        kf.measurements_of(link.peer_track)
+            .filter(|(f, _)| fresh(f.t_s))
             .count()
     }
 
@@ -209,7 +226,7 @@ impl Cooperation {
     /// (the peer's used marks looked up once).
     fn is_fresh<'a>(&'a self, link: &'a Link) -> impl Fn(f64) -> bool + 'a {
         let used = self.peers.get(&link.peer).map(|s| &s.used);
-        move |t_s| !used.is_some_and(|u| u.contains(&(time_key(t_s), link.peer_track)))
+        move |t_s| !used.is_some_and(|u| u.contains(time_key(t_s), link.peer_track))
     }
 
     /// Whether a link may be used for this class under the options.
@@ -287,11 +304,8 @@ fn measurements(h: &PeerHistory, link: &Link, w: &PeerWindow) -> Vec<(usize, f64
             let Some(kf) = h.keyframes.get(&k) else {
                 return out;
             };
-            for f in &kf.frames {
-                let Some(pose) = w.pose_at(f.t_s) else {
-                    continue;
-                };
-                if let Some(o) = f.observations.iter().find(|o| o.id == link.peer_track) {
+            for (f, o) in kf.measurements_of(link.peer_track) {
+                if let Some(pose) = w.pose_at(f.t_s) {
                     let xy = Vector2::new(f64::from(o.xy_norm[0]), f64::from(o.xy_norm[1]));
                     out.push((pose, f.t_s, xy));
                 }

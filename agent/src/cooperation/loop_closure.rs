@@ -145,23 +145,38 @@ impl KeyframeDb {
         if self.backlog_clear_at == Some(history.revision) {
             return;
         }
-        let mut budget = INDEX_BACKLOG_PER_FRAME;
+        // Every new window changes the revision, so this walk runs about once a
+        // second per peer over a history of thousands: the indexed keys are
+        // walked alongside (both newest first) instead of looked up per window.
+        let (mut add, mut pass_over, mut more) = (Vec::new(), Vec::new(), false);
+        let mut indexed = self.indexed.iter().rev().peekable();
         for (key, kf) in history.keyframes.iter().rev().skip(INDEX_LOOKBACK) {
-            if !self.wants(key) || (kf.descriptors.is_empty() && self.passed_over.contains(key)) {
+            while indexed.next_if(|k| *k > key).is_some() {}
+            let passed_over = self.passed_over.contains(key);
+            let wants = indexed.peek() != Some(&key) || passed_over;
+            if !wants || (kf.descriptors.is_empty() && passed_over) {
                 continue;
             }
-            if budget == 0 {
-                return;
+            if add.len() == INDEX_BACKLOG_PER_FRAME {
+                more = true;
+                break;
             }
             if kf.descriptors.is_empty() {
-                self.indexed.insert(*key);
-                self.passed_over.insert(*key);
+                pass_over.push(*key);
             } else {
-                self.add(*key, kf);
-                budget -= 1;
+                add.push((*key, kf));
             }
         }
-        self.backlog_clear_at = Some(history.revision);
+        for key in pass_over {
+            self.indexed.insert(key);
+            self.passed_over.insert(key);
+        }
+        for (key, kf) in add {
+            self.add(key, kf);
+        }
+        if !more {
+            self.backlog_clear_at = Some(history.revision);
+        }
     }
 
     /// Whether window `key` is still to be indexed: never looked at, or passed
@@ -274,7 +289,7 @@ pub struct LoopParams {
 /// The keyframe frame's normalized coordinates by the peer's track id.
 fn keyframe_points(kf: &KeyframeWindow) -> HashMap<u64, Vector2<f64>> {
     let t = kf.snapshot.t_s;
-    kf.frames
+    kf.frames()
         .iter()
         .find(|f| (f.t_s - t).abs() < 1e-6)
         .map(|f| {

@@ -17,14 +17,16 @@ mod evidence;
 mod linking;
 pub mod loop_closure;
 pub mod matcher;
+mod used_marks;
 
 pub use evidence::Evidence;
 
-use crate::peer_history::{time_key, PeerHistory};
+use crate::peer_history::PeerHistory;
 use common::estimator_options::CooperationOptions;
 use loop_closure::KeyframeDb;
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
+use used_marks::UsedMarks;
 use vocabulary::Vocabulary;
 
 /// The vocabulary for random binary descriptors (the simulator's landmarks),
@@ -87,9 +89,8 @@ pub struct CooperationStats {
 #[derive(Debug, Default)]
 struct PeerState {
     keyframes: Option<KeyframeDb>,
-    /// Measurements used: `(time key, peer track)`; constraints use the window
-    /// key and the track with the top bit set.
-    used: BTreeSet<(u64, u64)>,
+    /// Measurements used ([`used_marks`]).
+    used: UsedMarks,
 }
 
 /// Marks a used constraint in [`PeerState::used`] (the track id with the top bit set).
@@ -167,7 +168,7 @@ impl Cooperation {
                 if only_constraint.is_some_and(|want| want != is_constraint) {
                     continue;
                 }
-                self.peers.entry(peer).or_default().used.insert((a, b));
+                self.peers.entry(peer).or_default().used.insert(a, b);
             }
         };
         for &id in vio {
@@ -181,6 +182,20 @@ impl Cooperation {
         }
         self.used_tracks
             .extend(vio.iter().chain(slam).chain(constraints).copied());
+        self.forget(&ev.exhausted);
+    }
+
+    /// Forgets links found used up. A landmark a SLAM feature keeps in view is
+    /// looked up in every frame, and over a long mission it links to many
+    /// windows of its place whose measurements other frames used: without this,
+    /// each frame looked through them all again (measured at stop 33: the
+    /// evidence step's largest cost late in an hour-long fleet).
+    fn forget(&mut self, exhausted: &[(u64, Link)]) {
+        for (id, link) in exhausted {
+            if let Some(list) = self.links.get_mut(id) {
+                list.retain(|l| l != link);
+            }
+        }
     }
 
     /// Forgets the keyframe links of the tracks used this frame that can
@@ -240,7 +255,7 @@ impl Cooperation {
                     None => continue,
                 },
             };
-            s.used = s.used.split_off(&(time_key(oldest - 1.0), 0));
+            s.used.prune(h, oldest, recent);
         }
     }
 }
