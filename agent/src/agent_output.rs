@@ -5,6 +5,7 @@
 
 use crate::node::NodeReport;
 use crate::runner::write_run_outputs;
+use common::metrics::percentile_sorted;
 use common::summary::{MetricSet, RobotSummary, RunSummary};
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -83,12 +84,11 @@ pub struct TransportReport<'a> {
     pub settle: Option<&'a crate::node::SettleStats>,
 }
 
-fn percentile(sorted: &[f64], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let i = ((sorted.len() as f64 - 1.0) * q).round() as usize;
-    sorted[i.min(sorted.len() - 1)]
+/// The finite values, sorted.
+fn sorted_finite(values: &[f64]) -> Vec<f64> {
+    let mut v: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    v.sort_unstable_by(f64::total_cmp);
+    v
 }
 
 /// History statistics of one peer, whose keyframe database holds `db.0`
@@ -137,15 +137,11 @@ pub fn write_outputs(
     report.peers.write_jsonl(&mut events)?;
     std::io::Write::flush(&mut events)?;
 
-    let mut lat = report.latencies_ms.clone();
-    lat.sort_by(f64::total_cmp);
-    let latency_ms = (!lat.is_empty()).then(|| {
-        [
-            percentile(&lat, 0.5),
-            percentile(&lat, 0.99),
-            lat.last().copied().unwrap_or(f64::NAN),
-        ]
-    });
+    let lat = sorted_finite(&report.latencies_ms);
+    let latency_ms = match (percentile_sorted(&lat, 0.5), percentile_sorted(&lat, 0.99)) {
+        (Some(p50), Some(p99)) => Some([p50, p99, lat.last().copied().unwrap_or(p99)]),
+        _ => None,
+    };
     let fleet_s = report.fleet_s.max(1e-9);
     let transport_report = TransportReport {
         transport,
@@ -221,10 +217,9 @@ pub fn metrics_of(report: &NodeReport) -> MetricSet {
             .map(|p| u64::from(p.losses))
             .sum(),
     );
-    let mut lat = report.latencies_ms.clone();
-    lat.sort_by(f64::total_cmp);
+    let lat = sorted_finite(&report.latencies_ms);
     m.latency_ms_mean = (!lat.is_empty()).then(|| lat.iter().sum::<f64>() / lat.len() as f64);
-    m.latency_ms_p99 = (!lat.is_empty()).then(|| percentile(&lat, 0.99));
+    m.latency_ms_p99 = percentile_sorted(&lat, 0.99);
     m.history_bytes = Some(report.peak_history_bytes as u64);
     m.keyframe_windows_published = Some(report.keyframe_windows_published);
     let held = report.histories.values().flat_map(|h| h.keyframes.values());

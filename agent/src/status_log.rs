@@ -3,6 +3,7 @@
 //! the agent keeps up, hears its peers and holds its memory bound, without
 //! opening the MCAP log.
 
+use common::metrics::percentile_sorted;
 use std::fmt;
 
 /// What the agent's counters say at one moment (cumulative since the start).
@@ -145,11 +146,7 @@ impl StatusLog {
             .filter(|v| v.is_finite())
             .collect();
         lat.sort_unstable_by(f64::total_cmp);
-        // Nearest rank.
-        let latency_ms = lat.last().map(|&max| {
-            let rank = (0.99 * lat.len() as f64).ceil() as usize;
-            (lat[rank.clamp(1, lat.len()) - 1], max)
-        });
+        let latency_ms = percentile_sorted(&lat, 0.99).zip(lat.last().copied());
         Some(Status {
             now,
             period_s,

@@ -30,6 +30,23 @@ pub use nees::{
 };
 pub use rpe::{rpe, RpeResult, DEFAULT_RPE_SEGMENTS_M};
 
+/// The `q` quantile (0..=1) of sorted values by nearest rank: the smallest
+/// value with at least a fraction `q` of them at or below it (`q = 0.99` of
+/// 100 values is the 99th). `None` when empty. Every percentile the agent and
+/// the reports print is this one.
+pub fn percentile_sorted(sorted: &[f64], q: f64) -> Option<f64> {
+    let n = sorted.len();
+    let rank = (q.clamp(0.0, 1.0) * n as f64).ceil() as usize;
+    sorted.get(rank.clamp(1, n.max(1)) - 1).copied()
+}
+
+/// [`percentile_sorted`] of the finite values among `values`, in any order.
+pub fn percentile(values: impl IntoIterator<Item = f64>, q: f64) -> Option<f64> {
+    let mut v: Vec<f64> = values.into_iter().filter(|v| v.is_finite()).collect();
+    v.sort_unstable_by(f64::total_cmp);
+    percentile_sorted(&v, q)
+}
+
 /// An estimated pose and the ground truth at the same time: `(est, gt)`.
 pub type PosePair = (StampedPose, StampedPose);
 
@@ -113,6 +130,19 @@ pub(crate) mod test_util;
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn percentiles_are_nearest_rank_over_finite_values() {
+        let v: Vec<f64> = (1..=100).rev().map(f64::from).collect();
+        assert_eq!(percentile(v.iter().copied(), 0.99), Some(99.0));
+        assert_eq!(percentile(v.iter().copied(), 0.5), Some(50.0));
+        assert_eq!(percentile(v.iter().copied(), 1.0), Some(100.0));
+        assert_eq!(percentile(v.iter().copied(), 0.0), Some(1.0));
+        assert_eq!(percentile([f64::NAN, 3.0, f64::INFINITY], 0.5), Some(3.0));
+        assert_eq!(percentile([f64::NAN], 0.5), None);
+        assert_eq!(percentile_sorted(&[], 0.5), None);
+        assert_eq!(percentile_sorted(&[2.0], 0.99), Some(2.0));
+    }
+
     use super::test_util::pose;
     use super::*;
     use nalgebra::Vector3;

@@ -233,7 +233,7 @@ fn cost(rows: &TimingRows, ks: &[usize]) -> Option<BinCost> {
     Some(BinCost {
         frames: ks.len(),
         cpu_ms_mean: mean(&rows.cpu_ms).unwrap_or(0.0),
-        cpu_ms_p95: crate::plots::percentile(cpu(), 0.95),
+        cpu_ms_p95: common::metrics::percentile(cpu(), 0.95).unwrap_or(0.0),
         cpu_ms_max: cpu().fold(f64::NEG_INFINITY, f64::max),
         matching_ms_mean: mean(&rows.matching_ms),
         evidence_ms_mean: mean(&rows.evidence_ms),
