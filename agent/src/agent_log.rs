@@ -65,17 +65,22 @@ enum Record {
     },
 }
 
-/// Records that may wait for the writer thread before `put` waits for it: a
+/// Records handed to the writer thread at once (about ten camera frames' worth):
+/// one wake-up of the thread per batch, not per message.
+const BATCH_RECORDS: usize = 64;
+
+/// Batches that may wait for the writer thread before `put` waits for it: a
 /// few seconds of an agent's messages. The log stays whole; a disk slower than
 /// the agent slows the agent rather than losing messages.
-const QUEUE_RECORDS: usize = 4096;
+const QUEUE_BATCHES: usize = 64;
 
 /// Writer of one agent's MCAP file. Messages are serialized here and queued;
 /// a thread of its own compresses them into chunks and writes the file
 /// (measured at stop 33: chunk compression took 8-9 % of a fleet's CPU time on
 /// the agent threads, where it delayed the peers' messages).
 pub struct AgentLog {
-    queue: Option<std::sync::mpsc::SyncSender<Record>>,
+    queue: Option<std::sync::mpsc::SyncSender<Vec<Record>>>,
+    batch: Vec<Record>,
     writer: Option<std::thread::JoinHandle<Result<(), LogError>>>,
     schemas: BTreeMap<&'static str, u16>,
     channels: BTreeMap<String, u16>,
@@ -88,6 +93,9 @@ pub struct AgentLog {
 /// file whole: the writer thread drains the queue and writes the index.
 impl Drop for AgentLog {
     fn drop(&mut self) {
+        if self.queue.is_some() {
+            let _ = self.flush();
+        }
         self.queue = None;
         if let Some(w) = self.writer.take() {
             let _ = w.join();
@@ -122,11 +130,11 @@ fn nanos(t: f64) -> u64 {
 /// (or the next `put`) reports.
 fn write_records(
     mut w: mcap::Writer<BufWriter<File>>,
-    queue: std::sync::mpsc::Receiver<Record>,
+    queue: std::sync::mpsc::Receiver<Vec<Record>>,
 ) -> Result<(), LogError> {
     let mut schemas: BTreeMap<u16, u16> = BTreeMap::new();
     let mut channels: BTreeMap<u16, u16> = BTreeMap::new();
-    for record in queue {
+    for record in queue.into_iter().flatten() {
         match record {
             Record::Schema { id, name, text } => {
                 let s = w.add_schema(name, "jsonschema", text.as_bytes())?;
@@ -162,7 +170,7 @@ impl AgentLog {
         let w = mcap::WriteOptions::new()
             .profile("")
             .create(BufWriter::new(file))?;
-        let (queue, records) = std::sync::mpsc::sync_channel(QUEUE_RECORDS);
+        let (queue, records) = std::sync::mpsc::sync_channel(QUEUE_BATCHES);
         let writer = std::thread::Builder::new()
             .name("mcap-writer".into())
             .spawn(move || write_records(w, records))
@@ -172,6 +180,7 @@ impl AgentLog {
             })?;
         Ok(Self {
             queue: Some(queue),
+            batch: Vec::with_capacity(BATCH_RECORDS),
             writer: Some(writer),
             schemas: BTreeMap::new(),
             channels: BTreeMap::new(),
@@ -182,7 +191,20 @@ impl AgentLog {
 
     /// Queues a record; when the writer thread has stopped, its error.
     fn send(&mut self, record: Record) -> Result<(), LogError> {
-        let sent = self.queue.as_ref().is_some_and(|q| q.send(record).is_ok());
+        if self.queue.is_none() {
+            return Err(LogError::Closed);
+        }
+        self.batch.push(record);
+        if self.batch.len() < BATCH_RECORDS {
+            return Ok(());
+        }
+        self.flush()
+    }
+
+    /// Hands the batch to the writer thread; when it has stopped, its error.
+    fn flush(&mut self) -> Result<(), LogError> {
+        let batch = std::mem::replace(&mut self.batch, Vec::with_capacity(BATCH_RECORDS));
+        let sent = self.queue.as_ref().is_some_and(|q| q.send(batch).is_ok());
         if sent {
             return Ok(());
         }
@@ -302,6 +324,7 @@ impl AgentLog {
     /// Closes the file (writes the summary and index) once the writer thread
     /// has written everything queued.
     pub fn finish(mut self) -> Result<u64, LogError> {
+        self.flush()?;
         self.queue = None;
         match self.writer.take().map(std::thread::JoinHandle::join) {
             Some(Ok(Ok(()))) => Ok(self.messages),
