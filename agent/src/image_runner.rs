@@ -113,12 +113,7 @@ pub fn run_robot_rendered(
 fn quality(frames: usize, features: usize, ms: f64, mut errors: Vec<f64>) -> TrackQuality {
     errors.sort_by(f64::total_cmp);
     let n = errors.len();
-    let pick = |q: f64| {
-        errors
-            .get(((n as f64 - 1.0) * q).round() as usize)
-            .copied()
-            .unwrap_or(f64::NAN)
-    };
+    let pick = |q: f64| common::metrics::percentile_sorted(&errors, q).unwrap_or(f64::NAN);
     let per = |v: f64| {
         if frames > 0 {
             v / frames as f64

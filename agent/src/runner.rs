@@ -315,7 +315,7 @@ impl RobotRun {
         let mut times: Vec<f64> = self.frames.iter().map(|f| f.timing.total_ms).collect();
         times.sort_by(f64::total_cmp);
         let mean = (!times.is_empty()).then(|| times.iter().sum::<f64>() / times.len() as f64);
-        let p95 = times.get(((times.len() as f64) * 0.95) as usize).copied();
+        let p95 = common::metrics::percentile_sorted(&times, 0.95);
         MetricSet {
             ate_ori_deg: (a.n > 0).then_some(a.ori_deg),
             ate_pos_m: (a.n > 0).then_some(a.pos_m),
