@@ -76,8 +76,8 @@ const QUEUE_BATCHES: usize = 64;
 
 /// Writer of one agent's MCAP file. Messages are serialized here and queued;
 /// a thread of its own compresses them into chunks and writes the file
-/// (measured at stop 33: chunk compression took 8-9 % of a fleet's CPU time on
-/// the agent threads, where it delayed the peers' messages).
+/// (measured at stop 33: chunk compression took 8-9 % of an in-process fleet's
+/// CPU samples, all of it on the agent threads).
 pub struct AgentLog {
     queue: Option<std::sync::mpsc::SyncSender<Vec<Record>>>,
     batch: Vec<Record>,

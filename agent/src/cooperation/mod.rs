@@ -185,11 +185,9 @@ impl Cooperation {
         self.forget(&ev.exhausted);
     }
 
-    /// Forgets links found used up. A landmark a SLAM feature keeps in view is
-    /// looked up in every frame, and over a long mission it links to many
-    /// windows of its place whose measurements other frames used: without this,
-    /// each frame looked through them all again (measured at stop 33: the
-    /// evidence step's largest cost late in an hour-long fleet).
+    /// Forgets the links the evidence step found used up (see
+    /// `chosen_links`): a SLAM feature kept in view is looked up every frame,
+    /// and `drop_exhausted_links` only looks at the tracks used this frame.
     fn forget(&mut self, exhausted: &[(u64, Link)]) {
         for (id, link) in exhausted {
             if let Some(list) = self.links.get_mut(id) {
