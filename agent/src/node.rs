@@ -350,6 +350,8 @@ struct Node {
     started: Instant,
     fleet_t: Option<f64>,
     log: Option<crate::agent_log::AgentLog>,
+    /// Frames recorded when the paths were last logged.
+    path_logged_at: Option<usize>,
     /// Peers' newest camera poses, for the logged scene.
     peer_poses: BTreeMap<u32, PeerPose>,
     /// History catch-up, asking and answering (`None`: switched off).
@@ -1010,6 +1012,7 @@ pub fn run_node(
         started: Instant::now(),
         fleet_t: None,
         log,
+        path_logged_at: None,
         peer_poses: BTreeMap::new(),
         catch_up: None,
         unanswerable: Vec::new(),
@@ -1332,7 +1335,11 @@ pub fn run_node(
     }
     node.report.wall_s = node.wall_s();
     node.report.cpu_s = crate::runner::thread_cpu_s(cpu_start.as_ref());
-    if let Some(log) = node.log.take() {
+    if let Some(mut log) = node.log.take() {
+        // The whole paths once more, so the log ends with them.
+        if let Some(last) = node.report.run.estimate.last() {
+            log_paths(&mut log, &node.report.run, last.t);
+        }
         if let Err(e) = log.finish() {
             tracing::warn!("MCAP log: {e}");
         }
@@ -1343,10 +1350,28 @@ pub fn run_node(
     Ok(node.report)
 }
 
-/// Frames between two logged paths and scenes.
+/// Frames between two logged scenes, and the fewest between two logged paths.
 const SCENE_EVERY_FRAMES: usize = 10;
 /// Most poses in one logged path.
 const MAX_PATH_POSES: usize = 2000;
+/// A path is logged again once the run has grown by this fraction of its frames
+/// (at least [`SCENE_EVERY_FRAMES`]): every path repeats up to
+/// [`MAX_PATH_POSES`] poses, and logged every second the two paths were 98 % of
+/// an hour's log (2.6 GB of JSON per robot, 622 MB compressed). Runs under
+/// 2 000 frames are unchanged; after an hour a path is at most 18 s behind.
+const PATH_GROWTH: usize = 200;
+
+/// Whether the paths are due with `frames` recorded, the last logged at
+/// `last` frames (`None`: never).
+fn path_due(frames: usize, last: Option<usize>) -> bool {
+    last.is_none_or(|l| frames >= l + SCENE_EVERY_FRAMES.max(frames / PATH_GROWTH))
+}
+
+/// The estimated and true paths so far, at time `t`.
+fn log_paths(log: &mut crate::agent_log::AgentLog, run: &RobotRun, t: f64) {
+    let _ = log.path("/estimate/path", t, &run.estimate, MAX_PATH_POSES);
+    let _ = log.path("/groundtruth/path", t, &run.truth, MAX_PATH_POSES);
+}
 
 fn log_estimate(
     node: &mut Node,
@@ -1363,14 +1388,51 @@ fn log_estimate(
         let _ = log.pose("/groundtruth", "world", o.t, &gt.rot, &gt.trans);
     }
     let run = &node.report.run;
-    if run.frames.len() % SCENE_EVERY_FRAMES == 0 {
-        let _ = log.path("/estimate/path", o.t, &run.estimate, MAX_PATH_POSES);
-        let _ = log.path("/groundtruth/path", o.t, &run.truth, MAX_PATH_POSES);
+    let frames = run.frames.len();
+    if path_due(frames, node.path_logged_at) {
+        log_paths(log, run, o.t);
+        node.path_logged_at = Some(frames);
+    }
+    if frames % SCENE_EVERY_FRAMES == 0 {
         let landmarks: Vec<nalgebra::Vector3<f64>> = est
             .camera_window(true)
             .map(|w| w.landmarks.iter().map(|l| l.pos).collect())
             .unwrap_or_default();
         let peers: Vec<PeerPose> = node.peer_poses.values().copied().collect();
         let _ = log.scene(o.t, &landmarks, &peers);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Frames at which the paths are logged over a run of `frames` frames.
+    fn logged(frames: usize) -> Vec<usize> {
+        let mut last = None;
+        (0..frames)
+            .filter(|&k| {
+                let due = path_due(k, last);
+                if due {
+                    last = Some(k);
+                }
+                due
+            })
+            .collect()
+    }
+
+    #[test]
+    fn paths_are_logged_every_ten_frames_then_as_the_run_grows_by_half_a_percent() {
+        // A run under 2 000 frames: every 10 frames, from the first.
+        let short = logged(1500);
+        assert_eq!(short, (0..1500).step_by(10).collect::<Vec<_>>());
+        // An hour at 10 Hz: far fewer, each at most 0.5 % of the run after the last.
+        let hour = logged(36_000);
+        assert!(hour.len() < 800, "{} paths", hour.len());
+        for w in hour.windows(2) {
+            let gap = w[1] - w[0];
+            assert!(gap >= 10 && gap <= 10.max(w[1] / 200), "{w:?}");
+        }
+        assert!(36_000 - hour[hour.len() - 1] <= 180);
     }
 }
