@@ -140,21 +140,7 @@ pub fn fundamental_eight_point(
         (Some(a), Some(b)) => (a, b),
         _ => return Err(EpipolarError::Degenerate),
     };
-    let row = |a: &Vector2<f64>, b: &Vector2<f64>| {
-        let p = t1 * Vector3::new(a.x, a.y, 1.0);
-        let q = t2 * Vector3::new(b.x, b.y, 1.0);
-        SVector::<f64, 9>::from_column_slice(&[
-            q.x * p.x,
-            q.x * p.y,
-            q.x,
-            q.y * p.x,
-            q.y * p.y,
-            q.y,
-            p.x,
-            p.y,
-            1.0,
-        ])
-    };
+    let row = |a: &Vector2<f64>, b: &Vector2<f64>| design_row(&t1, &t2, a, b);
     let f = if x1.len() == MIN_POINTS {
         minimal_null_vector(x1, x2, row)
     } else {
@@ -181,6 +167,29 @@ pub fn fundamental_eight_point(
         return Err(EpipolarError::Degenerate);
     }
     Ok(f / norm)
+}
+
+/// One correspondence's row of the eight-point system `A f = 0` (`x₂ᵀ F x₁ = 0`
+/// with `f` the rows of `F`), in the Hartley-normalized coordinates `t1`, `t2`.
+fn design_row(
+    t1: &Matrix3<f64>,
+    t2: &Matrix3<f64>,
+    a: &Vector2<f64>,
+    b: &Vector2<f64>,
+) -> SVector<f64, 9> {
+    let p = t1 * Vector3::new(a.x, a.y, 1.0);
+    let q = t2 * Vector3::new(b.x, b.y, 1.0);
+    SVector::<f64, 9>::from_column_slice(&[
+        q.x * p.x,
+        q.x * p.y,
+        q.x,
+        q.y * p.x,
+        q.y * p.y,
+        q.y,
+        p.x,
+        p.y,
+        1.0,
+    ])
 }
 
 /// The null vector of the 8 x 9 system of a minimal sample (a RANSAC
@@ -400,21 +409,7 @@ mod tests {
             let (a, b, _) = two_views(8, noise, &mut rng);
             let f = fundamental_eight_point(&a, &b).unwrap();
             let (t1, t2) = (normalizer(&a).unwrap(), normalizer(&b).unwrap());
-            let row = |p: &Vector2<f64>, q: &Vector2<f64>| {
-                let p = t1 * Vector3::new(p.x, p.y, 1.0);
-                let q = t2 * Vector3::new(q.x, q.y, 1.0);
-                SVector::<f64, 9>::from_column_slice(&[
-                    q.x * p.x,
-                    q.x * p.y,
-                    q.x,
-                    q.y * p.x,
-                    q.y * p.y,
-                    q.y,
-                    p.x,
-                    p.y,
-                    1.0,
-                ])
-            };
+            let row = |p: &Vector2<f64>, q: &Vector2<f64>| design_row(&t1, &t2, p, q);
             let exact = minimal_null_vector(&a, &b, row).unwrap();
             let ls = least_squares_null_vector(&a, &b, row).unwrap();
             let d = (exact - ls).norm().min((exact + ls).norm());
