@@ -166,7 +166,8 @@ fn informed_victim(windows: &BTreeMap<u64, KeyframeWindow>) -> Option<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use common::messages::{CameraModelWire, CameraPose, DistortionWire, PackedCovariance};
+    use crate::peer_history::test_support::snapshot;
+    use common::messages::{CameraPose, PackedCovariance};
     use nalgebra::{DMatrix, Matrix3, Vector3};
 
     /// A one-clone window at `pos` looking along `dir` (camera z) with position
@@ -183,20 +184,12 @@ mod tests {
         for j in 3..6 {
             cov[(j, j)] = var;
         }
-        let snapshot = StateSnapshot {
-            frame_index: 0,
-            t_s: 0.0,
-            keyframe: true,
-            camera: CameraModelWire {
-                model: DistortionWire::Radtan,
-                intrinsics: [450.0, 450.0, 370.0, 240.0, 0.0, 0.0, 0.0, 0.0],
-                width: 752,
-                height: 480,
-            },
-            clones: vec![CameraPose::new(0.0, &rot, &Vector3::from(pos))],
-            covariance: PackedCovariance::from_dmatrix(&cov).unwrap(),
-            landmarks: Vec::new(),
-        };
+        let snapshot = snapshot(
+            0.0,
+            true,
+            vec![CameraPose::new(0.0, &rot, &Vector3::from(pos))],
+            &cov,
+        );
         KeyframeWindow::new(snapshot, Vec::new(), Vec::new())
     }
 

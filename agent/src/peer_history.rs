@@ -552,12 +552,43 @@ impl PeerHistory {
     }
 }
 
+/// Snapshots for the tests of the history and its users.
+#[cfg(test)]
+pub(crate) mod test_support {
+    use common::messages::{
+        CameraModelWire, CameraPose, DistortionWire, PackedCovariance, StateSnapshot,
+    };
+    use nalgebra::DMatrix;
+
+    /// A snapshot at `t_s` (frame index `10 t_s`) of a 752x480 radtan camera,
+    /// with `clones`, covariance `cov` and no landmarks.
+    pub(crate) fn snapshot(
+        t_s: f64,
+        keyframe: bool,
+        clones: Vec<CameraPose>,
+        cov: &DMatrix<f64>,
+    ) -> StateSnapshot {
+        StateSnapshot {
+            frame_index: (t_s * 10.0).round() as u64,
+            t_s,
+            keyframe,
+            camera: CameraModelWire {
+                model: DistortionWire::Radtan,
+                intrinsics: [450.0, 450.0, 370.0, 240.0, 0.0, 0.0, 0.0, 0.0],
+                width: 752,
+                height: 480,
+            },
+            covariance: PackedCovariance::from_dmatrix(cov).expect("a square covariance"),
+            clones,
+            landmarks: Vec::new(),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use common::messages::{
-        CameraModelWire, CameraPose, DistortionWire, PackedCovariance, TrackPoint,
-    };
+    use common::messages::{CameraPose, PackedCovariance, TrackPoint};
     use nalgebra::{DMatrix, Matrix3, Vector3};
 
     fn tracks(t: f64, n: usize) -> TrackFrame {
@@ -584,20 +615,7 @@ mod tests {
                 )
             })
             .collect();
-        StateSnapshot {
-            frame_index: (t_last * 10.0).round() as u64,
-            t_s: t_last,
-            keyframe,
-            camera: CameraModelWire {
-                model: DistortionWire::Radtan,
-                intrinsics: [450.0, 450.0, 370.0, 240.0, 0.0, 0.0, 0.0, 0.0],
-                width: 752,
-                height: 480,
-            },
-            covariance: PackedCovariance::from_dmatrix(&DMatrix::identity(66, 66)).unwrap(),
-            clones,
-            landmarks: Vec::new(),
-        }
+        test_support::snapshot(t_last, keyframe, clones, &DMatrix::identity(66, 66))
     }
 
     fn limits(max_bytes: usize) -> HistoryLimits {

@@ -141,10 +141,9 @@ impl UsedMarks {
 mod tests {
     use super::*;
     use crate::history_retention::Retention;
+    use crate::peer_history::test_support::snapshot;
     use crate::peer_history::{HistoryLimits, KeyframeWindow};
-    use common::messages::{
-        CameraModelWire, CameraPose, DistortionWire, PackedCovariance, StateSnapshot,
-    };
+    use common::messages::CameraPose;
     use nalgebra::{DMatrix, Matrix3, Vector3};
 
     /// A keyframe window with clones at `first..=last` (0.1 s apart).
@@ -159,20 +158,7 @@ mod tests {
                 )
             })
             .collect();
-        let snap = StateSnapshot {
-            frame_index: (last * 10.0).round() as u64,
-            t_s: last,
-            keyframe: true,
-            camera: CameraModelWire {
-                model: DistortionWire::Radtan,
-                intrinsics: [450.0, 450.0, 370.0, 240.0, 0.0, 0.0, 0.0, 0.0],
-                width: 752,
-                height: 480,
-            },
-            covariance: PackedCovariance::from_dmatrix(&DMatrix::identity(12, 12)).unwrap(),
-            clones,
-            landmarks: Vec::new(),
-        };
+        let snap = snapshot(last, true, clones, &DMatrix::identity(12, 12));
         KeyframeWindow::new(snap, Vec::new(), Vec::new())
     }
 
