@@ -419,8 +419,17 @@ fn lockstep_over_quic_with_bound_ids_delivers_everything_as_tcp_does() {
     assert_same_estimates(&dir.path().join("q"), &dir.path().join("t"), 3);
 }
 
+/// The two flood tests take turns: each probe floods as fast as the transport
+/// takes it. The real-time one failed twice in fresh-clone CI (stop 34: an agent
+/// 2.0 and 2.4 s behind the clock; alone it passed 3 of 3) with the other tests
+/// running beside it; the lockstep flood is the likeliest competitor for the cores.
+static FLOODS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 #[test]
 fn a_flooding_peer_neither_stops_an_agent_nor_grows_its_memory() {
+    let _turn = FLOODS
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path(), 16.0);
     let out = dir.path().join("flood");
@@ -475,6 +484,9 @@ fn a_flooding_peer_neither_stops_an_agent_nor_grows_its_memory() {
 
 #[test]
 fn agents_flooded_in_real_time_keep_up_with_the_clock() {
+    let _turn = FLOODS
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path(), 16.0);
     let out = dir.path().join("flood-rt");
