@@ -132,7 +132,9 @@ pub fn write_outputs(
     transport: &str,
     dir: &Path,
 ) -> std::io::Result<()> {
-    write_run_outputs(&report.run, dir)?;
+    if report.run_files_in.as_deref() != Some(dir) {
+        write_run_outputs(&report.run, dir)?;
+    }
     let mut events = std::io::BufWriter::new(std::fs::File::create(dir.join("peer_events.jsonl"))?);
     report.peers.write_jsonl(&mut events)?;
     std::io::Write::flush(&mut events)?;

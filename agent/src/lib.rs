@@ -35,6 +35,7 @@ pub mod node_images;
 pub mod outbox;
 pub mod peer_events;
 pub mod peer_history;
+pub mod run_files;
 pub mod runner;
 pub mod status_log;
 pub mod transport;

@@ -22,6 +22,7 @@ use crate::node_images::ImageFrames;
 use crate::outbox::Outbox;
 use crate::peer_events::{PeerEvent, PeerEvents};
 use crate::peer_history::{HistoryLimits, PeerHistory};
+use crate::run_files::RunFiles;
 use crate::runner::{initial_state, options_for, record, RobotRun, RunError, Variant};
 use crate::status_log::{Counters, StatusLog};
 use crate::transport::{Received, Transport, TransportError};
@@ -83,6 +84,10 @@ pub struct Progress {
 pub struct NodeReport {
     /// The estimate, truth, covariances and per-frame outputs.
     pub run: RobotRun,
+    /// The folder that holds `run`'s text files whole, written as the run
+    /// went ([`RunFiles`]); [`crate::agent_output::write_outputs`] writes them
+    /// into any other.
+    pub run_files_in: Option<std::path::PathBuf>,
     /// Traffic statistics.
     pub net: NetStats,
     /// Peer presence and its event log.
@@ -989,6 +994,17 @@ pub fn run_node(
     } else {
         None
     };
+    // The text outputs as the run goes: a robot killed hard keeps its poses.
+    let mut run_files = match RunFiles::create(&cfg.output_dir, RUN_FILES_FLUSH_PERIOD) {
+        Ok(f) => Some(f),
+        Err(e) => {
+            tracing::warn!(
+                "cannot write {} as the run goes ({e}): the outputs are written at the end",
+                cfg.output_dir.display()
+            );
+            None
+        }
+    };
     let mut node = Node {
         transport,
         inbox: Inbox::new(&cfg.fleet_id, cfg.robot_id, cfg.history.max_peers),
@@ -1194,6 +1210,9 @@ pub fn run_node(
                         }
                         log_estimate(&mut node, &o, truth, &est);
                         record(&mut node.report.run, truth, o);
+                        if let Some(f) = run_files.as_mut() {
+                            f.append(&node.report.run);
+                        }
                     }
                     Err(e) => node.report.run.rejected.push(e.to_string()),
                 }
@@ -1333,6 +1352,12 @@ pub fn run_node(
             .filter(|kf| kf.is_whole())
             .count();
     }
+    if let Some(f) = run_files {
+        match f.finish(&node.report.run) {
+            Ok(()) => node.report.run_files_in = Some(cfg.output_dir.clone()),
+            Err(e) => tracing::warn!("{}: {e}", cfg.output_dir.display()),
+        }
+    }
     node.report.wall_s = node.wall_s();
     node.report.cpu_s = crate::runner::thread_cpu_s(cpu_start.as_ref());
     if let Some(mut log) = node.log.take() {
@@ -1349,6 +1374,10 @@ pub fn run_node(
     }
     Ok(node.report)
 }
+
+/// Longest wall time the run's text outputs wait in memory before they are
+/// written: what a hard kill can lose of them.
+const RUN_FILES_FLUSH_PERIOD: Duration = Duration::from_secs(1);
 
 /// Frames between two logged scenes, and the fewest between two logged paths.
 const SCENE_EVERY_FRAMES: usize = 10;

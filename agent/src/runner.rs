@@ -337,6 +337,47 @@ impl RobotRun {
     }
 }
 
+/// The header line of `timing.csv` (one row per frame, [`timing_row`]).
+pub const TIMING_HEADER: &str = "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed,matching_ms,common_vio_ms,common_slam_ms,constraint_ms,common_vio_used,common_vio_rejected,common_slam_used,constraints_used,participants,historical_participants,ci_participants,omega_own,ci_update_ms,cpu_ms,evidence_ms";
+
+/// One row of `timing.csv` (no newline): a frame's costs and counts.
+pub fn timing_row(f: &FrameOutput) -> String {
+    let t = &f.timing;
+    format!(
+        "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{:.6},{:.4},{:.4},{:.4}",
+        f.t,
+        t.propagate_ms,
+        t.msckf_ms,
+        t.slam_update_ms,
+        t.slam_init_ms,
+        t.marginalize_ms,
+        t.total_ms,
+        f.msckf_features,
+        f.msckf.rejected_chi2,
+        f.msckf.failed,
+        f.slam_features,
+        f.slam.updated,
+        f.slam.rejected_chi2,
+        f.slam.initialized,
+        f.slam.init_failed,
+        f.coop.matching_ms,
+        f.coop.common_vio_ms,
+        f.coop.common_slam_ms,
+        f.coop.constraint_ms,
+        f.coop.common_vio.used,
+        f.coop.common_vio.rejected_chi2,
+        f.coop.common_slam.used,
+        f.coop.constraints.used,
+        f.coop.participants,
+        f.coop.historical_participants,
+        f.coop.ci_participants,
+        f.coop.omega_own,
+        f.coop.ci_update_ms,
+        t.cpu_ms,
+        f.coop.evidence_ms
+    )
+}
+
 /// Writes a run's estimate and ground truth (TUM), per-pose covariances and
 /// per-frame timing (`timing.csv`) into `dir`.
 pub fn write_run_outputs(run: &RobotRun, dir: &std::path::Path) -> std::io::Result<()> {
@@ -348,43 +389,9 @@ pub fn write_run_outputs(run: &RobotRun, dir: &std::path::Path) -> std::io::Resu
     common::trajectory::write_covariances(dir.join("covariance.txt"), &run.covariance)
         .map_err(to_io)?;
     let mut timing = std::io::BufWriter::new(std::fs::File::create(dir.join("timing.csv"))?);
-    writeln!(timing, "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed,matching_ms,common_vio_ms,common_slam_ms,constraint_ms,common_vio_used,common_vio_rejected,common_slam_used,constraints_used,participants,historical_participants,ci_participants,omega_own,ci_update_ms,cpu_ms,evidence_ms")?;
+    writeln!(timing, "{TIMING_HEADER}")?;
     for f in &run.frames {
-        let t = &f.timing;
-        writeln!(
-            timing,
-            "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{:.6},{:.4},{:.4},{:.4}",
-            f.t,
-            t.propagate_ms,
-            t.msckf_ms,
-            t.slam_update_ms,
-            t.slam_init_ms,
-            t.marginalize_ms,
-            t.total_ms,
-            f.msckf_features,
-            f.msckf.rejected_chi2,
-            f.msckf.failed,
-            f.slam_features,
-            f.slam.updated,
-            f.slam.rejected_chi2,
-            f.slam.initialized,
-            f.slam.init_failed,
-            f.coop.matching_ms,
-            f.coop.common_vio_ms,
-            f.coop.common_slam_ms,
-            f.coop.constraint_ms,
-            f.coop.common_vio.used,
-            f.coop.common_vio.rejected_chi2,
-            f.coop.common_slam.used,
-            f.coop.constraints.used,
-            f.coop.participants,
-            f.coop.historical_participants,
-            f.coop.ci_participants,
-            f.coop.omega_own,
-            f.coop.ci_update_ms,
-            t.cpu_ms,
-            f.coop.evidence_ms
-        )?;
+        writeln!(timing, "{}", timing_row(f))?;
     }
     timing.flush()
 }

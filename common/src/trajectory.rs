@@ -26,9 +26,9 @@ mod parse;
 mod tests;
 mod tum;
 
-pub use covariance::{read_covariances, write_covariances, COVARIANCE_HEADER};
+pub use covariance::{covariance_row, read_covariances, write_covariances, COVARIANCE_HEADER};
 pub use euroc::read_euroc_csv;
-pub use tum::{read_tum, write_tum, TUM_HEADER};
+pub use tum::{read_tum, tum_row, write_tum, TUM_HEADER};
 
 /// One pose of a trajectory at time `t` (seconds).
 #[derive(Clone, Copy, Debug, PartialEq)]

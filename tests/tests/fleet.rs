@@ -1,6 +1,7 @@
 //! Agents as real processes: `sim-fleet run` over Zenoh (loopback, peer mode)
-//! and iceoryx2, a killed and restarted agent, hostile payloads, and lockstep
-//! determinism across runs and transports.
+//! and iceoryx2, a killed and restarted agent, an agent killed hard keeping
+//! its poses, hostile payloads, and lockstep determinism across runs and
+//! transports.
 #![allow(clippy::unwrap_used)] // helpers outside #[test] functions
 
 use integration_tests::{bin, read_json, sim_fleet_run, write_loop_trajectory};
@@ -587,6 +588,55 @@ fn sigterm_stops_an_agent_with_its_outputs_written() {
             > 5
     );
     assert!(out.join("agent.mcap").is_file());
+}
+
+/// The data rows of a TUM file, each checked whole: eight numbers, times
+/// increasing, the file ending with a newline.
+fn tum_rows(path: &Path) -> Vec<Vec<f64>> {
+    let text = std::fs::read_to_string(path).unwrap();
+    assert!(text.ends_with('\n'), "{} ends mid-row", path.display());
+    let rows: Vec<Vec<f64>> = text
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split(' ').map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert!(rows.iter().all(|r: &Vec<f64>| r.len() == 8));
+    assert!(rows.windows(2).all(|w| w[0][0] < w[1][0]));
+    rows
+}
+
+#[test]
+fn sigkill_leaves_an_agent_s_poses_up_to_its_last_second() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path(), 30.0);
+    let cfg = lone_config(
+        dir.path(),
+        &sc,
+        "  source: simulator\n",
+        "  mode: realtime\n  realtime_rate: 1.0\n",
+    );
+    let mut agent = start_agent(&cfg, &dir.path().join("lone.log"));
+    let out = dir.path().join("lone-out");
+    // Wait for the first poses on disk, then two seconds more of flight.
+    let t = Instant::now();
+    while t.elapsed() < Duration::from_secs(30)
+        && std::fs::read_to_string(out.join("estimate.txt")).map_or(0, |s| s.lines().count()) < 2
+    {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_secs(2));
+    agent.kill().unwrap(); // SIGKILL: no handler runs, nothing is finished
+    agent.wait().unwrap();
+    assert!(!out.join("summary.json").exists());
+    // Two seconds at 10 Hz, less at most one second of flush period.
+    let est = tum_rows(&out.join("estimate.txt"));
+    let gt = tum_rows(&out.join("groundtruth.txt"));
+    assert!(est.len() >= 10, "{} poses", est.len());
+    assert!(gt.len() >= 10, "{} true poses", gt.len());
+    let timing = std::fs::read_to_string(out.join("timing.csv")).unwrap();
+    assert!(timing.ends_with('\n') && timing.lines().count() > 10);
+    let cov = std::fs::read_to_string(out.join("covariance.txt")).unwrap();
+    assert!(cov.ends_with('\n') && cov.lines().skip(1).all(|l| l.split(' ').count() == 13));
 }
 
 /// Robot 2's configuration of the run in `out`, made to run it alone again

@@ -29,7 +29,7 @@ pub struct FrameTiming {
 }
 
 /// The estimate after one frame.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct FrameOutput {
     /// IMU time of the estimate, s.
     pub t: f64,

@@ -41,17 +41,23 @@ pub fn write_covariances(
     path: impl AsRef<Path>,
     covs: &[StampedCovariance],
 ) -> Result<(), TrajectoryError> {
-    let rows = covs.iter().map(|c| {
-        let mut row = format!("{:.9}", c.t);
-        for block in [&c.ori, &c.pos] {
-            for (r, k) in UPPER {
-                row.push(' ');
-                row.push_str(&block[(r, k)].to_string());
-            }
+    write_lines(
+        path.as_ref(),
+        COVARIANCE_HEADER,
+        covs.iter().map(covariance_row),
+    )
+}
+
+/// One line of [`write_covariances`] (no newline), for writers that append.
+pub fn covariance_row(c: &StampedCovariance) -> String {
+    let mut row = format!("{:.9}", c.t);
+    for block in [&c.ori, &c.pos] {
+        for (r, k) in UPPER {
+            row.push(' ');
+            row.push_str(&block[(r, k)].to_string());
         }
-        row
-    });
-    write_lines(path.as_ref(), COVARIANCE_HEADER, rows)
+    }
+    row
 }
 
 /// The symmetric matrix of the six upper-triangle values starting at `first`.

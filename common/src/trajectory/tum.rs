@@ -33,12 +33,15 @@ pub fn read_tum(path: impl AsRef<Path>) -> Result<Vec<StampedPose>, TrajectoryEr
 /// [`TUM_HEADER`] comment, timestamps with 9 decimals, and the other values in
 /// the shortest form that reads back to the same `f64`. Quaternions have `qw >= 0`.
 pub fn write_tum(path: impl AsRef<Path>, poses: &[StampedPose]) -> Result<(), TrajectoryError> {
-    let rows = poses.iter().map(|p| {
-        let [qx, qy, qz, qw] = xyzw_from_rot(&p.rot);
-        format!(
-            "{:.9} {} {} {} {} {} {} {}",
-            p.t, p.pos.x, p.pos.y, p.pos.z, qx, qy, qz, qw
-        )
-    });
-    write_lines(path.as_ref(), TUM_HEADER, rows)
+    write_lines(path.as_ref(), TUM_HEADER, poses.iter().map(tum_row))
+}
+
+/// One line of [`write_tum`] (no newline): for writers that append a pose at
+/// a time, so that a file written as a run goes is the file written at its end.
+pub fn tum_row(p: &StampedPose) -> String {
+    let [qx, qy, qz, qw] = xyzw_from_rot(&p.rot);
+    format!(
+        "{:.9} {} {} {} {} {} {} {}",
+        p.t, p.pos.x, p.pos.y, p.pos.z, qx, qy, qz, qw
+    )
 }

@@ -1,0 +1,249 @@
+//! The run's text outputs (`estimate.txt`, `groundtruth.txt`, `covariance.txt`,
+//! `timing.csv`) written as the run goes, so that an agent killed hard (power
+//! cut, `SIGKILL`, out of memory) leaves every pose up to its last flush, in
+//! the files and formats of a finished run; `tail -f` and `evo` read them live.
+//!
+//! Rows are gathered in memory and written to the files whole, at most every
+//! `flush_period`: a file on disk always ends at the end of a row. At the end
+//! of the run the files are byte for byte what [`write_run_outputs`] writes.
+//! A failed write (disk full, folder gone) costs nothing: streaming stops
+//! with a warning and the end of the run writes every file again from memory.
+
+use crate::runner::{timing_row, write_run_outputs, RobotRun, TIMING_HEADER};
+use common::trajectory::{covariance_row, tum_row, COVARIANCE_HEADER, TUM_HEADER};
+use std::fs::File;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// The four files, in the order they are written at a flush.
+const FILES: [(&str, &str); 4] = [
+    ("groundtruth.txt", TUM_HEADER),
+    ("estimate.txt", TUM_HEADER),
+    ("covariance.txt", COVARIANCE_HEADER),
+    ("timing.csv", TIMING_HEADER),
+];
+
+/// One output file and the rows not yet written to it.
+struct Stream {
+    file: File,
+    pending: String,
+}
+
+/// The run's text outputs, appended as frames are recorded.
+pub struct RunFiles {
+    dir: PathBuf,
+    /// `None` once a write has failed: the end of the run writes everything.
+    streams: Option<Vec<Stream>>,
+    /// Rows of the run already in `pending` or on disk.
+    rows: usize,
+    flush_period: Duration,
+    last_flush: Instant,
+}
+
+impl RunFiles {
+    /// Creates the files in `dir` (and `dir`), each with its header line.
+    pub fn create(dir: &Path, flush_period: Duration) -> std::io::Result<Self> {
+        std::fs::create_dir_all(dir)?;
+        let mut streams = Vec::with_capacity(FILES.len());
+        for (name, header) in FILES {
+            let mut file = File::create(dir.join(name))?;
+            writeln!(file, "{header}")?;
+            streams.push(Stream {
+                file,
+                pending: String::new(),
+            });
+        }
+        Ok(RunFiles {
+            dir: dir.to_path_buf(),
+            streams: Some(streams),
+            rows: 0,
+            flush_period,
+            last_flush: Instant::now(),
+        })
+    }
+
+    /// Takes the rows `run` recorded since the last call, and writes them out
+    /// if the flush period has passed.
+    pub fn append(&mut self, run: &RobotRun) {
+        let Some(streams) = self.streams.as_mut() else {
+            return;
+        };
+        let n = recorded(run);
+        for i in self.rows..n {
+            let rows = [
+                tum_row(&run.truth[i]),
+                tum_row(&run.estimate[i]),
+                covariance_row(&run.covariance[i]),
+                timing_row(&run.frames[i]),
+            ];
+            for (s, row) in streams.iter_mut().zip(rows) {
+                s.pending.push_str(&row);
+                s.pending.push('\n');
+            }
+        }
+        self.rows = self.rows.max(n);
+        if self.last_flush.elapsed() >= self.flush_period {
+            self.flush();
+        }
+    }
+
+    /// Writes every pending row now.
+    pub fn flush(&mut self) {
+        self.last_flush = Instant::now();
+        let Some(streams) = self.streams.as_mut() else {
+            return;
+        };
+        for s in streams.iter_mut() {
+            if let Err(e) = s.file.write_all(s.pending.as_bytes()) {
+                tracing::warn!(
+                    "writing {} as the run goes failed ({e}): it is written at the end",
+                    self.dir.display()
+                );
+                self.streams = None;
+                return;
+            }
+            s.pending.clear();
+        }
+    }
+
+    /// The end of the run: the rows still pending, or, if a write failed on
+    /// the way, every file again from `run`.
+    pub fn finish(mut self, run: &RobotRun) -> std::io::Result<()> {
+        self.append(run);
+        self.flush();
+        match self.streams {
+            Some(streams) => streams.iter().try_for_each(|s| s.file.sync_data()),
+            None => write_run_outputs(run, &self.dir),
+        }
+    }
+}
+
+/// Rows complete in all four records of `run` (they grow together).
+fn recorded(run: &RobotRun) -> usize {
+    run.estimate
+        .len()
+        .min(run.truth.len())
+        .min(run.covariance.len())
+        .min(run.frames.len())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimator::FrameOutput;
+    use common::trajectory::{StampedCovariance, StampedPose};
+    use nalgebra::{Matrix3, Rotation3, Vector3};
+
+    fn run_of(frames: usize) -> RobotRun {
+        let mut run = RobotRun::default();
+        for k in 0..frames {
+            let t = 0.1 * k as f64 + 1.0 / 3.0;
+            let rot = Rotation3::from_euler_angles(0.1 * t, -0.2, 0.7 * t).into_inner();
+            let pos = Vector3::new(t.cos(), t.sin() / 3.0, 0.1 * t);
+            run.estimate.push(StampedPose { t, rot, pos });
+            run.truth.push(StampedPose {
+                t,
+                rot,
+                pos: pos * 1.01,
+            });
+            run.covariance.push(StampedCovariance {
+                t,
+                ori: Matrix3::identity() * 1e-5 * t,
+                pos: Matrix3::from_fn(|r, c| if r == c { 1e-3 } else { 1e-4 / 7.0 }),
+            });
+            let mut f = FrameOutput {
+                t,
+                ..FrameOutput::default()
+            };
+            f.timing.total_ms = 1.0 + t;
+            run.frames.push(f);
+        }
+        run
+    }
+
+    fn read_all(dir: &Path) -> Vec<Vec<u8>> {
+        FILES
+            .iter()
+            .map(|(name, _)| std::fs::read(dir.join(name)).unwrap())
+            .collect()
+    }
+
+    /// Appended frame by frame, flushed at odd times, the files end as those
+    /// written at once at the end.
+    #[test]
+    fn files_streamed_frame_by_frame_are_those_written_at_the_end() {
+        let whole = run_of(57);
+        let at_end = tempfile::tempdir().unwrap();
+        write_run_outputs(&whole, at_end.path()).unwrap();
+        let streamed = tempfile::tempdir().unwrap();
+        let mut files = RunFiles::create(streamed.path(), Duration::from_secs(3600)).unwrap();
+        let mut run = RobotRun::default();
+        for k in 0..whole.estimate.len() {
+            run.estimate.push(whole.estimate[k]);
+            run.truth.push(whole.truth[k]);
+            run.covariance.push(whole.covariance[k]);
+            run.frames.push(whole.frames[k].clone());
+            files.append(&run);
+            if k % 13 == 5 {
+                files.flush();
+            }
+        }
+        files.finish(&run).unwrap();
+        assert_eq!(read_all(streamed.path()), read_all(at_end.path()));
+    }
+
+    /// What a hard kill leaves: every row flushed, each file ending with a
+    /// whole row, readable as a trajectory.
+    #[test]
+    fn a_run_cut_short_leaves_every_flushed_row_readable() {
+        let run = run_of(20);
+        let dir = tempfile::tempdir().unwrap();
+        let mut files = RunFiles::create(dir.path(), Duration::ZERO).unwrap();
+        let mut partial = RobotRun::default();
+        for k in 0..12 {
+            partial.estimate.push(run.estimate[k]);
+            partial.truth.push(run.truth[k]);
+            partial.covariance.push(run.covariance[k]);
+            partial.frames.push(run.frames[k].clone());
+            files.append(&partial);
+        }
+        // Dropped without `finish`, as a killed process would leave it.
+        drop(files);
+        let est = common::trajectory::read_tum(dir.path().join("estimate.txt")).unwrap();
+        assert_eq!(est.len(), 12);
+        for (read, made) in est.iter().zip(&run.estimate) {
+            // Times have 9 decimals in the file; positions read back exactly.
+            assert!((read.t - made.t).abs() < 1e-9);
+            assert_eq!(read.pos, made.pos);
+        }
+        let covs = common::trajectory::read_covariances(dir.path().join("covariance.txt")).unwrap();
+        assert_eq!(covs.len(), 12);
+        let timing = std::fs::read_to_string(dir.path().join("timing.csv")).unwrap();
+        assert_eq!(timing.lines().count(), 13);
+        assert!(timing.ends_with('\n'));
+    }
+
+    /// A folder that vanishes mid-run: streaming stops, and the end of the run
+    /// writes every file from memory, nothing lost.
+    #[test]
+    fn a_failed_write_is_made_good_at_the_end() {
+        let run = run_of(30);
+        let root = tempfile::tempdir().unwrap();
+        let dir = root.path().join("robot0");
+        let mut files = RunFiles::create(&dir, Duration::ZERO).unwrap();
+        files.append(&run);
+        // The folder goes, and the next write fails: the first file is
+        // swapped for a handle on a directory, which takes no writes.
+        std::fs::remove_dir_all(&dir).unwrap();
+        let first = &mut files.streams.as_mut().unwrap()[0];
+        first.file = File::open(root.path()).unwrap();
+        first.pending.push_str("x\n");
+        files.flush();
+        assert!(files.streams.is_none());
+        files.finish(&run).unwrap();
+        let at_end = tempfile::tempdir().unwrap();
+        write_run_outputs(&run, at_end.path()).unwrap();
+        assert_eq!(read_all(&dir), read_all(at_end.path()));
+    }
+}
