@@ -23,7 +23,7 @@ pub struct PeerEvent {
 }
 
 /// Presence of one peer.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct PeerPresence {
     /// Currently alive.
     pub alive: bool,
@@ -35,7 +35,18 @@ pub struct PeerPresence {
     pub finished: bool,
     /// It announced it is done catching up at the end (since it last appeared).
     pub settled: bool,
+    /// When it last vanished, s since the agent started (wall clock).
+    #[serde(skip)]
+    pub vanished_wall_s: Option<f64>,
 }
+
+/// After a peer vanished, its messages bring it back only once this much wall
+/// time has passed, s: those still under way when it went (a flooding peer
+/// leaves thousands queued) are not news of it. Without this, a peer that
+/// vanished and never finishes came back at once and kept the others
+/// lingering for `clock.linger_timeout_s`. A peer that really comes back says
+/// so by its presence at once, or by its messages after this.
+pub const STALE_AFTER_VANISH_S: f64 = 2.0;
 
 /// The presence of every peer and the event log.
 #[derive(Debug, Default)]
@@ -79,6 +90,7 @@ impl PeerEvents {
                     return None;
                 }
                 st.alive = false;
+                st.vanished_wall_s = Some(wall_s);
                 // A peer that said it was done and then ends is not lost. Whether
                 // it ends before we do is thread timing, so counting it made the
                 // loss count vary between identical lockstep runs.
@@ -94,10 +106,16 @@ impl PeerEvents {
     }
 
     /// A message from `peer`: a peer heard from is alive even if its presence
-    /// report has not come yet.
+    /// report has not come yet, unless it vanished less than
+    /// [`STALE_AFTER_VANISH_S`] ago.
     pub fn heard(&mut self, peer: u32, wall_s: f64, fleet_t_s: Option<f64>) -> Option<PeerEvent> {
-        if self.peers.get(&peer).is_some_and(|p| p.alive) {
-            return None;
+        if let Some(p) = self.peers.get(&peer) {
+            let stale = p
+                .vanished_wall_s
+                .is_some_and(|v| wall_s - v < STALE_AFTER_VANISH_S);
+            if p.alive || stale {
+                return None;
+            }
         }
         self.presence(PresenceEvent::Appeared(peer), wall_s, fleet_t_s)
     }
@@ -162,7 +180,7 @@ mod tests {
             "vanished"
         );
         assert!(p.alive().is_empty());
-        assert_eq!(p.heard(2, 2.0, Some(6.0)).unwrap().event, "reappeared");
+        assert_eq!(p.heard(2, 3.5, Some(6.0)).unwrap().event, "reappeared");
         assert_eq!(p.peers[&2].appearances, 2);
         assert_eq!(p.peers[&2].losses, 1);
         let mut out = Vec::new();
@@ -181,12 +199,30 @@ mod tests {
         assert_eq!(e.event, "left");
         assert_eq!(p.peers[&1].losses, 0);
         // Back with new data, then gone without a word: that is a loss.
-        assert_eq!(p.heard(1, 2.0, Some(81.0)).unwrap().event, "reappeared");
+        assert_eq!(p.heard(1, 3.5, Some(81.0)).unwrap().event, "reappeared");
         assert!(!p.peers[&1].finished);
         let e = p
-            .presence(PresenceEvent::Vanished(1), 3.0, Some(82.0))
+            .presence(PresenceEvent::Vanished(1), 4.0, Some(82.0))
             .unwrap();
         assert_eq!(e.event, "vanished");
         assert_eq!(p.peers[&1].losses, 1);
+    }
+
+    /// Messages still queued when a peer vanished do not bring it back; its
+    /// presence does at once, and its messages do after the grace.
+    #[test]
+    fn messages_under_way_when_a_peer_vanished_do_not_bring_it_back() {
+        let mut p = PeerEvents::default();
+        p.presence(PresenceEvent::Appeared(999), 0.0, None);
+        p.presence(PresenceEvent::Vanished(999), 10.0, Some(10.0));
+        assert!(p.heard(999, 10.0003, Some(10.0)).is_none());
+        assert!(p.heard(999, 11.9, Some(11.9)).is_none());
+        assert!(p.alive().is_empty());
+        assert_eq!(p.heard(999, 12.1, Some(12.1)).unwrap().event, "reappeared");
+        // Gone again, and back by its presence at once.
+        p.presence(PresenceEvent::Vanished(999), 13.0, Some(13.0));
+        let back = p.presence(PresenceEvent::Appeared(999), 13.1, Some(13.1));
+        assert_eq!(back.unwrap().event, "reappeared");
+        assert_eq!(p.peers[&999].losses, 2);
     }
 }

@@ -510,6 +510,11 @@ fn agents_flooded_in_real_time_keep_up_with_the_clock() {
         );
         let lag = st["max_lag_s"].as_f64().unwrap();
         assert!(lag < 2.0, "robot {i} fell {lag} s behind: {said}");
+        // The probe's messages still queued when it vanished do not bring it
+        // back (before: 1 run in 3, and its agents lingered 60 s for it).
+        let events = std::fs::read_to_string(out.join(format!("robot{i}/peer_events.jsonl")));
+        let events = events.unwrap();
+        assert!(!events.contains("reappeared"), "robot {i}: {events}");
         let s = read_json(&out.join(format!("robot{i}")).join("summary.json"));
         let r = &s["robots"][0];
         assert!(r["frames"].as_u64().unwrap() > 100, "{r}");
@@ -605,8 +610,13 @@ fn tum_rows(path: &Path) -> Vec<Vec<f64>> {
     rows
 }
 
+/// Data rows in a text file now (0 while it does not exist).
+fn rows_now(path: &Path) -> usize {
+    std::fs::read_to_string(path).map_or(0, |s| s.lines().filter(|l| !l.starts_with('#')).count())
+}
+
 #[test]
-fn sigkill_leaves_an_agent_s_poses_up_to_its_last_second() {
+fn an_agent_killed_hard_leaves_its_poses_on_disk() {
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path(), 30.0);
     let cfg = lone_config(
@@ -617,26 +627,25 @@ fn sigkill_leaves_an_agent_s_poses_up_to_its_last_second() {
     );
     let mut agent = start_agent(&cfg, &dir.path().join("lone.log"));
     let out = dir.path().join("lone-out");
-    // Wait for the first poses on disk, then two seconds more of flight.
+    // The poses reach the disk while the agent runs (a second's rows at a time).
     let t = Instant::now();
-    while t.elapsed() < Duration::from_secs(30)
-        && std::fs::read_to_string(out.join("estimate.txt")).map_or(0, |s| s.lines().count()) < 2
-    {
-        std::thread::sleep(Duration::from_millis(50));
+    while t.elapsed() < Duration::from_secs(60) && rows_now(&out.join("estimate.txt")) < 30 {
+        std::thread::sleep(Duration::from_millis(20));
     }
-    std::thread::sleep(Duration::from_secs(2));
     agent.kill().unwrap(); // SIGKILL: no handler runs, nothing is finished
     agent.wait().unwrap();
     assert!(!out.join("summary.json").exists());
-    // Two seconds at 10 Hz, less at most one second of flush period.
+    // Every file ends with a whole row; the one being flushed at the kill may
+    // lag the estimate by that flush.
     let est = tum_rows(&out.join("estimate.txt"));
     let gt = tum_rows(&out.join("groundtruth.txt"));
-    assert!(est.len() >= 10, "{} poses", est.len());
-    assert!(gt.len() >= 10, "{} true poses", gt.len());
+    assert!(est.len() >= 30, "{} poses", est.len());
+    assert!(gt.len() >= est.len(), "{} true poses", gt.len());
     let timing = std::fs::read_to_string(out.join("timing.csv")).unwrap();
-    assert!(timing.ends_with('\n') && timing.lines().count() > 10);
+    assert!(timing.ends_with('\n') && timing.lines().count() > 20);
     let cov = std::fs::read_to_string(out.join("covariance.txt")).unwrap();
-    assert!(cov.ends_with('\n') && cov.lines().skip(1).all(|l| l.split(' ').count() == 13));
+    assert!(cov.ends_with('\n') && cov.lines().count() > 20);
+    assert!(cov.lines().skip(1).all(|l| l.split(' ').count() == 13));
 }
 
 /// Robot 2's configuration of the run in `out`, made to run it alone again
