@@ -218,7 +218,7 @@ impl Cooperation {
     pub(super) fn fresh_in_keyframe(&self, link: &Link, kf: &KeyframeWindow) -> usize {
         let fresh = self.is_fresh(link);
         kf.measurements_of(link.peer_track)
-            .filter(|(f, _)| fresh(f.t_s))
+            .filter(|(t_s, _)| fresh(*t_s))
             .count()
     }
 
@@ -304,10 +304,9 @@ fn measurements(h: &PeerHistory, link: &Link, w: &PeerWindow) -> Vec<(usize, f64
             let Some(kf) = h.keyframes.get(&k) else {
                 return out;
             };
-            for (f, o) in kf.measurements_of(link.peer_track) {
-                if let Some(pose) = w.pose_at(f.t_s) {
-                    let xy = Vector2::new(f64::from(o.xy_norm[0]), f64::from(o.xy_norm[1]));
-                    out.push((pose, f.t_s, xy));
+            for (t_s, xy) in kf.measurements_of(link.peer_track) {
+                if let Some(pose) = w.pose_at(t_s) {
+                    out.push((pose, t_s, Vector2::new(f64::from(xy[0]), f64::from(xy[1]))));
                 }
             }
         }

@@ -288,22 +288,15 @@ pub struct LoopParams {
 
 /// The keyframe frame's normalized coordinates by the peer's track id.
 fn keyframe_points(kf: &KeyframeWindow) -> HashMap<u64, Vector2<f64>> {
-    let t = kf.snapshot.t_s;
-    kf.frames()
-        .iter()
-        .find(|f| (f.t_s - t).abs() < 1e-6)
-        .map(|f| {
-            f.observations
-                .iter()
-                .map(|o| {
-                    (
-                        o.id,
-                        Vector2::new(f64::from(o.xy_norm[0]), f64::from(o.xy_norm[1])),
-                    )
-                })
-                .collect()
+    kf.observations_at(kf.snapshot.t_s)
+        .into_iter()
+        .map(|o| {
+            (
+                o.id,
+                Vector2::new(f64::from(o.xy_norm[0]), f64::from(o.xy_norm[1])),
+            )
         })
-        .unwrap_or_default()
+        .collect()
 }
 
 /// Queries `db` with our frame and verifies the candidates against `history`:
