@@ -137,6 +137,11 @@ impl KeyframeWindow {
             .collect()
     }
 
+    /// The camera times of the frames of measurements held, oldest first.
+    pub fn frames_times(&self) -> impl Iterator<Item = f64> + '_ {
+        self.frame_times.iter().copied()
+    }
+
     /// The measurements of frame `k`, by track id.
     fn observations_in(&self, k: usize) -> impl Iterator<Item = HistoricalObservation> + '_ {
         let bit = 1u64 << k;

@@ -95,9 +95,13 @@ impl Cooperation {
                         continue;
                     }
                 }
-                for (pose, t_s, xy) in measurements(h, link, &ev.participants[p]) {
+                let measured = measurements(h, link, &ev.participants[p]);
+                let span = key_span(measured.iter().map(|m| m.1));
+                let mut cursor = used.zip(span).map(|(u, (lo, hi))| u.cursor(lo, hi));
+                for (pose, t_s, xy) in measured {
                     let key = (time_key(t_s), link.peer_track);
-                    if is_used(&key) || !taken.insert((link.peer, key.0, key.1)) {
+                    let used = cursor.as_mut().is_some_and(|c| c.contains(key.0, key.1));
+                    if used || !taken.insert((link.peer, key.0, key.1)) {
                         continue;
                     }
                     consumed.keys.push((link.peer, key.0, key.1));
@@ -206,27 +210,38 @@ impl Cooperation {
     /// Measurements of the linked peer track not used yet, in the peer's
     /// recent frames.
     fn fresh_in_window(&self, link: &Link, h: &PeerHistory) -> usize {
-        let fresh = self.is_fresh(link);
+        let times = h.recent().iter().map(|f| f.t_s);
+        let mut fresh = self.is_fresh(link, times);
         h.recent()
             .iter()
-            .filter(|f| fresh(f.t_s) && f.features.iter().any(|p| p.id == link.peer_track))
+            .filter(|f| f.features.iter().any(|p| p.id == link.peer_track) && fresh(f.t_s))
             .count()
     }
 
     /// Measurements of the linked peer track not used yet, in keyframe window
     /// `kf`.
     pub(super) fn fresh_in_keyframe(&self, link: &Link, kf: &KeyframeWindow) -> usize {
-        let fresh = self.is_fresh(link);
+        let mut fresh = self.is_fresh(link, kf.frames_times());
         kf.measurements_of(link.peer_track)
             .filter(|(t_s, _)| fresh(*t_s))
             .count()
     }
 
-    /// Whether the linked peer track's measurement at a time (s) is unused
-    /// (the peer's used marks looked up once).
-    fn is_fresh<'a>(&'a self, link: &'a Link) -> impl Fn(f64) -> bool + 'a {
-        let used = self.peers.get(&link.peer).map(|s| &s.used);
-        move |t_s| !used.is_some_and(|u| u.contains(time_key(t_s), link.peer_track))
+    /// Whether the linked peer track's measurement at a time (s), one of
+    /// `times`, is unused. Looked up in time order, the peer's used marks for
+    /// the span of `times` are walked once, not searched per measurement.
+    fn is_fresh<'a>(
+        &'a self,
+        link: &'a Link,
+        times: impl Iterator<Item = f64>,
+    ) -> impl FnMut(f64) -> bool + 'a {
+        let (lo, hi) = key_span(times).unwrap_or((1, 0));
+        let mut cursor = self.peers.get(&link.peer).map(|s| s.used.cursor(lo, hi));
+        move |t_s| {
+            !cursor
+                .as_mut()
+                .is_some_and(|c| c.contains(time_key(t_s), link.peer_track))
+        }
     }
 
     /// Whether a link may be used for this class under the options.
@@ -241,6 +256,14 @@ impl Cooperation {
             LinkSource::Keyframe(_) => self.opts.historical,
         }
     }
+}
+
+/// The first and last time keys of `times` (`None` without any).
+fn key_span(times: impl Iterator<Item = f64>) -> Option<(u64, u64)> {
+    times.map(time_key).fold(None, |span, k| match span {
+        None => Some((k, k)),
+        Some((lo, hi)) => Some((lo.min(k), hi.max(k))),
+    })
 }
 
 /// The peer windows behind the most of our tracks' links, at most `cap`

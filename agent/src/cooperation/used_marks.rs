@@ -51,6 +51,31 @@ impl UsedMarks {
             .is_some_and(|tracks| tracks.binary_search(&track).is_ok())
     }
 
+    /// Lookups at times within `lo..=hi` (time keys), made in increasing time
+    /// order: one descent into the marks for the range, then a step forward
+    /// per lookup (a window's measurements of a track come in time order).
+    /// An empty range (`lo > hi`) answers every lookup by [`Self::contains`].
+    pub(super) fn cursor(&self, lo: u64, hi: u64) -> MarksCursor<'_> {
+        let range = if lo <= hi {
+            self.by_time.range(lo..=hi)
+        } else {
+            self.by_time.range(lo..lo)
+        };
+        let forgotten = self
+            .forgotten
+            .range(..=hi)
+            .next_back()
+            .is_some_and(|(_, end)| *end >= lo);
+        MarksCursor {
+            marks: self,
+            range: range.peekable(),
+            lo,
+            hi,
+            last: None,
+            forgotten,
+        }
+    }
+
     /// Marks the measurement of `track` at time key `time` used.
     pub(super) fn insert(&mut self, time: u64, track: u64) {
         let tracks = self.by_time.entry(time).or_default();
@@ -134,6 +159,34 @@ impl UsedMarks {
         while self.forgotten.len() > MAX_FORGOTTEN_RANGES {
             self.forgotten.pop_first();
         }
+    }
+}
+
+/// [`UsedMarks::contains`] for lookups in time order within a range
+/// ([`UsedMarks::cursor`]); any other lookup is answered by `contains`.
+pub(super) struct MarksCursor<'a> {
+    marks: &'a UsedMarks,
+    range: std::iter::Peekable<std::collections::btree_map::Range<'a, u64, Vec<u64>>>,
+    lo: u64,
+    hi: u64,
+    /// The time of the last lookup.
+    last: Option<u64>,
+    /// A forgotten range overlaps the cursor's: every lookup goes to `contains`.
+    forgotten: bool,
+}
+
+impl MarksCursor<'_> {
+    /// Whether the measurement of `track` at time key `time` was used.
+    pub(super) fn contains(&mut self, time: u64, track: u64) -> bool {
+        let in_order = time >= self.lo && time <= self.hi && self.last.is_none_or(|l| time >= l);
+        if !in_order || self.forgotten {
+            return self.marks.contains(time, track);
+        }
+        self.last = Some(time);
+        while self.range.next_if(|(t, _)| **t < time).is_some() {}
+        self.range
+            .peek()
+            .is_some_and(|(t, tracks)| **t == time && tracks.binary_search(&track).is_ok())
     }
 }
 
@@ -246,5 +299,33 @@ mod tests {
         assert_eq!(m.forgotten.get(&10), Some(&40));
         m.forget_range(5, 12);
         assert_eq!(m.forgotten.into_iter().collect::<Vec<_>>(), vec![(5, 40)]);
+    }
+
+    /// The cursor answers as `contains` does, lookups in order or not, with
+    /// forgotten ranges inside its range or not.
+    #[test]
+    fn a_cursor_answers_as_single_lookups_do() {
+        let mut m = UsedMarks::default();
+        for t in (0..200u64).step_by(3) {
+            for track in [t % 7, t % 11 + 20] {
+                m.insert(t, track);
+            }
+        }
+        let check = |m: &UsedMarks, lo: u64, hi: u64, times: &[u64]| {
+            for track in 0..32 {
+                let mut c = m.cursor(lo, hi);
+                for &t in times {
+                    assert_eq!(c.contains(t, track), m.contains(t, track), "{t} {track}");
+                }
+            }
+        };
+        let in_order: Vec<u64> = (40..80).collect();
+        check(&m, 40, 79, &in_order);
+        // Out of order, outside the range, repeated.
+        check(&m, 40, 79, &[50, 45, 45, 90, 10, 60, 79, 80, 39]);
+        m.forget_range(60, 65);
+        check(&m, 40, 79, &in_order);
+        check(&m, 70, 99, &(70..100).collect::<Vec<_>>());
+        check(&m, 1, 0, &[0, 3, 61]);
     }
 }
