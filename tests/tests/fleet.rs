@@ -563,17 +563,23 @@ fn an_agent_replays_an_mcap_recording() {
     assert!(r["ate_pos_m"].as_f64().unwrap() < 0.5, "{r}");
 }
 
-#[test]
-fn sigterm_stops_an_agent_with_its_outputs_written() {
-    let dir = tempfile::tempdir().unwrap();
-    let sc = scenario(dir.path(), 30.0);
+/// A lone agent on a 30 s flight at 1x real time, its outputs in
+/// `dir/lone-out`.
+fn lone_agent_in_real_time(dir: &Path) -> Child {
+    let sc = scenario(dir, 30.0);
     let cfg = lone_config(
-        dir.path(),
+        dir,
         &sc,
         "  source: simulator\n",
         "  mode: realtime\n  realtime_rate: 1.0\n",
     );
-    let mut agent = start_agent(&cfg, &dir.path().join("lone.log"));
+    start_agent(&cfg, &dir.join("lone.log"))
+}
+
+#[test]
+fn sigterm_stops_an_agent_with_its_outputs_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut agent = lone_agent_in_real_time(dir.path());
     std::thread::sleep(Duration::from_secs(4));
     let status = Command::new("kill")
         .args(["-TERM", &agent.id().to_string()])
@@ -618,14 +624,7 @@ fn rows_now(path: &Path) -> usize {
 #[test]
 fn an_agent_killed_hard_leaves_its_poses_on_disk() {
     let dir = tempfile::tempdir().unwrap();
-    let sc = scenario(dir.path(), 30.0);
-    let cfg = lone_config(
-        dir.path(),
-        &sc,
-        "  source: simulator\n",
-        "  mode: realtime\n  realtime_rate: 1.0\n",
-    );
-    let mut agent = start_agent(&cfg, &dir.path().join("lone.log"));
+    let mut agent = lone_agent_in_real_time(dir.path());
     let out = dir.path().join("lone-out");
     // The poses reach the disk while the agent runs (a second's rows at a time).
     let t = Instant::now();
