@@ -982,6 +982,15 @@ pub fn run_node(
         };
         est.set_vocabulary(voc);
     }
+    // A run of this robot that never finished (it lost power) is kept aside.
+    match crate::run_files::set_aside_unfinished(&cfg.output_dir) {
+        Ok(Some(aside)) => tracing::warn!(
+            "an earlier run here did not finish: its files are kept in {}",
+            aside.display()
+        ),
+        Ok(None) => {}
+        Err(e) => tracing::warn!("readying {}: {e}", cfg.output_dir.display()),
+    }
     let log = if cfg.mcap_log {
         std::fs::create_dir_all(&cfg.output_dir).ok();
         match crate::agent_log::AgentLog::create(&cfg.output_dir.join("agent.mcap")) {

@@ -119,6 +119,58 @@ impl RunFiles {
     }
 }
 
+/// What a run writes as it goes (the MCAP log too): all an unfinished run
+/// leaves.
+const STREAMED: [&str; 5] = [
+    "estimate.txt",
+    "groundtruth.txt",
+    "covariance.txt",
+    "timing.csv",
+    "agent.mcap",
+];
+
+/// What a run writes at its end; `summary.json` says it finished.
+const AT_END: [&str; 3] = ["summary.json", "transport_stats.json", "peer_events.jsonl"];
+
+/// Readies `dir` for a new run. An earlier run that never finished (its
+/// files written as it went, no `summary.json`: a robot that lost power) is
+/// moved whole into `dir/unfinished-<k>/` (the first free `k`), so that the
+/// robot restarted keeps the trajectory of before. A finished one is
+/// overwritten as always; its end-of-run files go now, so that a run killed
+/// in turn does not leave them beside its own. Returns where an unfinished
+/// run went.
+pub fn set_aside_unfinished(dir: &Path) -> std::io::Result<Option<PathBuf>> {
+    let finished = dir.join("summary.json").exists();
+    let left: Vec<&str> = STREAMED
+        .into_iter()
+        .filter(|name| dir.join(name).exists())
+        .collect();
+    if finished || left.is_empty() {
+        for name in AT_END {
+            match std::fs::remove_file(dir.join(name)) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(e),
+                _ => {}
+            }
+        }
+        return Ok(None);
+    }
+    let Some(aside) = (1..10_000)
+        .map(|k| dir.join(format!("unfinished-{k}")))
+        .find(|p| !p.exists())
+    else {
+        return Err(std::io::Error::other(
+            "10 000 unfinished runs set aside already",
+        ));
+    };
+    std::fs::create_dir_all(&aside)?;
+    for name in left.into_iter().chain(AT_END) {
+        if dir.join(name).exists() {
+            std::fs::rename(dir.join(name), aside.join(name))?;
+        }
+    }
+    Ok(Some(aside))
+}
+
 /// Rows complete in all four records of `run` (they grow together).
 fn recorded(run: &RobotRun) -> usize {
     run.estimate
@@ -245,5 +297,44 @@ mod tests {
         let at_end = tempfile::tempdir().unwrap();
         write_run_outputs(&run, at_end.path()).unwrap();
         assert_eq!(read_all(&dir), read_all(at_end.path()));
+    }
+
+    /// A run that never finished is set aside whole before the next one; a
+    /// finished one is overwritten, its end-of-run files removed first.
+    #[test]
+    fn an_unfinished_run_is_set_aside_and_a_finished_one_overwritten() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        assert_eq!(set_aside_unfinished(d).unwrap(), None);
+        // Killed hard: the streamed files, no summary.
+        let mut files = RunFiles::create(d, Duration::ZERO).unwrap();
+        files.append(&run_of(7));
+        drop(files);
+        std::fs::write(d.join("agent.mcap"), b"partial").unwrap();
+        std::fs::write(d.join("config.yaml"), b"robot_id: 0").unwrap();
+        let aside = set_aside_unfinished(d).unwrap().unwrap();
+        assert_eq!(aside, d.join("unfinished-1"));
+        assert_eq!(
+            common::trajectory::read_tum(aside.join("estimate.txt"))
+                .unwrap()
+                .len(),
+            7
+        );
+        assert!(aside.join("agent.mcap").is_file() && !d.join("estimate.txt").exists());
+        assert!(d.join("config.yaml").is_file(), "the configuration stays");
+        // Killed again: the next goes beside it.
+        RunFiles::create(d, Duration::ZERO).unwrap();
+        assert_eq!(
+            set_aside_unfinished(d).unwrap(),
+            Some(d.join("unfinished-2"))
+        );
+        // A finished run stays where it is, its end-of-run files gone.
+        write_run_outputs(&run_of(3), d).unwrap();
+        std::fs::write(d.join("summary.json"), b"{}").unwrap();
+        std::fs::write(d.join("peer_events.jsonl"), b"").unwrap();
+        assert_eq!(set_aside_unfinished(d).unwrap(), None);
+        assert!(!d.join("summary.json").exists() && !d.join("peer_events.jsonl").exists());
+        assert!(d.join("estimate.txt").is_file());
+        assert!(!d.join("unfinished-3").exists());
     }
 }

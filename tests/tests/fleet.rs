@@ -295,6 +295,12 @@ fn a_killed_agent_is_seen_leaving_and_coming_back_and_the_others_finish() {
     }
     let c = &again["catch_up"];
     assert!(c["windows_stored"].as_u64().unwrap_or(0) > 5, "{c}");
+    // What the killed process had written was set aside, not overwritten.
+    let aside = out.join("robot2/unfinished-1");
+    for f in ["estimate.txt", "timing.csv", "agent.mcap"] {
+        assert!(aside.join(f).is_file(), "{f} of the killed run");
+    }
+    assert!(out.join("robot2/summary.json").is_file());
 }
 
 #[test]
