@@ -21,7 +21,7 @@ fn main() -> anyhow::Result<()> {
     let scenario = Scenario::load(&path)?;
     let fleet = Fleet::build(&scenario, scenario.seed)?;
     let variants = [Variant::IndpSlam, Variant::Indp];
-    let mut frames: Vec<Vec<agent::estimator::FrameOutput>> = vec![Vec::new(); variants.len()];
+    let mut frames: Vec<Vec<agent::estimator::FrameRecord>> = vec![Vec::new(); variants.len()];
     for _ in 0..rounds {
         for (i, v) in variants.iter().enumerate() {
             let run = run_robot(&fleet, 0, options_for(&scenario.estimator, &fleet, *v))?;

@@ -183,7 +183,7 @@ fn recorded(run: &RobotRun) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::estimator::FrameOutput;
+    use crate::estimator::FrameRecord;
     use common::trajectory::{StampedCovariance, StampedPose};
     use nalgebra::{Matrix3, Rotation3, Vector3};
 
@@ -204,9 +204,9 @@ mod tests {
                 ori: Matrix3::identity() * 1e-5 * t,
                 pos: Matrix3::from_fn(|r, c| if r == c { 1e-3 } else { 1e-4 / 7.0 }),
             });
-            let mut f = FrameOutput {
+            let mut f = FrameRecord {
                 t,
-                ..FrameOutput::default()
+                ..FrameRecord::default()
             };
             f.timing.total_ms = 1.0 + t;
             run.frames.push(f);

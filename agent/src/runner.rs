@@ -2,7 +2,7 @@
 //! peers): the agent reads its own robot's sensors from the simulator, as a real
 //! robot reads its own, and the result is scored against the simulator's truth.
 
-use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, InitialState};
+use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, FrameRecord, InitialState};
 use common::measurement::FeatureFrame;
 use common::metrics::{ate, nees, rpe, Alignment, PosePair, DEFAULT_RPE_SEGMENTS_M};
 use common::summary::MetricSet;
@@ -144,8 +144,8 @@ pub struct RobotRun {
     pub covariance: Vec<StampedCovariance>,
     /// The truth at the estimate times.
     pub truth: Vec<StampedPose>,
-    /// Per-frame outputs (timing, feature counts).
-    pub frames: Vec<FrameOutput>,
+    /// Per-frame records (timing, feature counts).
+    pub frames: Vec<FrameRecord>,
     /// Inputs and frames the estimator rejected, with the reason.
     pub rejected: Vec<String>,
     /// Cooperation counters at the end (cooperative variants only).
@@ -297,7 +297,7 @@ pub fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: Frame
         ori: o.cov_ori,
         pos: o.cov_pos,
     });
-    run.frames.push(o);
+    run.frames.push(FrameRecord::from(&o));
 }
 
 impl RobotRun {
@@ -341,7 +341,7 @@ impl RobotRun {
 pub const TIMING_HEADER: &str = "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed,matching_ms,common_vio_ms,common_slam_ms,constraint_ms,common_vio_used,common_vio_rejected,common_slam_used,constraints_used,participants,historical_participants,ci_participants,omega_own,ci_update_ms,cpu_ms,evidence_ms";
 
 /// One row of `timing.csv` (no newline): a frame's costs and counts.
-pub fn timing_row(f: &FrameOutput) -> String {
+pub fn timing_row(f: &FrameRecord) -> String {
     let t = &f.timing;
     format!(
         "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{:.6},{:.4},{:.4},{:.4}",

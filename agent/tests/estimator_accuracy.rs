@@ -236,7 +236,7 @@ fn no_feature_update_before_the_oldest_clone_leaves_and_no_track_is_lost_meanwhi
         sc.estimator.max_clones + 1
     );
     let r = run(&sc, 1, Variant::Indp);
-    let updated = |f: &agent::estimator::FrameOutput| f.msckf.used + f.msckf.rejected_chi2;
+    let updated = |f: &agent::estimator::FrameRecord| f.msckf.used + f.msckf.rejected_chi2;
     // Frames 1-11 fill the window: nothing is updated, nothing is thrown away.
     let full = sc.estimator.max_clones;
     assert!(

@@ -17,7 +17,7 @@
 //! [--robots 2,4,8,16]` (defaults: `sim-fleet/scenarios/euroc_vicon_room1.yaml`,
 //! 2 seeds). Agents run as threads over the in-process transport in lockstep;
 //! thread CPU time keeps their costs apart on a busy machine.
-use agent::estimator::FrameOutput;
+use agent::estimator::FrameRecord;
 use agent::runner::Variant;
 use anyhow::{bail, Context, Result};
 use common::estimator_options::CommonProjection;
@@ -59,7 +59,7 @@ fn args(scenario: &Path, seed: u64, variant: Variant, out: &Path) -> RunArgs {
 }
 
 /// Every robot's frame outputs of one in-process lockstep fleet run.
-fn fleet_frames(scenario: &Path, n: usize, seed: u64, s: Setup) -> Result<Vec<FrameOutput>> {
+fn fleet_frames(scenario: &Path, n: usize, seed: u64, s: Setup) -> Result<Vec<FrameRecord>> {
     let out = std::env::temp_dir().join(format!("coop-bench-{}", std::process::id()));
     let mut configs = agent_configs(&args(scenario, seed, s.variant, &out), scenario, n, &out)?;
     for c in &mut configs {
@@ -91,7 +91,7 @@ fn fmt((m, s, n): (f64, f64, usize)) -> String {
 }
 
 /// Cost of the cooperative update on the frames `keep` selects.
-fn coop_cost(frames: &[FrameOutput], keep: impl Fn(&FrameOutput) -> bool) -> (f64, f64, usize) {
+fn coop_cost(frames: &[FrameRecord], keep: impl Fn(&FrameRecord) -> bool) -> (f64, f64, usize) {
     let v: Vec<f64> = frames
         .iter()
         .filter(|f| keep(f))
@@ -103,15 +103,15 @@ fn coop_cost(frames: &[FrameOutput], keep: impl Fn(&FrameOutput) -> bool) -> (f6
     mean_std(&v)
 }
 
-fn vio_only(f: &FrameOutput) -> bool {
+fn vio_only(f: &FrameRecord) -> bool {
     f.coop.common_vio.used > 0 && f.coop.common_slam.used == 0 && f.coop.constraints.used == 0
 }
 
-fn slam_only(f: &FrameOutput) -> bool {
+fn slam_only(f: &FrameRecord) -> bool {
     f.coop.common_vio.used == 0 && (f.coop.common_slam.used > 0 || f.coop.constraints.used > 0)
 }
 
-fn frames_over_seeds(scenario: &Path, n: usize, seeds: u64, s: Setup) -> Result<Vec<FrameOutput>> {
+fn frames_over_seeds(scenario: &Path, n: usize, seeds: u64, s: Setup) -> Result<Vec<FrameRecord>> {
     let mut all = Vec::new();
     for seed in 1..=seeds {
         all.extend(fleet_frames(scenario, n, seed, s)?);
@@ -213,7 +213,7 @@ fn scaling(base: &Scenario, robots: &[usize], seed: u64) -> Result<()> {
             vec![f64::NAN]
         };
         let avg =
-            |g: &dyn Fn(&FrameOutput) -> f64| mean_std(&dc.iter().map(g).collect::<Vec<_>>()).0;
+            |g: &dyn Fn(&FrameRecord) -> f64| mean_std(&dc.iter().map(g).collect::<Vec<_>>()).0;
         println!(
             "  {n:6} | {:14.2} | {:15.2} | {:.3}, {:.3}, {:.3}, {:.2}, {:.2}",
             dc_ms.0,

@@ -29,7 +29,7 @@ pub struct FrameTiming {
 }
 
 /// The estimate after one frame.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 pub struct FrameOutput {
     /// IMU time of the estimate, s.
     pub t: f64,
@@ -88,6 +88,45 @@ impl FrameOutput {
             zero_velocity,
             coop,
             timing,
+        }
+    }
+}
+
+/// What a run keeps of each frame's output: its time, what its updates did
+/// and what it cost. The estimate and its covariances are kept as poses
+/// ([`crate::runner::RobotRun`]); kept here too they were a quarter of an
+/// hour's record.
+#[derive(Clone, Debug, Default)]
+pub struct FrameRecord {
+    /// IMU time of the estimate, s.
+    pub t: f64,
+    /// Features used in the MSCKF update.
+    pub msckf_features: usize,
+    /// What the MSCKF update did (used, gated out, failed).
+    pub msckf: updater_msckf::MsckfStats,
+    /// SLAM features in the state.
+    pub slam_features: usize,
+    /// What the SLAM step did.
+    pub slam: updater_slam::SlamStats,
+    /// The frame was a standstill handled by a zero-velocity update.
+    pub zero_velocity: bool,
+    /// What the cooperative updates did.
+    pub coop: CoopFrameStats,
+    /// Cost of the frame.
+    pub timing: FrameTiming,
+}
+
+impl From<&FrameOutput> for FrameRecord {
+    fn from(o: &FrameOutput) -> Self {
+        Self {
+            t: o.t,
+            msckf_features: o.msckf_features,
+            msckf: o.msckf,
+            slam_features: o.slam_features,
+            slam: o.slam,
+            zero_velocity: o.zero_velocity,
+            coop: o.coop,
+            timing: o.timing,
         }
     }
 }

@@ -35,7 +35,7 @@ pub mod updater_zupt;
 pub mod vio;
 
 pub use options::EstimatorOptions;
-pub use vio::{Estimator, FrameError, FrameOutput, InitialState, InputError};
+pub use vio::{Estimator, FrameError, FrameOutput, FrameRecord, InitialState, InputError};
 
 #[cfg(test)]
 pub(crate) mod test_scene;

@@ -9,7 +9,7 @@ use super::feature_classes::{classify, clean_up, record_measurements, FeatureCla
 use super::feature_db::FeatureDb;
 use super::filter::Filter;
 use super::frame_output::cpu_ms;
-pub use super::frame_output::{FrameOutput, FrameTiming};
+pub use super::frame_output::{FrameOutput, FrameRecord, FrameTiming};
 pub use super::inputs::InputError;
 use super::inputs::{check_frame, check_imu};
 use super::options::EstimatorOptions;
