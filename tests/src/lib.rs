@@ -1,6 +1,8 @@
 //! Helpers for the integration tests in `tests/tests/`, which start the real
 //! binaries. Build them first: `cargo build --release --workspace --bins`.
 
+pub mod fleet;
+
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -4,26 +4,15 @@
 //! transports.
 #![allow(clippy::unwrap_used)] // helpers outside #[test] functions
 
-use integration_tests::{bin, read_json, sim_fleet_run, write_loop_trajectory};
+use integration_tests::fleet::{configs, probe, scenario, start_agent, start_agents, wait};
+use integration_tests::{bin, read_json, sim_fleet_run};
 
 #[path = "../../agent/tests/support/mod.rs"]
 mod support;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::time::{Duration, Instant};
-
-/// A three-robot scenario on a `duration_s` loop (robots start 0, 2 and 4 s apart).
-fn scenario(dir: &Path, duration_s: f64) -> PathBuf {
-    write_loop_trajectory(&dir.join("loop.txt"), duration_s).unwrap();
-    let p = dir.join("three.yaml");
-    std::fs::write(
-        &p,
-        "name: three\nrobots:\n  - trajectory: loop.txt\n  - trajectory: loop.txt\n    start_time_s: 2.0\n  - trajectory: loop.txt\n    start_time_s: 4.0\nsensors:\n  camera:\n    max_features: 60\n",
-    )
-    .unwrap();
-    p
-}
 
 /// Every agent received every message every peer sent, kind by kind.
 fn assert_complete_delivery(out: &Path, robots: usize) {
@@ -166,70 +155,6 @@ fn assert_same_estimates(a: &Path, b: &Path, robots: usize) {
             b.display()
         );
     }
-}
-
-/// Writes the agents' configurations (`--dry-run`) and returns their paths.
-fn configs(sc: &Path, out: &Path, extra: &[&str]) -> Vec<PathBuf> {
-    let output = Command::new(bin("sim-fleet"))
-        .arg("run")
-        .arg(sc)
-        .arg("--out")
-        .arg(out)
-        .arg("--dry-run")
-        .args(extra)
-        .output()
-        .unwrap();
-    assert!(output.status.success());
-    (0..3)
-        .map(|i| out.join(format!("robot{i}")).join("config.yaml"))
-        .collect()
-}
-
-/// Starts one agent per configuration, logging to `out/robot<i>.log`.
-fn start_agents(cfgs: &[PathBuf], out: &Path) -> Vec<Child> {
-    cfgs.iter()
-        .enumerate()
-        .map(|(i, c)| start_agent(c, &out.join(format!("robot{i}.log"))))
-        .collect()
-}
-
-/// Runs `agent probe` against the fleet of `config`; returns what it printed.
-fn probe(config: &Path, args: &[&str]) -> String {
-    let out = Command::new(bin("agent"))
-        .args(["probe", "--config"])
-        .arg(config)
-        .args(args)
-        .output()
-        .unwrap();
-    let said = String::from_utf8_lossy(&out.stdout).to_string();
-    assert!(
-        out.status.success(),
-        "{said}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    said
-}
-
-fn start_agent(config: &Path, log: &Path) -> Child {
-    Command::new(bin("agent"))
-        .arg("--config")
-        .arg(config)
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(log).unwrap())
-        .spawn()
-        .unwrap()
-}
-
-fn wait(child: &mut Child, limit: Duration) -> bool {
-    let t = Instant::now();
-    while t.elapsed() < limit {
-        if let Ok(Some(status)) = child.try_wait() {
-            return status.success();
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let _ = child.kill();
-    false
 }
 
 #[test]
@@ -426,17 +351,8 @@ fn lockstep_over_quic_with_bound_ids_delivers_everything_as_tcp_does() {
     assert_same_estimates(&dir.path().join("q"), &dir.path().join("t"), 3);
 }
 
-/// The two flood tests take turns: each probe floods as fast as the transport
-/// takes it. The real-time one failed twice in fresh-clone CI (stop 34: an agent
-/// 2.0 and 2.4 s behind the clock; alone it passed 3 of 3) with the other tests
-/// running beside it; the lockstep flood is the likeliest competitor for the cores.
-static FLOODS: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
 #[test]
 fn a_flooding_peer_neither_stops_an_agent_nor_grows_its_memory() {
-    let _turn = FLOODS
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let dir = tempfile::tempdir().unwrap();
     let sc = scenario(dir.path(), 16.0);
     let out = dir.path().join("flood");
@@ -487,45 +403,6 @@ fn a_flooding_peer_neither_stops_an_agent_nor_grows_its_memory() {
     assert!(held <= bound, "{held} bytes held: {r}");
     // The flood did not cost the peers' data: robot 0 fused theirs.
     assert!(r["common_feature_updates"].as_u64().unwrap_or(0) > 0, "{r}");
-}
-
-#[test]
-fn agents_flooded_in_real_time_keep_up_with_the_clock() {
-    let _turn = FLOODS
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
-    let dir = tempfile::tempdir().unwrap();
-    let sc = scenario(dir.path(), 16.0);
-    let out = dir.path().join("flood-rt");
-    let cfgs = configs(&sc, &out, &["--transport", "zenoh", "--realtime", "1"]);
-    let mut agents = start_agents(&cfgs, &out);
-    // Flood robot 0's fleet for most of the run (every agent receives it).
-    let said = probe(&cfgs[0], &["--malformed", "0", "--flood-s", "10"]);
-    for (i, a) in agents.iter_mut().enumerate() {
-        assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
-    }
-    for i in 0..3 {
-        let st = read_json(&out.join(format!("robot{i}")).join("transport_stats.json"));
-        // Beyond its rate the flood is dropped undecoded, so the agent stays
-        // within a frame or two of the wall clock (without the limit: 10 s
-        // behind at 4x real time on two cores).
-        assert!(
-            st["net"]["dropped"]["rate_limit"].as_u64().unwrap_or(0) > 0,
-            "robot {i}: {said}: {}",
-            st["net"]
-        );
-        let lag = st["max_lag_s"].as_f64().unwrap();
-        assert!(lag < 2.0, "robot {i} fell {lag} s behind: {said}");
-        // The probe's messages still queued when it vanished do not bring it
-        // back (before: 1 run in 3, and its agents lingered 60 s for it).
-        let events = std::fs::read_to_string(out.join(format!("robot{i}/peer_events.jsonl")));
-        let events = events.unwrap();
-        assert!(!events.contains("reappeared"), "robot {i}: {events}");
-        let s = read_json(&out.join(format!("robot{i}")).join("summary.json"));
-        let r = &s["robots"][0];
-        assert!(r["frames"].as_u64().unwrap() > 100, "{r}");
-        assert!(r["ate_pos_m"].as_f64().unwrap() < 0.5, "{r}");
-    }
 }
 
 /// A lone agent's configuration: no peers, the given input.
