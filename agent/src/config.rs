@@ -297,6 +297,11 @@ pub struct EstimatorSection {
     /// Zero-velocity updates at standstills.
     #[serde(default)]
     pub try_zupt: Option<bool>,
+    /// A standstill also when the image's tracks moved less than this on
+    /// average since the last clone, px (0: by the IMU alone; OpenVINS's
+    /// `zupt_max_disparity`).
+    #[serde(default)]
+    pub zupt_max_disparity_px: Option<f64>,
     /// SLAM feature representation: `global` or `anchored`.
     #[serde(default)]
     pub feat_rep_slam: Option<FeatureRepresentation>,
@@ -367,6 +372,9 @@ impl EstimatorSection {
         if let Some(v) = self.try_zupt {
             o.zero_velocity_update = v;
         }
+        if let Some(v) = self.zupt_max_disparity_px {
+            o.zupt_max_disparity_px = v;
+        }
         if let Some(v) = self.feat_rep_slam {
             o.feature_representation = v;
         }
@@ -421,6 +429,7 @@ impl Default for EstimatorSection {
             calib_cam_intrinsics: None,
             calib_cam_timeoffset: None,
             try_zupt: None,
+            zupt_max_disparity_px: None,
             feat_rep_slam: None,
             fi_max_cond_number: None,
             fi_min_dist: None,

@@ -1,5 +1,6 @@
 //! `agent dataset`: a real sequence through the frontend and the estimator,
-//! with TUM outputs (for `sim-fleet eval` and `evo`) and the MCAP log.
+//! with the outputs of every agent run (TUM trajectories for `sim-fleet eval`
+//! and `evo`, covariances, `timing.csv`, `summary.json`) and the MCAP log.
 
 use crate::agent_log::AgentLog;
 use crate::dataset::EurocDataset;
@@ -7,9 +8,12 @@ use crate::dataset_run::{run_dataset, score};
 use crate::estimator::static_init::StaticInitOptions;
 use crate::estimator::EstimatorOptions;
 use crate::frontend::FrontendOptions;
+use crate::run_files::{set_aside_unfinished, RunFiles, FLUSH_PERIOD};
 use anyhow::{Context, Result};
-use common::trajectory::{interpolate_pose, write_covariances, write_tum, StampedPose};
+use common::summary::{MetricSet, RobotSummary, RunSummary};
+use common::trajectory::StampedPose;
 use std::path::PathBuf;
+use std::time::Instant;
 
 /// Arguments of `agent dataset`.
 #[derive(clap::Args, Debug)]
@@ -28,15 +32,28 @@ pub struct DatasetArgs {
     pub mcap_image_every: usize,
 }
 
-/// Runs the command: prints the frontend's and the start's figures and writes
-/// `estimate.txt`, `covariance.txt`, `groundtruth.txt` (when known) and
-/// `agent.mcap` into the output folder.
+/// Runs the command: writes `estimate.txt`, `covariance.txt`, `timing.csv`
+/// and, when the ground truth is known, `groundtruth.txt` as the sequence
+/// goes (a run killed keeps what it estimated), then `agent.mcap` and
+/// `summary.json`, and prints the frontend's, the start's and the
+/// estimate's figures.
 pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
+    let wall = Instant::now();
     let ds = EurocDataset::open(&args.euroc, args.groundtruth.as_deref())
         .with_context(|| format!("opening {}", args.euroc.display()))?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
+    if let Some(aside) = set_aside_unfinished(&args.out)
+        .with_context(|| format!("readying {}", args.out.display()))?
+    {
+        tracing::warn!(
+            "an earlier run here did not finish: its files are kept in {}",
+            aside.display()
+        );
+    }
     let mut log = AgentLog::create(&args.out.join("agent.mcap"))?;
+    let mut files = RunFiles::create(&args.out, ds.groundtruth.is_some(), FLUSH_PERIOD)
+        .with_context(|| format!("writing {}", args.out.display()))?;
     let every = args.mcap_image_every.max(1);
     let mut k = 0usize;
     let run = run_dataset(
@@ -53,29 +70,25 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
             }
             k += 1;
         },
+        |record| files.append(record),
     )?;
-    // The truth at the estimate times, in the ground truth's own frame (the
-    // estimate is in the static start's frame: align before comparing).
-    let truth: Vec<StampedPose> = match &ds.groundtruth {
-        Some(gt) => run
-            .estimate
-            .iter()
-            .filter_map(|p| interpolate_pose(gt, p.t))
-            .collect(),
-        None => Vec::new(),
-    };
-    log.run_poses(&run.estimate, &run.covariance, &[])?;
+    let rec = &run.record;
+    files
+        .finish(rec)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    let truth: Vec<StampedPose> = rec.truth.iter().flatten().copied().collect();
+    log.run_poses(&rec.estimate, &rec.covariance, &truth)?;
     log.finish()?;
-    write_tum(args.out.join("estimate.txt"), &run.estimate)?;
-    write_covariances(args.out.join("covariance.txt"), &run.covariance)?;
-    if !truth.is_empty() {
-        write_tum(args.out.join("groundtruth.txt"), &truth)?;
-    }
+
     let s = score(&run, &ds);
-    let ms: f64 = run.frames.iter().map(|f| f.stats.ms).sum::<f64>() / s.images.max(1) as f64;
     println!(
-        "{} images: {:.0} features/image (min {}), {} tracks from the first image to the last, mean track {:.1} images, {:.2} ms/image",
-        s.images, s.features_per_image, s.min_features, s.tracks_first_to_last, s.mean_track_length, ms
+        "{} images: {:.0} features/image (min {}), {} tracks from the first image to the last, mean track {:.1} images, frontend {:.2} ms/image",
+        s.images,
+        s.features_per_image,
+        s.min_features,
+        s.tracks_first_to_last,
+        s.mean_track_length,
+        run.frontend.ms / s.images.max(1) as f64
     );
     match &run.init {
         Some(i) => println!(
@@ -87,8 +100,54 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
         ),
         None => println!("the static initializer never succeeded (the platform must stand still at the start)"),
     }
+    let metrics = rec.metrics();
+    let f = |v: Option<f64>, digits: usize| v.map_or("n/a".into(), |v| format!("{v:.digits$}"));
+    println!(
+        "estimator: {:.2} ms/frame (p95 {}), {} frames standing still; against the truth put on the first estimate: ATE {} deg / {} m, NEES ori {} pos {}; position-and-yaw aligned: ATE {} deg / {} m ({} of {} estimates covered)",
+        metrics.ms_per_frame_mean.unwrap_or(0.0),
+        f(metrics.ms_per_frame_p95, 2),
+        rec.frames.iter().filter(|f| f.zero_velocity).count(),
+        f(metrics.ate_ori_deg, 3),
+        f(metrics.ate_pos_m, 3),
+        f(metrics.nees_ori, 2),
+        f(metrics.nees_pos, 2),
+        f(metrics.ate_posyaw_ori_deg, 3),
+        f(metrics.ate_posyaw_pos_m, 3),
+        truth.len(),
+        rec.estimate.len()
+    );
     for r in run.rejected.iter().take(5) {
         tracing::warn!("rejected: {r}");
     }
+    let name = sequence_name(&ds.root);
+    let sim_s =
+        rec.estimate.last().map_or(0.0, |p| p.t) - rec.estimate.first().map_or(0.0, |p| p.t);
+    let summary = RunSummary {
+        scenario: name.clone(),
+        variant: Some("indp-slam".into()),
+        seed: 0,
+        transport: None,
+        wall_s: Some(wall.elapsed().as_secs_f64()),
+        sim_s: Some(sim_s),
+        mean: MetricSet::mean_of(std::slice::from_ref(&metrics)),
+        robots: vec![RobotSummary {
+            id: 0,
+            trajectory: name,
+            metrics,
+        }],
+    };
+    summary.write_json(args.out.join("summary.json"))?;
     Ok(())
+}
+
+/// The sequence's name: the folder holding `mav0` (`V1_01_easy`).
+fn sequence_name(mav0: &std::path::Path) -> String {
+    let named = if mav0.file_name().is_some_and(|n| n == "mav0") {
+        mav0.parent().unwrap_or(mav0)
+    } else {
+        mav0
+    };
+    named
+        .file_name()
+        .map_or_else(|| "dataset".into(), |n| n.to_string_lossy().into_owned())
 }

@@ -5,11 +5,15 @@
 
 use crate::dataset::{DatasetError, EurocDataset};
 use crate::estimator::static_init::{static_start_sigmas, StaticInitOptions, StaticInitResult};
-use crate::estimator::{Estimator, EstimatorOptions, FrameOutput};
+use crate::estimator::{Estimator, EstimatorOptions, FrameRecord};
 use crate::frontend::{Frontend, FrontendError, FrontendOptions, FrontendOutput};
-use common::trajectory::{StampedCovariance, StampedPose};
-use nalgebra::{Matrix3, Vector3};
+use crate::run_files::{RunRecord, RunRow};
+use common::metrics::PosePair;
+use common::summary::MetricSet;
+use common::trajectory::{interpolate_pose, StampedCovariance, StampedPose};
+use nalgebra::{Matrix3, Rotation3, Vector3};
 use simulator::SimEvent;
+use std::collections::{HashMap, HashSet};
 use thiserror::Error;
 
 /// Why a sequence could not be run.
@@ -23,37 +27,192 @@ pub enum DatasetRunError {
     Frontend(#[from] FrontendError),
 }
 
-/// Everything a run on real data produced.
+/// Everything a run on real data produced. Its size grows with the estimates
+/// (about 300 bytes each) and the tracks (16 bytes each), not with the
+/// features of every image.
 #[derive(Debug, Default)]
 pub struct DatasetRun {
     /// The static initializer's result, once it succeeded.
     pub init: Option<StaticInitResult>,
-    /// The frontend's output for every image (also before the start).
-    pub frames: Vec<FrontendOutput>,
-    /// The estimate after each processed frame (IMU clock; the initializer's
-    /// frame: origin at the start, yaw by convention).
-    pub estimate: Vec<StampedPose>,
-    /// Its covariance.
-    pub covariance: Vec<StampedCovariance>,
-    /// The estimator's per-frame outputs.
-    pub outputs: Vec<FrameOutput>,
+    /// The frontend's figures over every image (also before the start).
+    pub frontend: FrontendTally,
+    /// The estimates, with the ground truth at their times when it is known.
+    pub record: DatasetRecord,
     /// Inputs the estimator rejected, with the reason.
     pub rejected: Vec<String>,
 }
 
+/// What the frontend did over a sequence, gathered image by image.
+#[derive(Debug, Default)]
+pub struct FrontendTally {
+    /// Images through the frontend.
+    pub images: usize,
+    /// Features over all images.
+    pub features: usize,
+    /// Fewest features in one image.
+    pub min_features: Option<usize>,
+    /// The first image's track ids.
+    first_ids: HashSet<u64>,
+    /// The last image's track ids.
+    last_ids: HashSet<u64>,
+    /// Images each track was seen in.
+    lengths: HashMap<u64, u32>,
+    /// Frontend time over all images, ms.
+    pub ms: f64,
+}
+
+impl FrontendTally {
+    /// Counts one image's output.
+    pub fn add(&mut self, out: &FrontendOutput) {
+        let ids: HashSet<u64> = out.frame.features.iter().map(|o| o.id).collect();
+        for id in &ids {
+            *self.lengths.entry(*id).or_default() += 1;
+        }
+        if self.images == 0 {
+            self.first_ids.clone_from(&ids);
+        }
+        self.images += 1;
+        self.features += out.frame.features.len();
+        self.min_features = Some(self.min_features.map_or(out.frame.features.len(), |m| {
+            m.min(out.frame.features.len())
+        }));
+        self.last_ids = ids;
+        self.ms += out.stats.ms;
+    }
+
+    /// Tracks of the first image still tracked in the last one.
+    pub fn tracks_first_to_last(&self) -> usize {
+        self.first_ids.intersection(&self.last_ids).count()
+    }
+
+    /// Mean track length, images (over tracks that ended or reached the end).
+    pub fn mean_track_length(&self) -> f64 {
+        let total: u64 = self.lengths.values().map(|&n| u64::from(n)).sum();
+        total as f64 / self.lengths.len().max(1) as f64
+    }
+}
+
+/// The estimates of a run on real data and the ground truth at their times,
+/// as [`RunFiles`](crate::run_files::RunFiles) streams them.
+///
+/// The estimate lives in the static start's frame (origin at the start, yaw
+/// by convention); the ground truth in the motion capture's. The truth is
+/// brought into the estimate's frame by the translation and the turn about
+/// the vertical that put it on the first estimate it covers (as `evo
+/// --align_origin`, but yaw only: the tilt error of the start stays an
+/// error). Both frames have gravity along -z, so this is the whole
+/// difference a static start cannot know.
+#[derive(Debug, Default)]
+pub struct DatasetRecord {
+    /// A ground truth was given (`groundtruth.txt` is written).
+    has_truth: bool,
+    /// The estimate after each processed frame (IMU clock).
+    pub estimate: Vec<StampedPose>,
+    /// Its orientation and position covariance.
+    pub covariance: Vec<StampedCovariance>,
+    /// The truth at each estimate's time in the estimate's frame, where the
+    /// ground truth covers it.
+    pub truth: Vec<Option<StampedPose>>,
+    /// Per-frame counts and costs.
+    pub frames: Vec<FrameRecord>,
+    /// Motion capture frame to the estimate's: the turn about z and the
+    /// translation, fixed at the first estimate the truth covers.
+    to_estimate: Option<(Rotation3<f64>, Vector3<f64>)>,
+}
+
+impl DatasetRecord {
+    /// An empty record; `has_truth` when a ground truth will be given.
+    pub fn new(has_truth: bool) -> Self {
+        DatasetRecord {
+            has_truth,
+            ..DatasetRecord::default()
+        }
+    }
+
+    /// Records an estimate and the ground truth's pose at its time
+    /// (`truth`, in the motion capture's frame), if known.
+    pub fn push(
+        &mut self,
+        estimate: StampedPose,
+        cov: StampedCovariance,
+        frame: FrameRecord,
+        truth: Option<StampedPose>,
+    ) {
+        let truth = truth.map(|g| {
+            let (turn, shift) = *self.to_estimate.get_or_insert_with(|| {
+                let yaw = yaw_of(&(estimate.rot * g.rot.transpose()));
+                let turn = Rotation3::from_axis_angle(&Vector3::z_axis(), yaw);
+                (turn, estimate.pos - turn * g.pos)
+            });
+            StampedPose {
+                t: g.t,
+                rot: turn * g.rot,
+                pos: turn * g.pos + shift,
+            }
+        });
+        self.estimate.push(estimate);
+        self.covariance.push(cov);
+        self.frames.push(frame);
+        self.truth.push(truth);
+    }
+
+    /// The estimates the truth covers, paired with it.
+    pub fn pairs(&self) -> Vec<PosePair> {
+        self.estimate
+            .iter()
+            .zip(&self.truth)
+            .filter_map(|(e, g)| g.map(|g| (*e, g)))
+            .collect()
+    }
+
+    /// Accuracy against the truth (when known), consistency and cost.
+    pub fn metrics(&self) -> MetricSet {
+        crate::runner::record_metrics(&self.pairs(), &self.covariance, &self.frames)
+    }
+}
+
+/// The rotation about z of `rot` (its yaw in the z-y-x convention), rad.
+fn yaw_of(rot: &Matrix3<f64>) -> f64 {
+    rot[(1, 0)].atan2(rot[(0, 0)])
+}
+
+impl RunRecord for DatasetRecord {
+    fn has_truth(&self) -> bool {
+        self.has_truth
+    }
+
+    fn rows(&self) -> usize {
+        self.estimate.len()
+    }
+
+    fn row(&self, i: usize) -> RunRow<'_> {
+        RunRow {
+            truth: self.truth[i].as_ref(),
+            estimate: &self.estimate[i],
+            covariance: &self.covariance[i],
+            frame: &self.frames[i],
+        }
+    }
+}
+
 /// Runs the whole sequence: IMU samples and frontend frames into the
 /// estimator, which starts at the first image where the static initializer
-/// succeeds; `on_frame` sees every image with its frontend output (for logs).
+/// succeeds. `on_frame` sees every image with its frontend output (for logs),
+/// `on_estimate` the record after each new estimate (to write it out).
 pub fn run_dataset(
     ds: &EurocDataset,
     opts: EstimatorOptions,
     frontend: FrontendOptions,
     init: &StaticInitOptions,
     mut on_frame: impl FnMut(&simulator::camera_sim::CameraEvent, &FrontendOutput),
+    mut on_estimate: impl FnMut(&DatasetRecord),
 ) -> Result<DatasetRun, DatasetRunError> {
     let mut est = Estimator::new(opts, ds.calibration.clone());
     let mut fe = Frontend::new(frontend, ds.calibration.camera.clone())?;
-    let mut run = DatasetRun::default();
+    let mut run = DatasetRun {
+        record: DatasetRecord::new(ds.groundtruth.is_some()),
+        ..DatasetRun::default()
+    };
     for ev in ds.events() {
         match ev? {
             SimEvent::Imu(s) => {
@@ -75,26 +234,38 @@ pub fn run_dataset(
                     run.rejected.push(e.to_string());
                 }
                 on_frame(&c, &out);
-                run.frames.push(out);
+                run.frontend.add(&out);
             }
         }
+        let mut estimated = false;
         for o in est.poll() {
             match o {
                 Ok(o) => {
-                    run.estimate.push(StampedPose {
-                        t: o.t,
-                        rot: o.rot,
-                        pos: o.pos,
-                    });
-                    run.covariance.push(StampedCovariance {
-                        t: o.t,
-                        ori: o.cov_ori,
-                        pos: o.cov_pos,
-                    });
-                    run.outputs.push(o);
+                    let truth = ds
+                        .groundtruth
+                        .as_deref()
+                        .and_then(|gt| interpolate_pose(gt, o.t));
+                    run.record.push(
+                        StampedPose {
+                            t: o.t,
+                            rot: o.rot,
+                            pos: o.pos,
+                        },
+                        StampedCovariance {
+                            t: o.t,
+                            ori: o.cov_ori,
+                            pos: o.cov_pos,
+                        },
+                        FrameRecord::from(&o),
+                        truth,
+                    );
+                    estimated = true;
                 }
                 Err(e) => run.rejected.push(e.to_string()),
             }
+        }
+        if estimated {
+            on_estimate(&run.record);
         }
     }
     Ok(run)
@@ -131,30 +302,105 @@ pub fn tilt_error_deg(rot: &Matrix3<f64>, truth: &Matrix3<f64>) -> f64 {
 
 /// Scores a run.
 pub fn score(run: &DatasetRun, ds: &EurocDataset) -> DatasetScore {
-    let counts: Vec<usize> = run.frames.iter().map(|f| f.frame.features.len()).collect();
-    let ids = |k: usize| -> std::collections::HashSet<u64> {
-        run.frames
-            .get(k)
-            .map(|f| f.frame.features.iter().map(|o| o.id).collect())
-            .unwrap_or_default()
-    };
-    let first = ids(0);
-    let last = ids(run.frames.len().saturating_sub(1));
-    let mut lengths: std::collections::HashMap<u64, usize> = std::collections::HashMap::new();
-    for f in &run.frames {
-        for o in &f.frame.features {
-            *lengths.entry(o.id).or_default() += 1;
-        }
-    }
+    let f = &run.frontend;
     let tilt = |t: f64, rot: &Matrix3<f64>| ds.truth_at(t).map(|gt| tilt_error_deg(rot, &gt.rot));
     DatasetScore {
-        images: run.frames.len(),
-        features_per_image: counts.iter().sum::<usize>() as f64 / counts.len().max(1) as f64,
-        min_features: counts.iter().copied().min().unwrap_or(0),
-        tracks_first_to_last: first.intersection(&last).count(),
-        mean_track_length: lengths.values().sum::<usize>() as f64 / lengths.len().max(1) as f64,
+        images: f.images,
+        features_per_image: f.features as f64 / f.images.max(1) as f64,
+        min_features: f.min_features.unwrap_or(0),
+        tracks_first_to_last: f.tracks_first_to_last(),
+        mean_track_length: f.mean_track_length(),
         init_tilt_error_deg: run.init.as_ref().and_then(|i| tilt(i.t, &i.rot_i_to_g)),
-        final_tilt_error_deg: run.estimate.last().and_then(|p| tilt(p.t, &p.rot)),
-        estimates: run.estimate.len(),
+        final_tilt_error_deg: run.record.estimate.last().and_then(|p| tilt(p.t, &p.rot)),
+        estimates: run.record.estimate.len(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose(t: f64, yaw: f64, tilt: f64, pos: Vector3<f64>) -> StampedPose {
+        StampedPose {
+            t,
+            rot: Rotation3::from_euler_angles(tilt, 0.0, yaw).into_inner(),
+            pos,
+        }
+    }
+
+    /// A truth turned by 40 deg about the vertical and moved by 3 m is put
+    /// on the first estimate it covers; after that it follows the motion,
+    /// and a tilt error stays an error.
+    #[test]
+    fn the_truth_is_put_on_the_first_estimate_it_covers_by_a_turn_about_z_and_a_shift() {
+        let turn = Rotation3::from_axis_angle(&Vector3::z_axis(), 40f64.to_radians());
+        let shift = Vector3::new(3.0, -1.0, 0.5);
+        // The estimate's frame: the truth's turned and moved.
+        let in_estimate = |p: &StampedPose| StampedPose {
+            t: p.t,
+            rot: turn * p.rot,
+            pos: turn * p.pos + shift,
+        };
+        let mut rec = DatasetRecord::new(true);
+        let cov = |t| StampedCovariance {
+            t,
+            ori: Matrix3::identity() * 1e-4,
+            pos: Matrix3::identity() * 1e-2,
+        };
+        // No truth yet for the first estimate.
+        rec.push(
+            pose(0.0, 0.0, 0.0, Vector3::zeros()),
+            cov(0.0),
+            FrameRecord::default(),
+            None,
+        );
+        for k in 1..20 {
+            let t = 0.1 * k as f64;
+            let truth = pose(t, 0.3 * t, 0.02, Vector3::new(t, 2.0 * t, 0.1));
+            // The estimate: the truth in its frame, 0.01 rad more tilted.
+            let mut est = in_estimate(&truth);
+            est.rot = Rotation3::from_euler_angles(0.01, 0.0, 0.0).into_inner() * est.rot;
+            rec.push(est, cov(t), FrameRecord::default(), Some(truth));
+        }
+        assert_eq!(rec.rows(), 20);
+        assert!(rec.row(0).truth.is_none());
+        let pairs = rec.pairs();
+        assert_eq!(pairs.len(), 19);
+        // The turn is read from orientations 0.01 rad apart in tilt: its yaw
+        // is off by 0.01²/4, a few µm over these meters.
+        assert!((pairs[0].0.pos - pairs[0].1.pos).norm() < 1e-12);
+        for (e, g) in &pairs {
+            assert!((e.pos - g.pos).norm() < 1e-4, "{e:?} {g:?}");
+            let err = Rotation3::from_matrix_unchecked(g.rot.transpose() * e.rot).angle();
+            assert!((err - 0.01).abs() < 1e-3, "{err}");
+        }
+        let m = rec.metrics();
+        assert!(m.ate_pos_m.expect("ATE") < 1e-4);
+        assert!((m.ate_ori_deg.expect("ATE") - 0.01f64.to_degrees()).abs() < 0.05);
+    }
+
+    /// Without a truth the record has rows and no truth: no `groundtruth.txt`.
+    #[test]
+    fn a_record_without_truth_writes_no_groundtruth() {
+        let mut rec = DatasetRecord::new(false);
+        for k in 0..5 {
+            let t = k as f64;
+            rec.push(
+                pose(t, 0.0, 0.0, Vector3::new(t, 0.0, 0.0)),
+                StampedCovariance {
+                    t,
+                    ori: Matrix3::identity(),
+                    pos: Matrix3::identity(),
+                },
+                FrameRecord::default(),
+                None,
+            );
+        }
+        let dir = tempfile::tempdir().expect("tempdir");
+        crate::run_files::write_all(&rec, dir.path()).expect("write");
+        assert!(!dir.path().join("groundtruth.txt").exists());
+        let est = common::trajectory::read_tum(dir.path().join("estimate.txt")).expect("read");
+        assert_eq!(est.len(), 5);
+        assert_eq!(rec.metrics().ate_pos_m, None);
     }
 }

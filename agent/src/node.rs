@@ -22,7 +22,7 @@ use crate::node_images::ImageFrames;
 use crate::outbox::Outbox;
 use crate::peer_events::{PeerEvent, PeerEvents};
 use crate::peer_history::{HistoryLimits, PeerHistory};
-use crate::run_files::RunFiles;
+use crate::run_files::{RunFiles, FLUSH_PERIOD};
 use crate::runner::{initial_state, options_for, record, RobotRun, RunError, Variant};
 use crate::status_log::{Counters, StatusLog};
 use crate::transport::{Received, Transport, TransportError};
@@ -1004,7 +1004,7 @@ pub fn run_node(
         None
     };
     // The text outputs as the run goes: a robot killed hard keeps its poses.
-    let mut run_files = match RunFiles::create(&cfg.output_dir, RUN_FILES_FLUSH_PERIOD) {
+    let mut run_files = match RunFiles::create(&cfg.output_dir, true, FLUSH_PERIOD) {
         Ok(f) => Some(f),
         Err(e) => {
             tracing::warn!(
@@ -1383,10 +1383,6 @@ pub fn run_node(
     }
     Ok(node.report)
 }
-
-/// Longest wall time the run's text outputs wait in memory before they are
-/// written: what a hard kill can lose of them.
-const RUN_FILES_FLUSH_PERIOD: Duration = Duration::from_secs(1);
 
 /// Frames between two logged scenes, and the fewest between two logged paths.
 const SCENE_EVERY_FRAMES: usize = 10;

@@ -5,24 +5,112 @@
 //!
 //! Rows are gathered in memory and written to the files whole, at most every
 //! `flush_period`: a file on disk always ends at the end of a row. At the end
-//! of the run the files are byte for byte what [`write_run_outputs`] writes.
+//! of the run the files are byte for byte what [`write_all`] writes.
 //! A failed write (disk full, folder gone) costs nothing: streaming stops
 //! with a warning and the end of the run writes every file again from memory.
 
-use crate::runner::{timing_row, write_run_outputs, RobotRun, TIMING_HEADER};
-use common::trajectory::{covariance_row, tum_row, COVARIANCE_HEADER, TUM_HEADER};
+use crate::estimator::FrameRecord;
+use crate::runner::{timing_row, RobotRun, TIMING_HEADER};
+use common::trajectory::{
+    covariance_row, tum_row, StampedCovariance, StampedPose, COVARIANCE_HEADER, TUM_HEADER,
+};
 use std::fs::File;
-use std::io::Write;
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-/// The four files, in the order they are written at a flush.
+/// The four files, in the order they are written at a flush (the ground
+/// truth first, so that it is never behind the estimate it scores).
 const FILES: [(&str, &str); 4] = [
     ("groundtruth.txt", TUM_HEADER),
     ("estimate.txt", TUM_HEADER),
     ("covariance.txt", COVARIANCE_HEADER),
     ("timing.csv", TIMING_HEADER),
 ];
+
+/// Longest wall time the run's text outputs wait in memory before they are
+/// written: what a hard kill can lose of them.
+pub const FLUSH_PERIOD: Duration = Duration::from_secs(1);
+
+/// One recorded frame, as the four files see it.
+pub struct RunRow<'a> {
+    /// The truth at the estimate's time, when known.
+    pub truth: Option<&'a StampedPose>,
+    /// The estimate.
+    pub estimate: &'a StampedPose,
+    /// Its orientation and position covariance.
+    pub covariance: &'a StampedCovariance,
+    /// The frame's counts and costs.
+    pub frame: &'a FrameRecord,
+}
+
+/// A run's record as [`RunFiles`] reads it: rows that only ever grow.
+pub trait RunRecord {
+    /// Whether the run knows a truth (`groundtruth.txt` is written).
+    fn has_truth(&self) -> bool;
+    /// Rows recorded so far.
+    fn rows(&self) -> usize;
+    /// Row `i < rows()`.
+    fn row(&self, i: usize) -> RunRow<'_>;
+}
+
+impl RunRecord for RobotRun {
+    fn has_truth(&self) -> bool {
+        true
+    }
+
+    /// Rows complete in all four records (they grow together).
+    fn rows(&self) -> usize {
+        self.estimate
+            .len()
+            .min(self.truth.len())
+            .min(self.covariance.len())
+            .min(self.frames.len())
+    }
+
+    fn row(&self, i: usize) -> RunRow<'_> {
+        RunRow {
+            truth: Some(&self.truth[i]),
+            estimate: &self.estimate[i],
+            covariance: &self.covariance[i],
+            frame: &self.frames[i],
+        }
+    }
+}
+
+/// A row's line in each file (no newline), `None` where a file has none.
+fn lines_of(r: RunRow<'_>) -> [Option<String>; 4] {
+    [
+        r.truth.map(tum_row),
+        Some(tum_row(r.estimate)),
+        Some(covariance_row(r.covariance)),
+        Some(timing_row(r.frame)),
+    ]
+}
+
+/// Writes `run`'s files at once (`groundtruth.txt` only if it has a truth):
+/// what the end of a run writes when it did not stream them.
+pub fn write_all(run: &impl RunRecord, dir: &Path) -> std::io::Result<()> {
+    std::fs::create_dir_all(dir)?;
+    let mut outs = Vec::with_capacity(FILES.len());
+    for (k, (name, header)) in FILES.into_iter().enumerate() {
+        if k == 0 && !run.has_truth() {
+            outs.push(None);
+            continue;
+        }
+        let mut out = BufWriter::new(File::create(dir.join(name))?);
+        writeln!(out, "{header}")?;
+        outs.push(Some(out));
+    }
+    for i in 0..run.rows() {
+        for (out, line) in outs.iter_mut().zip(lines_of(run.row(i))) {
+            if let (Some(out), Some(line)) = (out, line) {
+                writeln!(out, "{line}")?;
+            }
+        }
+    }
+    outs.iter_mut().flatten().try_for_each(|o| o.flush())
+}
 
 /// One output file and the rows not yet written to it.
 struct Stream {
@@ -33,8 +121,10 @@ struct Stream {
 /// The run's text outputs, appended as frames are recorded.
 pub struct RunFiles {
     dir: PathBuf,
-    /// `None` once a write has failed: the end of the run writes everything.
-    streams: Option<Vec<Stream>>,
+    /// One per entry of [`FILES`], `None` for a file the run does not write;
+    /// all `None` once a write has failed: the end of the run writes
+    /// everything.
+    streams: Option<Vec<Option<Stream>>>,
     /// Rows of the run already in `pending` or on disk.
     rows: usize,
     flush_period: Duration,
@@ -42,17 +132,22 @@ pub struct RunFiles {
 }
 
 impl RunFiles {
-    /// Creates the files in `dir` (and `dir`), each with its header line.
-    pub fn create(dir: &Path, flush_period: Duration) -> std::io::Result<Self> {
+    /// Creates the files in `dir` (and `dir`), each with its header line;
+    /// `groundtruth.txt` only `with_truth`.
+    pub fn create(dir: &Path, with_truth: bool, flush_period: Duration) -> std::io::Result<Self> {
         std::fs::create_dir_all(dir)?;
         let mut streams = Vec::with_capacity(FILES.len());
-        for (name, header) in FILES {
+        for (k, (name, header)) in FILES.into_iter().enumerate() {
+            if k == 0 && !with_truth {
+                streams.push(None);
+                continue;
+            }
             let mut file = File::create(dir.join(name))?;
             writeln!(file, "{header}")?;
-            streams.push(Stream {
+            streams.push(Some(Stream {
                 file,
                 pending: String::new(),
-            });
+            }));
         }
         Ok(RunFiles {
             dir: dir.to_path_buf(),
@@ -65,21 +160,17 @@ impl RunFiles {
 
     /// Takes the rows `run` recorded since the last call, and writes them out
     /// if the flush period has passed.
-    pub fn append(&mut self, run: &RobotRun) {
+    pub fn append(&mut self, run: &impl RunRecord) {
         let Some(streams) = self.streams.as_mut() else {
             return;
         };
-        let n = recorded(run);
+        let n = run.rows();
         for i in self.rows..n {
-            let rows = [
-                tum_row(&run.truth[i]),
-                tum_row(&run.estimate[i]),
-                covariance_row(&run.covariance[i]),
-                timing_row(&run.frames[i]),
-            ];
-            for (s, row) in streams.iter_mut().zip(rows) {
-                s.pending.push_str(&row);
-                s.pending.push('\n');
+            for (s, row) in streams.iter_mut().zip(lines_of(run.row(i))) {
+                if let (Some(s), Some(row)) = (s, row) {
+                    s.pending.push_str(&row);
+                    s.pending.push('\n');
+                }
             }
         }
         self.rows = self.rows.max(n);
@@ -94,7 +185,7 @@ impl RunFiles {
         let Some(streams) = self.streams.as_mut() else {
             return;
         };
-        for s in streams.iter_mut() {
+        for s in streams.iter_mut().flatten() {
             if let Err(e) = s.file.write_all(s.pending.as_bytes()) {
                 tracing::warn!(
                     "writing {} as the run goes failed ({e}): it is written at the end",
@@ -109,12 +200,15 @@ impl RunFiles {
 
     /// The end of the run: the rows still pending, or, if a write failed on
     /// the way, every file again from `run`.
-    pub fn finish(mut self, run: &RobotRun) -> std::io::Result<()> {
+    pub fn finish(mut self, run: &impl RunRecord) -> std::io::Result<()> {
         self.append(run);
         self.flush();
         match self.streams {
-            Some(streams) => streams.iter().try_for_each(|s| s.file.sync_data()),
-            None => write_run_outputs(run, &self.dir),
+            Some(streams) => streams
+                .iter()
+                .flatten()
+                .try_for_each(|s| s.file.sync_data()),
+            None => write_all(run, &self.dir),
         }
     }
 }
@@ -171,15 +265,6 @@ pub fn set_aside_unfinished(dir: &Path) -> std::io::Result<Option<PathBuf>> {
     Ok(Some(aside))
 }
 
-/// Rows complete in all four records of `run` (they grow together).
-fn recorded(run: &RobotRun) -> usize {
-    run.estimate
-        .len()
-        .min(run.truth.len())
-        .min(run.covariance.len())
-        .min(run.frames.len())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -227,9 +312,9 @@ mod tests {
     fn files_streamed_frame_by_frame_are_those_written_at_the_end() {
         let whole = run_of(57);
         let at_end = tempfile::tempdir().unwrap();
-        write_run_outputs(&whole, at_end.path()).unwrap();
+        write_all(&whole, at_end.path()).unwrap();
         let streamed = tempfile::tempdir().unwrap();
-        let mut files = RunFiles::create(streamed.path(), Duration::from_secs(3600)).unwrap();
+        let mut files = RunFiles::create(streamed.path(), true, Duration::from_secs(3600)).unwrap();
         let mut run = RobotRun::default();
         for k in 0..whole.estimate.len() {
             run.estimate.push(whole.estimate[k]);
@@ -251,7 +336,7 @@ mod tests {
     fn a_run_cut_short_leaves_every_flushed_row_readable() {
         let run = run_of(20);
         let dir = tempfile::tempdir().unwrap();
-        let mut files = RunFiles::create(dir.path(), Duration::ZERO).unwrap();
+        let mut files = RunFiles::create(dir.path(), true, Duration::ZERO).unwrap();
         let mut partial = RobotRun::default();
         for k in 0..12 {
             partial.estimate.push(run.estimate[k]);
@@ -283,19 +368,19 @@ mod tests {
         let run = run_of(30);
         let root = tempfile::tempdir().unwrap();
         let dir = root.path().join("robot0");
-        let mut files = RunFiles::create(&dir, Duration::ZERO).unwrap();
+        let mut files = RunFiles::create(&dir, true, Duration::ZERO).unwrap();
         files.append(&run);
         // The folder goes, and the next write fails: the first file is
         // swapped for a handle on a directory, which takes no writes.
         std::fs::remove_dir_all(&dir).unwrap();
-        let first = &mut files.streams.as_mut().unwrap()[0];
+        let first = files.streams.as_mut().unwrap()[0].as_mut().unwrap();
         first.file = File::open(root.path()).unwrap();
         first.pending.push_str("x\n");
         files.flush();
         assert!(files.streams.is_none());
         files.finish(&run).unwrap();
         let at_end = tempfile::tempdir().unwrap();
-        write_run_outputs(&run, at_end.path()).unwrap();
+        write_all(&run, at_end.path()).unwrap();
         assert_eq!(read_all(&dir), read_all(at_end.path()));
     }
 
@@ -307,7 +392,7 @@ mod tests {
         let d = dir.path();
         assert_eq!(set_aside_unfinished(d).unwrap(), None);
         // Killed hard: the streamed files, no summary.
-        let mut files = RunFiles::create(d, Duration::ZERO).unwrap();
+        let mut files = RunFiles::create(d, true, Duration::ZERO).unwrap();
         files.append(&run_of(7));
         drop(files);
         std::fs::write(d.join("agent.mcap"), b"partial").unwrap();
@@ -323,13 +408,13 @@ mod tests {
         assert!(aside.join("agent.mcap").is_file() && !d.join("estimate.txt").exists());
         assert!(d.join("config.yaml").is_file(), "the configuration stays");
         // Killed again: the next goes beside it.
-        RunFiles::create(d, Duration::ZERO).unwrap();
+        RunFiles::create(d, true, Duration::ZERO).unwrap();
         assert_eq!(
             set_aside_unfinished(d).unwrap(),
             Some(d.join("unfinished-2"))
         );
         // A finished run stays where it is, its end-of-run files gone.
-        write_run_outputs(&run_of(3), d).unwrap();
+        write_all(&run_of(3), d).unwrap();
         std::fs::write(d.join("summary.json"), b"{}").unwrap();
         std::fs::write(d.join("peer_events.jsonl"), b"").unwrap();
         assert_eq!(set_aside_unfinished(d).unwrap(), None);

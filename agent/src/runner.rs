@@ -273,7 +273,8 @@ pub fn initial_state(spec: &EstimatorSpec, truth: &TruthState) -> InitialState {
         sigma_ori_rad: spec.init_sigma_ori_rad,
         sigma_pos_m: spec.init_sigma_pos_m,
         sigma_vel_mps: spec.init_sigma_vel_mps,
-        sigma_bias: spec.init_sigma_bias,
+        sigma_bias_gyro: spec.init_sigma_bias,
+        sigma_bias_accel: spec.init_sigma_bias,
     }
 }
 
@@ -309,42 +310,55 @@ impl RobotRun {
             .copied()
             .zip(self.truth.iter().copied())
             .collect();
-        let a = ate(&pairs, Alignment::None);
-        let aligned = ate(&pairs, Alignment::PosYaw);
-        let n = nees(&pairs, &self.covariance);
-        let mut times: Vec<f64> = self.frames.iter().map(|f| f.timing.total_ms).collect();
-        times.sort_by(f64::total_cmp);
-        let mean = (!times.is_empty()).then(|| times.iter().sum::<f64>() / times.len() as f64);
-        let p95 = common::metrics::percentile_sorted(&times, 0.95);
         MetricSet {
-            ate_ori_deg: (a.n > 0).then_some(a.ori_deg),
-            ate_pos_m: (a.n > 0).then_some(a.pos_m),
-            ate_posyaw_ori_deg: (aligned.n > 0).then_some(aligned.ori_deg),
-            ate_posyaw_pos_m: (aligned.n > 0).then_some(aligned.pos_m),
-            nees_ori: n.ori_mean,
-            nees_pos: n.pos_mean,
-            rpe: Some(rpe(&pairs, &DEFAULT_RPE_SEGMENTS_M)),
-            frames: Some(self.frames.len() as u64),
-            ms_per_frame_mean: mean,
-            ms_per_frame_p95: p95,
             loop_closures: self.cooperation.map(|c| c.loop_closures),
             common_feature_updates: self
                 .cooperation
                 .map(|_| self.frames.iter().map(|f| f.coop.updates() as u64).sum()),
             cpu_s: self.cpu_s,
-            ..MetricSet::default()
+            ..record_metrics(&pairs, &self.covariance, &self.frames)
         }
     }
 }
 
+/// Accuracy (ATE unaligned and position-and-yaw aligned, RPE), consistency
+/// (NEES against the covariance of each estimate's time) and cost per frame
+/// of a run's record: `pairs` are its estimates with the truth at their times.
+pub fn record_metrics(
+    pairs: &[PosePair],
+    covariance: &[StampedCovariance],
+    frames: &[FrameRecord],
+) -> MetricSet {
+    let a = ate(pairs, Alignment::None);
+    let aligned = ate(pairs, Alignment::PosYaw);
+    let n = nees(pairs, covariance);
+    let mut times: Vec<f64> = frames.iter().map(|f| f.timing.total_ms).collect();
+    times.sort_by(f64::total_cmp);
+    let mean = (!times.is_empty()).then(|| times.iter().sum::<f64>() / times.len() as f64);
+    let p95 = common::metrics::percentile_sorted(&times, 0.95);
+    MetricSet {
+        ate_ori_deg: (a.n > 0).then_some(a.ori_deg),
+        ate_pos_m: (a.n > 0).then_some(a.pos_m),
+        ate_posyaw_ori_deg: (aligned.n > 0).then_some(aligned.ori_deg),
+        ate_posyaw_pos_m: (aligned.n > 0).then_some(aligned.pos_m),
+        nees_ori: n.ori_mean,
+        nees_pos: n.pos_mean,
+        rpe: Some(rpe(pairs, &DEFAULT_RPE_SEGMENTS_M)),
+        frames: Some(frames.len() as u64),
+        ms_per_frame_mean: mean,
+        ms_per_frame_p95: p95,
+        ..MetricSet::default()
+    }
+}
+
 /// The header line of `timing.csv` (one row per frame, [`timing_row`]).
-pub const TIMING_HEADER: &str = "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed,matching_ms,common_vio_ms,common_slam_ms,constraint_ms,common_vio_used,common_vio_rejected,common_slam_used,constraints_used,participants,historical_participants,ci_participants,omega_own,ci_update_ms,cpu_ms,evidence_ms";
+pub const TIMING_HEADER: &str = "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed,matching_ms,common_vio_ms,common_slam_ms,constraint_ms,common_vio_used,common_vio_rejected,common_slam_used,constraints_used,participants,historical_participants,ci_participants,omega_own,ci_update_ms,cpu_ms,evidence_ms,zero_velocity";
 
 /// One row of `timing.csv` (no newline): a frame's costs and counts.
 pub fn timing_row(f: &FrameRecord) -> String {
     let t = &f.timing;
     format!(
-        "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{:.6},{:.4},{:.4},{:.4}",
+        "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{:.6},{:.4},{:.4},{:.4},{}",
         f.t,
         t.propagate_ms,
         t.msckf_ms,
@@ -374,26 +388,15 @@ pub fn timing_row(f: &FrameRecord) -> String {
         f.coop.omega_own,
         f.coop.ci_update_ms,
         t.cpu_ms,
-        f.coop.evidence_ms
+        f.coop.evidence_ms,
+        u8::from(f.zero_velocity)
     )
 }
 
 /// Writes a run's estimate and ground truth (TUM), per-pose covariances and
 /// per-frame timing (`timing.csv`) into `dir`.
 pub fn write_run_outputs(run: &RobotRun, dir: &std::path::Path) -> std::io::Result<()> {
-    use std::io::Write;
-    let to_io = |e: common::trajectory::TrajectoryError| std::io::Error::other(e.to_string());
-    std::fs::create_dir_all(dir)?;
-    common::trajectory::write_tum(dir.join("estimate.txt"), &run.estimate).map_err(to_io)?;
-    common::trajectory::write_tum(dir.join("groundtruth.txt"), &run.truth).map_err(to_io)?;
-    common::trajectory::write_covariances(dir.join("covariance.txt"), &run.covariance)
-        .map_err(to_io)?;
-    let mut timing = std::io::BufWriter::new(std::fs::File::create(dir.join("timing.csv"))?);
-    writeln!(timing, "{TIMING_HEADER}")?;
-    for f in &run.frames {
-        writeln!(timing, "{}", timing_row(f))?;
-    }
-    timing.flush()
+    crate::run_files::write_all(run, dir)
 }
 
 #[cfg(test)]

@@ -78,7 +78,8 @@ fn initial_state() -> InitialState {
         sigma_ori_rad: 0.017,
         sigma_pos_m: 0.05,
         sigma_vel_mps: 0.01,
-        sigma_bias: 0.02,
+        sigma_bias_gyro: 0.02,
+        sigma_bias_accel: 0.02,
     }
 }
 

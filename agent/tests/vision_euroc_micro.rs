@@ -28,6 +28,7 @@ fn micro_sequence_is_tracked_through_all_images_and_the_static_start_gets_roll_a
         FrontendOptions::default(),
         &StaticInitOptions::default(),
         |_, _| {},
+        |_| {},
     )
     .expect("run");
     let s = score(&run, &ds);
@@ -41,6 +42,59 @@ fn micro_sequence_is_tracked_through_all_images_and_the_static_start_gets_roll_a
     let last = s.final_tilt_error_deg.expect("estimates");
     assert!(last < 1.0, "tilt error at the end {last} deg");
     assert!(s.estimates > 40, "{s:?}");
+    // The truth is put on the first estimate it covers, so standing still
+    // the errors are the start's tilt and what the filter wandered.
+    let m = run.record.metrics();
+    println!("{m:?}");
+    assert_eq!(run.record.pairs().len(), s.estimates);
+    let (e, g) = run.record.pairs()[0];
+    assert!((e.pos - g.pos).norm() < 1e-12);
+    assert!(m.ate_pos_m.expect("ATE") < 0.05, "{m:?}");
+    assert!(m.ate_ori_deg.expect("ATE") < 1.0, "{m:?}");
+}
+
+/// `agent dataset`'s outputs: the streamed files of every agent run (the
+/// truth in the estimate's frame), the MCAP log and a summary that says the
+/// run finished; a second run in the same folder overwrites a finished one.
+#[test]
+fn the_dataset_command_writes_the_outputs_of_every_agent_run() {
+    let out = tempfile::tempdir().expect("tempdir");
+    let args = agent::dataset_cli::DatasetArgs {
+        euroc: data("euroc_v1_01_micro"),
+        groundtruth: Some(data("trajectories/V1_01_easy.csv")),
+        out: out.path().to_path_buf(),
+        mcap_image_every: 20,
+    };
+    for _ in 0..2 {
+        agent::dataset_cli::run_dataset_command(&args).expect("run");
+    }
+    let est = common::trajectory::read_tum(out.path().join("estimate.txt")).expect("estimate");
+    let gt = common::trajectory::read_tum(out.path().join("groundtruth.txt")).expect("truth");
+    let covs =
+        common::trajectory::read_covariances(out.path().join("covariance.txt")).expect("cov");
+    let timing = std::fs::read_to_string(out.path().join("timing.csv")).expect("timing");
+    assert!(est.len() > 40);
+    assert_eq!((gt.len(), covs.len()), (est.len(), est.len()));
+    assert_eq!(timing.lines().count(), est.len() + 1);
+    assert!(
+        (est[0].pos - gt[0].pos).norm() < 1e-9,
+        "the truth starts on the estimate"
+    );
+    let summary: common::summary::RunSummary = serde_json::from_str(
+        &std::fs::read_to_string(out.path().join("summary.json")).expect("summary"),
+    )
+    .expect("summary parses");
+    assert_eq!(summary.scenario, "euroc_v1_01_micro");
+    let m = &summary.robots[0].metrics;
+    assert_eq!(m.frames, Some(est.len() as u64));
+    assert!(m.ate_pos_m.expect("ATE") < 0.05, "{m:?}");
+    assert!(
+        std::fs::metadata(out.path().join("agent.mcap"))
+            .expect("mcap")
+            .len()
+            > 1000
+    );
+    assert!(!out.path().join("unfinished-1").exists());
 }
 
 #[test]

@@ -247,7 +247,8 @@ impl CentralEstimator {
                 .filter(|s| s.t > t_prev && s.t <= t_imu)
                 .copied()
                 .collect();
-            if updater_zupt::try_update(&mut slot, &readings, &opts, &self.chi2) {
+            // The centralized reference runs on simulated IMUs: the IMU test.
+            if updater_zupt::try_update(&mut slot, &readings, &opts, &self.chi2, false) {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
                 timing.cpu_ms = cpu_ms(cpu_start);

@@ -5,12 +5,21 @@
 //! `ω_m = b_g + n_g` and `a_m = R_ItoGᵀ g + b_a + n_a`: a chi-square test of that
 //! hypothesis on every reading (plus a bound on the estimated speed) detects the
 //! standstill, and the same model, with `v = 0`, is then used as an EKF update.
+//!
+//! A real IMU on a vehicle at rest with its rotors or engine running vibrates
+//! far beyond its datasheet noise (EuRoC V1_01 before take-off: the readings
+//! scatter 10 to 480 times the datasheet variance), and fails that test. The
+//! images then tell: tracks that have not moved since the last clone (OpenVINS's
+//! disparity test, here against the last clone rather than the last image, so
+//! that a slow drift adds up and ends the standstill). The update then weighs
+//! the readings' mean by their own scatter.
 
 use super::chi2::Chi2Table;
+use super::feature_db::FeatureDb;
 use super::filter::Filter;
 use super::options::EstimatorOptions;
 use super::state::{Means, Var};
-use common::measurement::ImuSample;
+use common::measurement::{FeatureFrame, ImuSample};
 use common::so3::skew;
 use nalgebra::{DMatrix, DVector, Vector3};
 
@@ -18,16 +27,39 @@ use nalgebra::{DMatrix, DVector, Vector3};
 const MAX_SPEED_MPS: f64 = 0.1;
 /// Standard deviation of the zero-velocity pseudo-measurement, m/s.
 const VELOCITY_SIGMA_MPS: f64 = 0.01;
+/// Fewest tracks shared with the last clone for the images to tell a standstill.
+const MIN_DISPARITY_TRACKS: usize = 10;
+
+/// Mean distance, px, that the tracks of `frame` moved since the clone
+/// `last_key` measured them (raw pixels), or `None` if fewer than
+/// [`MIN_DISPARITY_TRACKS`] tracks were measured at both.
+pub fn disparity_px(frame: &FeatureFrame, features: &FeatureDb, last_key: u64) -> Option<f64> {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for o in &frame.features {
+        let Some(m) = features.get(o.id).and_then(|f| f.newest()) else {
+            continue;
+        };
+        if m.clone_key == last_key {
+            sum += (o.uv - m.uv).norm();
+            n += 1;
+        }
+    }
+    (n >= MIN_DISPARITY_TRACKS).then(|| sum / n as f64)
+}
 
 /// The zero-motion model `[ω_m − b_g; a_m − b_a − Rᵀ g]` has the same Jacobian
 /// for every reading, so the stack of `N` readings is equivalent to their mean
 /// with noise `R₀/N`, plus a scatter term that only enters the chi-square test:
 /// `d² = r̄ᵀ (H P Hᵀ + R₀/N)⁻¹ r̄ + Σ_k (r_k − r̄)ᵀ R₀⁻¹ (r_k − r̄)`, with `6N` degrees
 /// of freedom. Returns `(H, r̄ with the velocity row, R, scatter)`.
+///
+/// `own_scatter`: the mean's noise per axis is the larger of the datasheet's
+/// and the readings' own sample variance (a vibrating vehicle at rest).
 fn build(
     state: &Means,
     readings: &[ImuSample],
     opts: &EstimatorOptions,
+    own_scatter: bool,
 ) -> (DMatrix<f64>, DVector<f64>, DMatrix<f64>, f64) {
     let imu = &state.imu;
     let g = Vector3::new(0.0, 0.0, opts.imu.gravity_mps2);
@@ -58,6 +90,21 @@ fn build(
             (rg - mg).norm_squared() / var_g + (ra - ma).norm_squared() / var_a
         })
         .sum();
+    // Per axis: gyro x, y, z, then accelerometer x, y, z.
+    let mut var = [var_g, var_g, var_g, var_a, var_a, var_a];
+    if own_scatter && readings.len() > 1 {
+        let mut sample = [0.0; 6];
+        for s in readings {
+            let (rg, ra) = residual(s);
+            for i in 0..3 {
+                sample[i] += (rg[i] - mg[i]).powi(2) / (n - 1.0);
+                sample[3 + i] += (ra[i] - ma[i]).powi(2) / (n - 1.0);
+            }
+        }
+        for (v, s) in var.iter_mut().zip(sample) {
+            *v = v.max(s);
+        }
+    }
     let ident = nalgebra::Matrix3::<f64>::identity();
     let mut h = DMatrix::zeros(9, 15);
     // ∂(ω_m − b_g)/∂δb_g = −I ; ∂(a_m − b_a − Rᵀg)/∂δθ = −[Rᵀ g]× , ∂/∂δb_a = −I ;
@@ -71,37 +118,76 @@ fn build(
     res.rows_mut(3, 3).copy_from(&ma);
     res.rows_mut(6, 3).copy_from(&(-imu.vel));
     let mut r = DMatrix::zeros(9, 9);
-    for i in 0..3 {
-        r[(i, i)] = var_g / n;
-        r[(3 + i, 3 + i)] = var_a / n;
-        r[(6 + i, 6 + i)] = VELOCITY_SIGMA_MPS.powi(2);
+    for (i, v) in var.iter().enumerate() {
+        r[(i, i)] = v / n;
+    }
+    for i in 6..9 {
+        r[(i, i)] = VELOCITY_SIGMA_MPS.powi(2);
     }
     (h, res, r, scatter)
 }
 
 /// Tests the standstill hypothesis on `readings` and, when it holds, applies the
-/// zero-velocity update. Returns whether the robot was found standing still.
+/// zero-velocity update. `image_still`: the images show a standstill
+/// ([`disparity_px`] below `zupt_max_disparity_px`); the readings then need
+/// only agree with rest on average, weighed by their own scatter. Returns
+/// whether the robot was found standing still.
 pub fn try_update<F: Filter + ?Sized>(
     state: &mut F,
     readings: &[ImuSample],
     opts: &EstimatorOptions,
     chi2: &Chi2Table,
+    image_still: bool,
 ) -> bool {
     if readings.len() < 2 || state.means().imu.vel.norm() > MAX_SPEED_MPS {
         return false;
     }
-    let (h, res, r, scatter) = build(state.means(), readings, opts);
-    // Gate on the IMU rows only: the velocity row is what we want to impose.
-    let h_imu = h.rows(0, 6).into_owned();
-    let res_imu = res.rows(0, 6).into_owned();
-    let r_imu = r.view((0, 0), (6, 6)).into_owned();
-    let Ok(d2) = state.mahalanobis(&[Var::Imu], &h_imu, &res_imu, &r_imu) else {
+    let imu_still = standstill_test(state, readings, opts, chi2, false);
+    let still = imu_still.or_else(|| {
+        image_still
+            .then(|| standstill_test(state, readings, opts, chi2, true))
+            .flatten()
+    });
+    let Some((h, res, r)) = still else {
         return false;
     };
-    if d2 + scatter > opts.chi2_multiplier * chi2.get(6 * readings.len()) {
-        return false;
-    }
     state.ekf_update(&[Var::Imu], &h, &res, &r).is_ok()
+}
+
+/// The zero-velocity update's `(H, r, R)` if the readings pass the standstill
+/// test: every reading against the datasheet noise, or with `own_scatter`
+/// their mean against the noise of [`build`] (the scatter then says nothing)
+/// and the estimated velocity against zero. The images alone cannot tell a
+/// standstill from a slow steady drift (a hover at 5 cm/s moves the tracks
+/// 3 m away by 0.4 px per frame, and a steady motion reads as rest to an
+/// IMU): a velocity the filter knows to be nonzero refuses it.
+fn standstill_test<F: Filter + ?Sized>(
+    state: &F,
+    readings: &[ImuSample],
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+    own_scatter: bool,
+) -> Option<(DMatrix<f64>, DVector<f64>, DMatrix<f64>)> {
+    let (h, res, r, scatter) = build(state.means(), readings, opts, own_scatter);
+    // The IMU rows (0..6) and the velocity rows (6..9), each on its own.
+    let rows = |first: usize, n: usize| {
+        let d2 = state.mahalanobis(
+            &[Var::Imu],
+            &h.rows(first, n).into_owned(),
+            &res.rows(first, n).into_owned(),
+            &r.view((first, first), (n, n)).into_owned(),
+        );
+        d2.ok()
+    };
+    let imu_d2 = rows(0, 6)?;
+    let passed = if own_scatter {
+        let gate = |d2: f64, dof: usize| d2 <= opts.chi2_multiplier * chi2.get(dof);
+        gate(imu_d2, 6) && gate(rows(6, 3)?, 3)
+    } else {
+        // The velocity is what we want to impose: it is not tested.
+        imu_d2 + scatter <= opts.chi2_multiplier * chi2.get(6 * readings.len())
+    };
+    passed.then_some((h, res, r))
 }
 
 #[cfg(test)]
@@ -142,7 +228,8 @@ mod tests {
             &mut s,
             &readings(Vector3::new(0.0, 0.0, 9.81)),
             &opts,
-            &chi2
+            &chi2,
+            false
         ));
         assert!(s.imu.vel.norm() < 0.005, "{}", s.imu.vel);
     }
@@ -157,13 +244,87 @@ mod tests {
         for (k, r) in shaking.iter_mut().enumerate() {
             r.accel.x += 0.5 * (k as f64 * 0.7).sin();
         }
-        assert!(!try_update(&mut s, &shaking, &opts, &chi2));
+        assert!(!try_update(&mut s, &shaking, &opts, &chi2, false));
         let mut moving = still_state(Vector3::new(1.0, 0.0, 0.0));
         assert!(!try_update(
             &mut moving,
             &readings(Vector3::new(0.0, 0.0, 9.81)),
             &opts,
-            &chi2
+            &chi2,
+            false
         ));
+    }
+
+    /// A vehicle at rest with its rotors running: the readings scatter 20
+    /// times the datasheet's deviation around rest. The IMU test refuses it;
+    /// with the images still, the update pulls the velocity to zero.
+    #[test]
+    fn a_vibrating_robot_at_rest_is_taken_for_a_standstill_only_when_the_images_are_still() {
+        let opts = EstimatorOptions::default();
+        let chi2 = Chi2Table::new(0.95, 1000);
+        let sd = opts.imu.accel_noise_density * (400f64).sqrt() * 20.0;
+        let mut vibrating = readings(Vector3::new(0.0, 0.0, 9.81));
+        for (k, r) in vibrating.iter_mut().enumerate() {
+            let phase = k as f64 * 2.1;
+            r.accel += Vector3::new(phase.sin(), phase.cos(), (1.3 * phase).sin()) * sd;
+        }
+        let mut s = still_state(Vector3::new(0.03, 0.0, 0.0));
+        assert!(!try_update(&mut s, &vibrating, &opts, &chi2, false));
+        assert!(try_update(&mut s, &vibrating, &opts, &chi2, true));
+        assert!(s.imu.vel.norm() < 0.005, "{}", s.imu.vel);
+        // Still images do not make a moving robot stand, even a slow one the
+        // filter knows is moving (0.05 m/s, σ 0.01).
+        let mut moving = still_state(Vector3::new(1.0, 0.0, 0.0));
+        assert!(!try_update(&mut moving, &vibrating, &opts, &chi2, true));
+        let mut drifting = State::new(
+            0.0,
+            ImuState {
+                vel: Vector3::new(0.05, 0.0, 0.0),
+                ..ImuState::default()
+            },
+            DMatrix::identity(15, 15) * 1e-4,
+            CameraCalibration::euroc_cam0(),
+            &[],
+        );
+        assert!(!try_update(&mut drifting, &vibrating, &opts, &chi2, true));
+    }
+
+    #[test]
+    fn disparity_is_the_mean_pixel_motion_of_the_tracks_since_the_last_clone() {
+        use crate::estimator::feature_db::FeatureMeasurement;
+        use common::measurement::FeatureObservation;
+        use nalgebra::Vector2;
+        let mut db = FeatureDb::new();
+        let mut frame = FeatureFrame {
+            t: 1.0,
+            camera: 0,
+            features: Vec::new(),
+        };
+        for id in 0..12u64 {
+            let uv = Vector2::new(10.0 * id as f64, 50.0);
+            // Tracks 0-11 measured at clone 7; track 11 also later, at 8.
+            for key in [7, 8].into_iter().take(if id == 11 { 2 } else { 1 }) {
+                db.insert(
+                    id,
+                    FeatureMeasurement {
+                        clone_key: key,
+                        t: key as f64,
+                        uv,
+                        uvn: Vector2::zeros(),
+                    },
+                )
+                .unwrap();
+            }
+            frame.features.push(FeatureObservation {
+                id,
+                uv: uv + Vector2::new(0.3, 0.4),
+                descriptor: Default::default(),
+            });
+        }
+        // 11 tracks last seen at clone 7 moved 0.5 px each.
+        let d = disparity_px(&frame, &db, 7).unwrap();
+        assert!((d - 0.5).abs() < 1e-12, "{d}");
+        // Against clone 8 only one track: too few to tell.
+        assert_eq!(disparity_px(&frame, &db, 8), None);
     }
 }

@@ -60,8 +60,10 @@ pub struct InitialState {
     pub sigma_pos_m: f64,
     /// Velocity σ, m/s.
     pub sigma_vel_mps: f64,
-    /// Bias σ (both), rad/s and m/s².
-    pub sigma_bias: f64,
+    /// Gyroscope bias σ, rad/s.
+    pub sigma_bias_gyro: f64,
+    /// Accelerometer bias σ, m/s².
+    pub sigma_bias_accel: f64,
 }
 
 /// The single-robot filter.
@@ -286,7 +288,12 @@ impl Estimator {
                 .filter(|s| s.t > t_prev && s.t <= t_imu)
                 .copied()
                 .collect();
-            if updater_zupt::try_update(state, &readings, &opts, &self.chi2) {
+            // The tracks against the newest clone's (`self.seq`): at a standstill
+            // no clone is made, so a slow drift adds up until it shows.
+            let image_still = opts.zupt_max_disparity_px > 0.0
+                && updater_zupt::disparity_px(frame, &self.features, self.seq)
+                    .is_some_and(|d| d < opts.zupt_max_disparity_px);
+            if updater_zupt::try_update(state, &readings, &opts, &self.chi2, image_still) {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
                 timing.cpu_ms = cpu_ms(cpu_start);
@@ -454,8 +461,8 @@ pub(crate) fn initial_blocks(
         init.sigma_ori_rad,
         init.sigma_pos_m,
         init.sigma_vel_mps,
-        init.sigma_bias,
-        init.sigma_bias,
+        init.sigma_bias_gyro,
+        init.sigma_bias_accel,
     ];
     for (b, s) in sig.iter().enumerate() {
         for i in 0..3 {

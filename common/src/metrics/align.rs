@@ -17,6 +17,9 @@ use crate::trajectory::StampedPose;
 ///
 /// With no pairs the identity is returned; with fewer than three non-collinear
 /// positions the rotation is not unique and one of the minimizers is returned.
+/// A truth that spreads less than [`MIN_YAW_SPREAD_M`] horizontally (a
+/// platform standing still) says nothing of yaw: [`Alignment::PosYaw`] then
+/// only translates, where the minimizer would turn by whatever the noise says.
 pub fn align(pairs: &[PosePair], mode: Alignment) -> Se3 {
     if pairs.is_empty() || mode == Alignment::None {
         return Se3::identity();
@@ -26,6 +29,9 @@ pub fn align(pairs: &[PosePair], mode: Alignment) -> Se3 {
     let mu_g = pairs.iter().map(|(_, g)| g.pos).sum::<Vector3<f64>>() / n;
     let rot = match mode {
         Alignment::None => Matrix3::identity(),
+        Alignment::PosYaw if horizontal_spread_m(pairs, &mu_g) < MIN_YAW_SPREAD_M => {
+            Matrix3::identity()
+        }
         Alignment::PosYaw => {
             let (mut a, mut b) = (0.0, 0.0);
             for (e, g) in pairs {
@@ -45,6 +51,19 @@ pub fn align(pairs: &[PosePair], mode: Alignment) -> Se3 {
         }
     };
     Se3::new(rot, mu_g - rot * mu_e)
+}
+
+/// RMS horizontal distance of the truth positions from their centroid under
+/// which a position-and-yaw alignment keeps the yaw, m.
+pub const MIN_YAW_SPREAD_M: f64 = 0.1;
+
+/// RMS horizontal distance of the truth positions from their centroid `mu_g`, m.
+fn horizontal_spread_m(pairs: &[PosePair], mu_g: &Vector3<f64>) -> f64 {
+    let sum: f64 = pairs
+        .iter()
+        .map(|(_, g)| (g.pos - mu_g).xy().norm_squared())
+        .sum();
+    (sum / pairs.len() as f64).sqrt()
 }
 
 /// The proper rotation `U D Vᵀ` of the SVD `H = U S Vᵀ`, with `D` flipping the
@@ -92,6 +111,33 @@ mod tests {
         let back = t.compose(&offset);
         assert!(log_so3(&back.rot).norm() < 1e-12);
         assert!(back.trans.norm() < 1e-12);
+    }
+
+    /// A platform standing still: millimetres of noise in the truth and the
+    /// estimate. The yaw they would give is noise; the alignment only moves.
+    #[test]
+    fn posyaw_on_a_truth_standing_still_only_translates() {
+        let pairs: Vec<PosePair> = (0..50)
+            .map(|k| {
+                let f = k as f64;
+                let g = StampedPose {
+                    t: f,
+                    rot: Matrix3::identity(),
+                    pos: Vector3::new(
+                        1.0 + 1e-3 * (0.7 * f).sin(),
+                        2.0 + 1e-3 * (1.3 * f).cos(),
+                        0.9,
+                    ),
+                };
+                let mut e = g;
+                e.pos = Vector3::new(1e-3 * (2.1 * f).cos(), 1e-3 * (0.4 * f).sin(), 0.0);
+                (e, g)
+            })
+            .collect();
+        let t = align(&pairs, Alignment::PosYaw);
+        assert_eq!(t.rot, Matrix3::identity());
+        let after = super::super::ate(&pairs, Alignment::PosYaw);
+        assert!(after.ori_deg < 1e-12 && after.pos_m < 0.01, "{after:?}");
     }
 
     #[test]
