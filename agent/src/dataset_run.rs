@@ -244,21 +244,8 @@ pub fn run_dataset(
                     let truth = ds
                         .groundtruth
                         .as_deref()
-                        .and_then(|gt| interpolate_pose(gt, o.t));
-                    run.record.push(
-                        StampedPose {
-                            t: o.t,
-                            rot: o.rot,
-                            pos: o.pos,
-                        },
-                        StampedCovariance {
-                            t: o.t,
-                            ori: o.cov_ori,
-                            pos: o.cov_pos,
-                        },
-                        FrameRecord::from(&o),
-                        truth,
-                    );
+                        .and_then(|gt| interpolate_pose(gt, o.t()));
+                    run.record.push(o.pose(), o.covariance(), o.record, truth);
                     estimated = true;
                 }
                 Err(e) => run.rejected.push(e.to_string()),

@@ -1416,15 +1416,15 @@ fn log_estimate(
     let Some(log) = node.log.as_mut() else {
         return;
     };
-    let _ = log.pose("/estimate", "world", o.t, &o.rot, &o.pos);
-    let _ = log.covariance(o.t, &o.cov_ori, &o.cov_pos);
-    if let Some(gt) = truth.spline.pose(o.t) {
-        let _ = log.pose("/groundtruth", "world", o.t, &gt.rot, &gt.trans);
+    let _ = log.pose("/estimate", "world", o.t(), &o.rot, &o.pos);
+    let _ = log.covariance(o.t(), &o.cov_ori, &o.cov_pos);
+    if let Some(gt) = truth.spline.pose(o.t()) {
+        let _ = log.pose("/groundtruth", "world", o.t(), &gt.rot, &gt.trans);
     }
     let run = &node.report.run;
     let frames = run.frames.len();
     if path_due(frames, node.path_logged_at) {
-        log_paths(log, run, o.t);
+        log_paths(log, run, o.t());
         node.path_logged_at = Some(frames);
     }
     if frames % SCENE_EVERY_FRAMES == 0 {
@@ -1433,7 +1433,7 @@ fn log_estimate(
             .map(|w| w.landmarks.iter().map(|l| l.pos).collect())
             .unwrap_or_default();
         let peers: Vec<PeerPose> = node.peer_poses.values().copied().collect();
-        let _ = log.scene(o.t, &landmarks, &peers);
+        let _ = log.scene(o.t(), &landmarks, &peers);
     }
 }
 

@@ -320,7 +320,7 @@ mod tests {
             run.estimate.push(whole.estimate[k]);
             run.truth.push(whole.truth[k]);
             run.covariance.push(whole.covariance[k]);
-            run.frames.push(whole.frames[k].clone());
+            run.frames.push(whole.frames[k]);
             files.append(&run);
             if k % 13 == 5 {
                 files.flush();
@@ -342,7 +342,7 @@ mod tests {
             partial.estimate.push(run.estimate[k]);
             partial.truth.push(run.truth[k]);
             partial.covariance.push(run.covariance[k]);
-            partial.frames.push(run.frames[k].clone());
+            partial.frames.push(run.frames[k]);
             files.append(&partial);
         }
         // Dropped without `finish`, as a killed process would leave it.

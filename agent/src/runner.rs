@@ -280,25 +280,17 @@ pub fn initial_state(spec: &EstimatorSpec, truth: &TruthState) -> InitialState {
 
 /// Appends a frame's output to `run`, with the truth at the estimate's time.
 pub fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: FrameOutput) {
-    let Some(gt) = truth.spline.pose(o.t) else {
+    let Some(gt) = truth.spline.pose(o.t()) else {
         return;
     };
-    run.estimate.push(StampedPose {
-        t: o.t,
-        rot: o.rot,
-        pos: o.pos,
-    });
+    run.estimate.push(o.pose());
     run.truth.push(StampedPose {
-        t: o.t,
+        t: o.t(),
         rot: gt.rot,
         pos: gt.trans,
     });
-    run.covariance.push(StampedCovariance {
-        t: o.t,
-        ori: o.cov_ori,
-        pos: o.cov_pos,
-    });
-    run.frames.push(FrameRecord::from(&o));
+    run.covariance.push(o.covariance());
+    run.frames.push(o.record);
 }
 
 impl RobotRun {

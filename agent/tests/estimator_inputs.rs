@@ -162,14 +162,25 @@ impl Robot {
 
 /// Exact (bitwise for floats) equality of two frame outputs, timing aside.
 fn assert_same_output(a: &FrameOutput, b: &FrameOutput) {
-    assert_eq!(a.t.to_bits(), b.t.to_bits(), "time");
-    assert_eq!(a.rot, b.rot, "orientation at t={}", a.t);
-    assert_eq!(a.pos, b.pos, "position at t={}", a.t);
-    assert_eq!(a.vel, b.vel, "velocity at t={}", a.t);
-    assert_eq!(a.cov_ori, b.cov_ori, "orientation covariance at t={}", a.t);
-    assert_eq!(a.cov_pos, b.cov_pos, "position covariance at t={}", a.t);
-    assert_eq!(a.msckf_features, b.msckf_features, "MSCKF features");
-    assert_eq!(a.slam_features, b.slam_features, "SLAM features");
+    assert_eq!(a.t().to_bits(), b.t().to_bits(), "time");
+    assert_eq!(a.rot, b.rot, "orientation at t={}", a.t());
+    assert_eq!(a.pos, b.pos, "position at t={}", a.t());
+    assert_eq!(a.vel, b.vel, "velocity at t={}", a.t());
+    assert_eq!(
+        a.cov_ori,
+        b.cov_ori,
+        "orientation covariance at t={}",
+        a.t()
+    );
+    assert_eq!(a.cov_pos, b.cov_pos, "position covariance at t={}", a.t());
+    assert_eq!(
+        a.record.msckf_features, b.record.msckf_features,
+        "MSCKF features"
+    );
+    assert_eq!(
+        a.record.slam_features, b.record.slam_features,
+        "SLAM features"
+    );
 }
 
 /// A sane estimate of the robot standing at the origin.

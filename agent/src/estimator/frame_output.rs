@@ -4,6 +4,7 @@
 use super::cooperative::CoopFrameStats;
 use super::state::Means;
 use super::{updater_msckf, updater_slam};
+use common::trajectory::{StampedCovariance, StampedPose};
 use nalgebra::{Matrix3, Vector3};
 
 /// Wall-clock cost of one frame, in milliseconds.
@@ -19,7 +20,7 @@ pub struct FrameTiming {
     pub slam_init_ms: f64,
     /// Marginalization and clean-up.
     pub marginalize_ms: f64,
-    /// Cooperative matching and updates (also in [`FrameOutput::coop`]).
+    /// Cooperative matching and updates (also in [`FrameRecord::coop`]).
     pub cooperation_ms: f64,
     /// Everything (wall clock).
     pub total_ms: f64,
@@ -31,8 +32,6 @@ pub struct FrameTiming {
 /// The estimate after one frame.
 #[derive(Clone, Debug)]
 pub struct FrameOutput {
-    /// IMU time of the estimate, s.
-    pub t: f64,
     /// `R_ItoG`.
     pub rot: Matrix3<f64>,
     /// `p_IinG`, m.
@@ -43,20 +42,8 @@ pub struct FrameOutput {
     pub cov_ori: Matrix3<f64>,
     /// Position covariance (m²).
     pub cov_pos: Matrix3<f64>,
-    /// Features used in the MSCKF update.
-    pub msckf_features: usize,
-    /// What the MSCKF update did (used, gated out, failed).
-    pub msckf: updater_msckf::MsckfStats,
-    /// SLAM features in the state.
-    pub slam_features: usize,
-    /// What the SLAM step did.
-    pub slam: updater_slam::SlamStats,
-    /// The frame was a standstill handled by a zero-velocity update.
-    pub zero_velocity: bool,
-    /// What the cooperative updates did.
-    pub coop: CoopFrameStats,
-    /// Cost of the frame.
-    pub timing: FrameTiming,
+    /// Its time, what the updates did and what the frame cost.
+    pub record: FrameRecord,
 }
 
 impl FrameOutput {
@@ -75,28 +62,52 @@ impl FrameOutput {
         zero_velocity: bool,
     ) -> Self {
         Self {
-            t: means.t,
             rot: means.imu.rot,
             pos: means.imu.pos,
             vel: means.imu.vel,
             cov_ori,
             cov_pos,
-            msckf_features: msckf.used,
-            msckf,
-            slam_features: means.features.len(),
-            slam,
-            zero_velocity,
-            coop,
-            timing,
+            record: FrameRecord {
+                t: means.t,
+                msckf_features: msckf.used,
+                msckf,
+                slam_features: means.features.len(),
+                slam,
+                zero_velocity,
+                coop,
+                timing,
+            },
+        }
+    }
+
+    /// IMU time of the estimate, s.
+    pub fn t(&self) -> f64 {
+        self.record.t
+    }
+
+    /// The estimated pose at [`Self::t`].
+    pub fn pose(&self) -> StampedPose {
+        StampedPose {
+            t: self.t(),
+            rot: self.rot,
+            pos: self.pos,
+        }
+    }
+
+    /// Its orientation and position covariance.
+    pub fn covariance(&self) -> StampedCovariance {
+        StampedCovariance {
+            t: self.t(),
+            ori: self.cov_ori,
+            pos: self.cov_pos,
         }
     }
 }
 
-/// What a run keeps of each frame's output: its time, what its updates did
-/// and what it cost. The estimate and its covariances are kept as poses
-/// ([`crate::runner::RobotRun`]); kept here too they were a quarter of an
-/// hour's record.
-#[derive(Clone, Debug, Default)]
+/// What a frame's updates did and what it cost: all of a frame's output but
+/// the estimate, and what a run keeps of it (the estimate and covariances
+/// are kept as poses, [`crate::runner::RobotRun`]).
+#[derive(Clone, Copy, Debug, Default)]
 pub struct FrameRecord {
     /// IMU time of the estimate, s.
     pub t: f64,
@@ -114,21 +125,6 @@ pub struct FrameRecord {
     pub coop: CoopFrameStats,
     /// Cost of the frame.
     pub timing: FrameTiming,
-}
-
-impl From<&FrameOutput> for FrameRecord {
-    fn from(o: &FrameOutput) -> Self {
-        Self {
-            t: o.t,
-            msckf_features: o.msckf_features,
-            msckf: o.msckf,
-            slam_features: o.slam_features,
-            slam: o.slam,
-            zero_velocity: o.zero_velocity,
-            coop: o.coop,
-            timing: o.timing,
-        }
-    }
 }
 
 /// Thread CPU time since `start`, ms (0 where the platform has no thread clock).
