@@ -3,16 +3,18 @@
 //! and `evo`, covariances, `timing.csv`, `summary.json`) and the MCAP log.
 
 use crate::agent_log::AgentLog;
+use crate::config::EstimatorSection;
 use crate::dataset::EurocDataset;
 use crate::dataset_run::{run_dataset, score};
 use crate::estimator::static_init::StaticInitOptions;
 use crate::estimator::EstimatorOptions;
 use crate::frontend::FrontendOptions;
 use crate::run_files::{set_aside_unfinished, RunFiles, FLUSH_PERIOD};
-use anyhow::{Context, Result};
+use crate::runner::Variant;
+use anyhow::{anyhow, bail, Context, Result};
 use common::summary::{MetricSet, RobotSummary, RunSummary};
 use common::trajectory::StampedPose;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Arguments of `agent dataset`.
@@ -30,6 +32,49 @@ pub struct DatasetArgs {
     /// Log every this many images (with their tracks) to `agent.mcap`.
     #[arg(long, default_value_t = 5)]
     pub mcap_image_every: usize,
+    /// Estimator settings (YAML): the keys of an agent configuration's
+    /// `estimator:` block (`variant: indp | indp-slam`, `max_clones`,
+    /// `try_zupt`, `zupt_max_disparity_px`, ...), over the defaults and the
+    /// IMU noise of `imu0/sensor.yaml`.
+    #[arg(long, value_name = "YAML")]
+    pub estimator: Option<PathBuf>,
+}
+
+/// The estimator's options for a sequence and its variant: the defaults
+/// (EuRoC's IMU datasheet), the IMU noise of `imu0/sensor.yaml` when it gives
+/// one, then the overrides of `estimator` (a file with the keys of an agent
+/// configuration's `estimator:` block).
+pub fn dataset_options(
+    ds: &EurocDataset,
+    estimator: Option<&Path>,
+) -> Result<(EstimatorOptions, Variant)> {
+    let mut o = EstimatorOptions::default();
+    if let Some(n) = ds.imu_noise {
+        o.imu.gyro_noise_density = n.gyroscope_noise_density;
+        o.imu.gyro_random_walk = n.gyroscope_random_walk;
+        o.imu.accel_noise_density = n.accelerometer_noise_density;
+        o.imu.accel_random_walk = n.accelerometer_random_walk;
+    }
+    let mut variant = Variant::IndpSlam;
+    if let Some(path) = estimator {
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let section: EstimatorSection = serde_yaml::from_str(&text)
+            .with_context(|| format!("{}: not an `estimator:` block", path.display()))?;
+        variant = section.variant.parse()?;
+        if variant.cooperative() || variant.centralized() {
+            bail!(
+                "{}: variant `{}` needs peers; one sequence runs `indp` or `indp-slam`",
+                path.display(),
+                variant.name()
+            );
+        }
+        variant.apply(&mut o);
+        section.apply(&mut o);
+    }
+    o.validate()
+        .map_err(|e| anyhow!("estimator settings: {e}"))?;
+    Ok((o, variant))
 }
 
 /// Runs the command: writes `estimate.txt`, `covariance.txt`, `timing.csv`
@@ -41,6 +86,17 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
     let wall = Instant::now();
     let ds = EurocDataset::open(&args.euroc, args.groundtruth.as_deref())
         .with_context(|| format!("opening {}", args.euroc.display()))?;
+    let (opts, variant) = dataset_options(&ds, args.estimator.as_deref())?;
+    tracing::info!(
+        "{}: IMU noise {} {:?}",
+        variant.name(),
+        if ds.imu_noise.is_some() {
+            "of imu0/sensor.yaml"
+        } else {
+            "by default (EuRoC's)"
+        },
+        opts.imu
+    );
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     if let Some(aside) = set_aside_unfinished(&args.out)
@@ -58,7 +114,7 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
     let mut k = 0usize;
     let run = run_dataset(
         &ds,
-        EstimatorOptions::default(),
+        opts,
         FrontendOptions::default(),
         &StaticInitOptions::default(),
         |c, out| {
@@ -124,7 +180,7 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
         rec.estimate.last().map_or(0.0, |p| p.t) - rec.estimate.first().map_or(0.0, |p| p.t);
     let summary = RunSummary {
         scenario: name.clone(),
-        variant: Some("indp-slam".into()),
+        variant: Some(variant.name().into()),
         seed: 0,
         transport: None,
         wall_s: Some(wall.elapsed().as_secs_f64()),

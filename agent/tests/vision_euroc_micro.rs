@@ -64,6 +64,7 @@ fn the_dataset_command_writes_the_outputs_of_every_agent_run() {
         groundtruth: Some(data("trajectories/V1_01_easy.csv")),
         out: out.path().to_path_buf(),
         mcap_image_every: 20,
+        estimator: None,
     };
     for _ in 0..2 {
         agent::dataset_cli::run_dataset_command(&args).expect("run");
@@ -118,4 +119,57 @@ fn the_frontend_refuses_wrong_sizes_and_time_going_backwards() {
         ..FrontendOptions::default()
     };
     assert!(Frontend::new(bad, ds.calibration.camera.clone()).is_err());
+}
+
+/// The IMU noise of `imu0/sensor.yaml` and the `--estimator` overrides reach
+/// the estimator; a cooperative variant or an unknown key is refused.
+#[test]
+fn the_dataset_takes_the_imu_noise_of_its_sensor_file_and_the_estimator_overrides() {
+    use agent::dataset_cli::dataset_options;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mav0 = dir.path().join("seq/mav0");
+    std::fs::create_dir_all(mav0.join("imu0")).unwrap();
+    let micro = data("euroc_v1_01_micro/mav0");
+    std::os::unix::fs::symlink(micro.join("cam0"), mav0.join("cam0")).unwrap();
+    std::os::unix::fs::symlink(micro.join("imu0/data.csv"), mav0.join("imu0/data.csv")).unwrap();
+    std::fs::write(
+        mav0.join("imu0/sensor.yaml"),
+        "%YAML:1.0\nsensor_type: imu\nrate_hz: 200\ngyroscope_noise_density: 1.0e-3\ngyroscope_random_walk: 2.0e-5\naccelerometer_noise_density: 2.0e-2\naccelerometer_random_walk: 4.0e-3\n",
+    )
+    .unwrap();
+    let ds = EurocDataset::open(&dir.path().join("seq"), None).expect("dataset");
+    let (o, v) = dataset_options(&ds, None).expect("options");
+    assert_eq!(v.name(), "indp-slam");
+    assert_eq!(
+        (o.imu.gyro_noise_density, o.imu.accel_noise_density),
+        (1.0e-3, 2.0e-2)
+    );
+    assert_eq!(o.imu.accel_random_walk, 4.0e-3);
+
+    let yaml = dir.path().join("estimator.yaml");
+    std::fs::write(
+        &yaml,
+        "variant: indp\nzupt_max_disparity_px: 0.5\nmax_clones: 8\n",
+    )
+    .unwrap();
+    let (o, v) = dataset_options(&ds, Some(&yaml)).expect("options");
+    assert_eq!(
+        (v.name(), o.max_slam_features, o.max_clones),
+        ("indp", 0, 8)
+    );
+    assert_eq!(o.zupt_max_disparity_px, 0.5);
+    assert_eq!(
+        o.imu.gyro_noise_density, 1.0e-3,
+        "the sensor file's noise stays"
+    );
+
+    std::fs::write(&yaml, "variant: dc-full-history\n").unwrap();
+    let e = dataset_options(&ds, Some(&yaml)).unwrap_err().to_string();
+    assert!(e.contains("needs peers"), "{e}");
+    std::fs::write(&yaml, "max_clone: 8\n").unwrap();
+    let e = format!("{:#}", dataset_options(&ds, Some(&yaml)).unwrap_err());
+    assert!(e.contains("max_clone"), "{e}");
+    std::fs::write(&yaml, "zupt_max_disparity_px: -1\n").unwrap();
+    let e = dataset_options(&ds, Some(&yaml)).unwrap_err().to_string();
+    assert!(e.contains("zupt_max_disparity_px"), "{e}");
 }

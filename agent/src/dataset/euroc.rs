@@ -8,7 +8,7 @@
 //! camera extrinsics are `T_CtoI = T_BI⁻¹ · T_BC` from the two sensor files'
 //! `T_BS` (body to IMU is the identity in EuRoC, whose IMU file may be absent).
 
-use super::sensor_yaml::{parse_camera, parse_t_bs, split};
+use super::sensor_yaml::{parse_camera, parse_imu_noise, parse_t_bs, split, ImuNoiseSpec};
 use crate::estimator::static_init::{read_euroc_imu_csv, ImuCsvError};
 use common::calibration::CameraCalibration;
 use common::image::{GrayImage, ImageError};
@@ -86,6 +86,8 @@ pub struct EurocDataset {
     pub imu: Vec<ImuSample>,
     /// The ground truth (`R_ItoG`, `p_IinG`), if the sequence has one.
     pub groundtruth: Option<Vec<StampedPose>>,
+    /// The IMU's noise from `imu0/sensor.yaml`, if it gives it.
+    pub imu_noise: Option<ImuNoiseSpec>,
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> DatasetError + '_ {
@@ -115,9 +117,12 @@ impl EurocDataset {
         let text = std::fs::read_to_string(&cam_yaml).map_err(io(&cam_yaml))?;
         let cam = parse_camera(&text).map_err(|w| malformed(&cam_yaml, w))?;
         let imu_yaml = root.join("imu0/sensor.yaml");
-        let t_bi = match std::fs::read_to_string(&imu_yaml) {
-            Ok(text) => parse_t_bs(&text).map_err(|w| malformed(&imu_yaml, w))?,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Matrix4::identity(),
+        let (t_bi, imu_noise) = match std::fs::read_to_string(&imu_yaml) {
+            Ok(text) => (
+                parse_t_bs(&text).map_err(|w| malformed(&imu_yaml, w))?,
+                parse_imu_noise(&text).map_err(|w| malformed(&imu_yaml, w))?,
+            ),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => (Matrix4::identity(), None),
             Err(e) => return Err(io(&imu_yaml)(e)),
         };
         let t_bi_inv = t_bi
@@ -147,6 +152,7 @@ impl EurocDataset {
             images,
             imu,
             groundtruth,
+            imu_noise,
         })
     }
 

@@ -1,5 +1,6 @@
 //! The `sensor.yaml` of an ASL sensor folder: camera intrinsics, distortion,
-//! resolution, rate and the extrinsics `T_BS` (sensor to body).
+//! resolution, rate, the extrinsics `T_BS` (sensor to body), and an IMU's
+//! noise densities and random walks.
 //!
 //! The files start with OpenCV's `%YAML:1.0` directive, which is not YAML 1.2:
 //! directive lines are skipped before parsing.
@@ -27,6 +28,23 @@ struct RawSensor {
     intrinsics: Option<[f64; 4]>,
     distortion_model: Option<String>,
     distortion_coefficients: Option<Vec<f64>>,
+    gyroscope_noise_density: Option<f64>,
+    gyroscope_random_walk: Option<f64>,
+    accelerometer_noise_density: Option<f64>,
+    accelerometer_random_walk: Option<f64>,
+}
+
+/// An IMU's continuous-time noise, as its `sensor.yaml` gives it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ImuNoiseSpec {
+    /// Gyroscope white noise, rad/s/√Hz.
+    pub gyroscope_noise_density: f64,
+    /// Gyroscope bias random walk, rad/s²/√Hz.
+    pub gyroscope_random_walk: f64,
+    /// Accelerometer white noise, m/s²/√Hz.
+    pub accelerometer_noise_density: f64,
+    /// Accelerometer bias random walk, m/s³/√Hz.
+    pub accelerometer_random_walk: f64,
 }
 
 /// A parsed camera sensor.
@@ -75,6 +93,39 @@ pub fn parse_t_bs(text: &str) -> Result<Matrix4<f64>, String> {
         Some(m) => matrix4(&m),
         None => Ok(Matrix4::identity()),
     }
+}
+
+/// An IMU `sensor.yaml`'s noise: all four values, or `None` if it gives
+/// none; some but not all, or one not finite and positive, is an error.
+pub fn parse_imu_noise(text: &str) -> Result<Option<ImuNoiseSpec>, String> {
+    let raw = parse(text)?;
+    let named = [
+        ("gyroscope_noise_density", raw.gyroscope_noise_density),
+        ("gyroscope_random_walk", raw.gyroscope_random_walk),
+        (
+            "accelerometer_noise_density",
+            raw.accelerometer_noise_density,
+        ),
+        ("accelerometer_random_walk", raw.accelerometer_random_walk),
+    ];
+    if named.iter().all(|(_, v)| v.is_none()) {
+        return Ok(None);
+    }
+    let mut values = [0.0; 4];
+    for ((name, v), out) in named.into_iter().zip(&mut values) {
+        let v =
+            v.ok_or_else(|| format!("{name} is missing (the IMU noise needs all four values)"))?;
+        if !(v.is_finite() && v > 0.0) {
+            return Err(format!("{name} must be finite and positive, got {v}"));
+        }
+        *out = v;
+    }
+    Ok(Some(ImuNoiseSpec {
+        gyroscope_noise_density: values[0],
+        gyroscope_random_walk: values[1],
+        accelerometer_noise_density: values[2],
+        accelerometer_random_walk: values[3],
+    }))
 }
 
 /// A camera `sensor.yaml`: pinhole with `radial-tangential` (or `radtan`) or
@@ -161,5 +212,22 @@ mod tests {
             parse_t_bs("sensor_type: imu\n").unwrap(),
             Matrix4::identity()
         );
+    }
+
+    #[test]
+    fn reads_an_imu_file_s_noise_and_refuses_half_of_one() {
+        let imu = "%YAML:1.0\nsensor_type: imu\nT_BS:\n  cols: 4\n  rows: 4\n  data: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]\nrate_hz: 200\ngyroscope_noise_density: 1.6968e-04     # [ rad / s / sqrt(Hz) ]\ngyroscope_random_walk: 1.9393e-05\naccelerometer_noise_density: 2.0000e-3\naccelerometer_random_walk: 3.0000e-3\n";
+        let n = parse_imu_noise(imu).unwrap().unwrap();
+        assert_eq!(n.gyroscope_noise_density, 1.6968e-4);
+        assert_eq!(n.accelerometer_random_walk, 3.0e-3);
+        assert_eq!(parse_imu_noise("rate_hz: 200\n").unwrap(), None);
+        let half = "gyroscope_noise_density: 1e-4\naccelerometer_noise_density: 2e-3\n";
+        assert!(parse_imu_noise(half)
+            .unwrap_err()
+            .contains("gyroscope_random_walk"));
+        let negative = imu.replace("2.0000e-3", "-2.0e-3");
+        assert!(parse_imu_noise(&negative)
+            .unwrap_err()
+            .contains("accelerometer_noise_density"));
     }
 }
