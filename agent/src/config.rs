@@ -298,7 +298,7 @@ pub struct EstimatorSection {
     #[serde(default)]
     pub try_zupt: Option<bool>,
     /// A standstill also when the image's tracks moved less than this on
-    /// average since the last clone, px (0: by the IMU alone; OpenVINS's
+    /// average over at least 0.3 s, px (0: by the IMU alone; OpenVINS's
     /// `zupt_max_disparity`).
     #[serde(default)]
     pub zupt_max_disparity_px: Option<f64>,

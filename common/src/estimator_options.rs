@@ -322,7 +322,7 @@ pub struct EstimatorOptions {
     /// Zero-velocity updates when standing still.
     pub zero_velocity_update: bool,
     /// A standstill is also recognized from the images: the image's tracks
-    /// moved less than this on average since the last clone, px (0: from the
+    /// moved less than this on average over at least 0.3 s, px (0: from the
     /// IMU alone). A real IMU at rest on a vehicle with running rotors or
     /// engines vibrates far beyond its datasheet noise and fails the IMU test
     /// (OpenVINS's `zupt_max_disparity`).
@@ -422,8 +422,9 @@ impl Default for EstimatorOptions {
             // identical results) and keeps a robot that stops from diverging.
             zero_velocity_update: true,
             // Below the simulator's pixel noise (1 px gives a standing robot's
-            // tracks a mean disparity near 1.8 px), so simulated runs recognize
-            // standstills by the IMU; real tracks at rest move 0.1-0.3 px.
+            // tracks a mean disparity near 1.8 px), so feature-level runs find
+            // standstills by the IMU; KLT tracks at rest pass it (EuRoC V1_01
+            // micro: 45 of 58 frames; rendered: 94 of 95 standing frames).
             zupt_max_disparity_px: 1.0,
             pixel_sigma_px: 1.0,
             chi2_multiplier: 1.0,

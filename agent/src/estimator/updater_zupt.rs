@@ -9,10 +9,11 @@
 //! A real IMU on a vehicle at rest with its rotors or engine running vibrates
 //! far beyond its datasheet noise (EuRoC V1_01 before take-off: the readings
 //! scatter 10 to 480 times the datasheet variance), and fails that test. The
-//! images then tell: tracks that have not moved since the last clone (OpenVINS's
-//! disparity test, here against the last clone rather than the last image, so
-//! that a slow drift adds up and ends the standstill). The update then weighs
-//! the readings' mean by their own scatter.
+//! images then tell: tracks that have not moved over at least [`STILL_SPAN_S`]
+//! (OpenVINS's disparity test, here against the newest clone that much older
+//! than the image rather than against the last image, so that a slow drift
+//! adds up and shows). The update then weighs the readings' mean by their own
+//! scatter.
 
 use super::chi2::Chi2Table;
 use super::feature_db::FeatureDb;
@@ -27,19 +28,24 @@ use nalgebra::{DMatrix, DVector, Vector3};
 const MAX_SPEED_MPS: f64 = 0.1;
 /// Standard deviation of the zero-velocity pseudo-measurement, m/s.
 const VELOCITY_SIGMA_MPS: f64 = 0.01;
-/// Fewest tracks shared with the last clone for the images to tell a standstill.
+/// Fewest tracks shared with the reference clone for the images to tell a
+/// standstill.
 const MIN_DISPARITY_TRACKS: usize = 10;
+/// The images' standstill is judged over at least this span, s: against the
+/// newest clone this much older than the image. One frame apart, a creep or
+/// a hover moves the tracks less than the threshold (3 cm/s at 3 m: 0.5 px
+/// in 0.1 s); over 0.3 s it shows (1.4 px). A rendered walk that stands,
+/// then creeps at 3 cm/s, with an IMU shaking 10x the filter's noise: 10 of
+/// 95 creeping frames were taken for standstills one frame apart.
+pub const STILL_SPAN_S: f64 = 0.3;
 
 /// Mean distance, px, that the tracks of `frame` moved since the clone
-/// `last_key` measured them (raw pixels), or `None` if fewer than
+/// `reference` measured them (raw pixels), or `None` if fewer than
 /// [`MIN_DISPARITY_TRACKS`] tracks were measured at both.
-pub fn disparity_px(frame: &FeatureFrame, features: &FeatureDb, last_key: u64) -> Option<f64> {
+pub fn disparity_px(frame: &FeatureFrame, features: &FeatureDb, reference: u64) -> Option<f64> {
     let (mut sum, mut n) = (0.0, 0usize);
     for o in &frame.features {
-        let Some(m) = features.get(o.id).and_then(|f| f.newest()) else {
-            continue;
-        };
-        if m.clone_key == last_key {
+        if let Some(m) = features.get(o.id).and_then(|f| f.measurement_at(reference)) {
             sum += (o.uv - m.uv).norm();
             n += 1;
         }
@@ -321,7 +327,7 @@ mod tests {
                 descriptor: Default::default(),
             });
         }
-        // 11 tracks last seen at clone 7 moved 0.5 px each.
+        // The 12 tracks measured at clone 7 moved 0.5 px each.
         let d = disparity_px(&frame, &db, 7).unwrap();
         assert!((d - 0.5).abs() < 1e-12, "{d}");
         // Against clone 8 only one track: too few to tell.

@@ -288,10 +288,17 @@ impl Estimator {
                 .filter(|s| s.t > t_prev && s.t <= t_imu)
                 .copied()
                 .collect();
-            // The tracks against the newest clone's (`self.seq`): at a standstill
-            // no clone is made, so a slow drift adds up until it shows.
+            // The tracks against the newest clone at least `STILL_SPAN_S` older
+            // (at a standstill no clone is made, so it stays the last one before).
+            let reference = state
+                .clones
+                .iter()
+                .rev()
+                .find(|(_, c)| c.t_cam <= frame.t - updater_zupt::STILL_SPAN_S)
+                .map(|(key, _)| *key);
             let image_still = opts.zupt_max_disparity_px > 0.0
-                && updater_zupt::disparity_px(frame, &self.features, self.seq)
+                && reference
+                    .and_then(|key| updater_zupt::disparity_px(frame, &self.features, key))
                     .is_some_and(|d| d < opts.zupt_max_disparity_px);
             if updater_zupt::try_update(state, &readings, &opts, &self.chi2, image_still) {
                 timing.propagate_ms = ms(t_start);
