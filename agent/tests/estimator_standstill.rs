@@ -3,6 +3,8 @@
 
 #![allow(clippy::expect_used)]
 
+mod circle_walk;
+
 use agent::runner::{options_for, run_robot, Variant};
 use simulator::{Fleet, Scenario};
 use std::path::Path;
@@ -20,31 +22,9 @@ fn speed(t: f64) -> f64 {
     }
 }
 
-/// A 60 s walk on a 3 m circle at 1.5 m/s with the stop above (TUM text, 20 Hz).
-fn write_walk_with_stop(path: &Path) {
-    let mut text = String::from("# timestamp tx ty tz qx qy qz qw\n");
-    let mut s: f64 = 0.0;
-    for k in 0..=1200 {
-        let t = k as f64 * 0.05;
-        let (x, y, z) = (
-            3.0 * (0.25 * s).cos(),
-            3.0 * (0.25 * s).sin(),
-            1.0 + 0.2 * (0.5 * s).sin(),
-        );
-        let yaw: f64 = 0.25 * s + 1.57;
-        text.push_str(&format!(
-            "{:.3} {x:.6} {y:.6} {z:.6} 0 0 {:.9} {:.9}\n",
-            100.0 + t,
-            (yaw / 2.0).sin(),
-            (yaw / 2.0).cos()
-        ));
-        s += speed(t) * 0.05 * 1.5;
-    }
-    std::fs::write(path, text).expect("write trajectory");
-}
-
 fn ate_pos(dir: &Path, zupt: bool) -> f64 {
-    write_walk_with_stop(&dir.join("stop.txt"));
+    // A 60 s walk on the 3 m circle at 1.5 m/s with the stop above.
+    circle_walk::write_circle_walk(&dir.join("stop.txt"), 1200, 0.25, speed);
     let path = dir.join(format!("stop_{zupt}.yaml"));
     std::fs::write(
         &path,

@@ -6,6 +6,8 @@
 
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
+mod circle_walk;
+
 use agent::frontend::FrontendOptions;
 use agent::image_runner::run_robot_rendered;
 use agent::runner::{options_for, Variant};
@@ -32,29 +34,6 @@ fn speed(t: f64) -> f64 {
     }
 }
 
-/// The walk on a 3 m circle, looking along it (TUM text, 20 Hz).
-fn write_walk(path: &Path) {
-    let mut text = String::from("# timestamp tx ty tz qx qy qz qw\n");
-    let mut s: f64 = 0.0;
-    for k in 0..=1000 {
-        let t = k as f64 * 0.05;
-        let (x, y, z) = (
-            3.0 * (s / 3.0).cos(),
-            3.0 * (s / 3.0).sin(),
-            1.0 + 0.2 * (0.5 * s).sin(),
-        );
-        let yaw: f64 = s / 3.0 + 1.57;
-        text.push_str(&format!(
-            "{:.3} {x:.6} {y:.6} {z:.6} 0 0 {:.9} {:.9}\n",
-            100.0 + t,
-            (yaw / 2.0).sin(),
-            (yaw / 2.0).cos()
-        ));
-        s += speed(t) * 0.05 * 1.5;
-    }
-    std::fs::write(path, text).expect("write trajectory");
-}
-
 /// Standstill frames while standing, creeping and walking (of how many), and
 /// the position ATE, m.
 struct Outcome {
@@ -66,7 +45,8 @@ struct Outcome {
 
 /// One rendered run: the simulated IMU's noise is `shake` times the filter's.
 fn run(dir: &Path, shake: f64, disparity_px: f64) -> Outcome {
-    write_walk(&dir.join("walk.txt"));
+    // 50 s on the 3 m circle.
+    circle_walk::write_circle_walk(&dir.join("walk.txt"), 1000, 1.0 / 3.0, speed);
     let imu = format!(
         "sensors:\n  imu:\n    gyro_noise_density: {}\n    accel_noise_density: {}\n",
         1.6968e-4 * shake,
