@@ -422,7 +422,7 @@ impl Default for EstimatorOptions {
             // identical results) and keeps a robot that stops from diverging.
             zero_velocity_update: true,
             // Below the simulator's pixel noise (1 px gives a standing robot's
-            // tracks a mean disparity near 1.8 px), so feature-level runs find
+            // tracks an expected mean disparity of √π ≈ 1.8 px), so feature-level runs find
             // standstills by the IMU; KLT tracks at rest pass it (EuRoC V1_01
             // micro: 45 of 58 frames; rendered: 94 of 95 standing frames).
             zupt_max_disparity_px: 1.0,
