@@ -134,23 +134,24 @@ fn build(
 }
 
 /// Tests the standstill hypothesis on `readings` and, when it holds, applies the
-/// zero-velocity update. `image_still`: the images show a standstill
-/// ([`disparity_px`] below `zupt_max_disparity_px`); the readings then need
-/// only agree with rest on average, weighed by their own scatter. Returns
-/// whether the robot was found standing still.
+/// zero-velocity update. `image_still`: whether the images show a standstill
+/// ([`disparity_px`] below `zupt_max_disparity_px`), asked only when the
+/// IMU test fails; the readings then need only agree with rest on average,
+/// weighed by their own scatter. Returns whether the robot was found
+/// standing still.
 pub fn try_update<F: Filter + ?Sized>(
     state: &mut F,
     readings: &[ImuSample],
     opts: &EstimatorOptions,
     chi2: &Chi2Table,
-    image_still: bool,
+    image_still: impl FnOnce() -> bool,
 ) -> bool {
     if readings.len() < 2 || state.means().imu.vel.norm() > MAX_SPEED_MPS {
         return false;
     }
     let imu_still = standstill_test(state, readings, opts, chi2, false);
     let still = imu_still.or_else(|| {
-        image_still
+        image_still()
             .then(|| standstill_test(state, readings, opts, chi2, true))
             .flatten()
     });
@@ -235,7 +236,7 @@ mod tests {
             &readings(Vector3::new(0.0, 0.0, 9.81)),
             &opts,
             &chi2,
-            false
+            || false
         ));
         assert!(s.imu.vel.norm() < 0.005, "{}", s.imu.vel);
     }
@@ -250,14 +251,14 @@ mod tests {
         for (k, r) in shaking.iter_mut().enumerate() {
             r.accel.x += 0.5 * (k as f64 * 0.7).sin();
         }
-        assert!(!try_update(&mut s, &shaking, &opts, &chi2, false));
+        assert!(!try_update(&mut s, &shaking, &opts, &chi2, || false));
         let mut moving = still_state(Vector3::new(1.0, 0.0, 0.0));
         assert!(!try_update(
             &mut moving,
             &readings(Vector3::new(0.0, 0.0, 9.81)),
             &opts,
             &chi2,
-            false
+            || false
         ));
     }
 
@@ -275,13 +276,13 @@ mod tests {
             r.accel += Vector3::new(phase.sin(), phase.cos(), (1.3 * phase).sin()) * sd;
         }
         let mut s = still_state(Vector3::new(0.03, 0.0, 0.0));
-        assert!(!try_update(&mut s, &vibrating, &opts, &chi2, false));
-        assert!(try_update(&mut s, &vibrating, &opts, &chi2, true));
+        assert!(!try_update(&mut s, &vibrating, &opts, &chi2, || false));
+        assert!(try_update(&mut s, &vibrating, &opts, &chi2, || true));
         assert!(s.imu.vel.norm() < 0.005, "{}", s.imu.vel);
         // Still images do not make a moving robot stand, even a slow one the
         // filter knows is moving (0.05 m/s, σ 0.01).
         let mut moving = still_state(Vector3::new(1.0, 0.0, 0.0));
-        assert!(!try_update(&mut moving, &vibrating, &opts, &chi2, true));
+        assert!(!try_update(&mut moving, &vibrating, &opts, &chi2, || true));
         let mut drifting = State::new(
             0.0,
             ImuState {
@@ -292,7 +293,9 @@ mod tests {
             CameraCalibration::euroc_cam0(),
             &[],
         );
-        assert!(!try_update(&mut drifting, &vibrating, &opts, &chi2, true));
+        assert!(!try_update(&mut drifting, &vibrating, &opts, &chi2, || {
+            true
+        }));
     }
 
     #[test]

@@ -296,10 +296,15 @@ impl Estimator {
                 .rev()
                 .find(|(_, c)| c.t_cam <= frame.t - updater_zupt::STILL_SPAN_S)
                 .map(|(key, _)| *key);
-            let image_still = opts.zupt_max_disparity_px > 0.0
-                && reference
-                    .and_then(|key| updater_zupt::disparity_px(frame, &self.features, key))
-                    .is_some_and(|d| d < opts.zupt_max_disparity_px);
+            // Asked only when the robot is slow and the IMU test failed: a moving
+            // robot's frames never pay for the track lookups.
+            let features = &self.features;
+            let image_still = || {
+                opts.zupt_max_disparity_px > 0.0
+                    && reference
+                        .and_then(|key| updater_zupt::disparity_px(frame, features, key))
+                        .is_some_and(|d| d < opts.zupt_max_disparity_px)
+            };
             if updater_zupt::try_update(state, &readings, &opts, &self.chi2, image_still) {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
