@@ -28,8 +28,8 @@ pub enum DatasetRunError {
 }
 
 /// Everything a run on real data produced. Its size grows with the estimates
-/// (about 300 bytes each) and the tracks (16 bytes each), not with the
-/// features of every image.
+/// (pose, covariance, truth and counts) and the tracks (an id and a count
+/// each), not with the features of every image.
 #[derive(Debug, Default)]
 pub struct DatasetRun {
     /// The static initializer's result, once it succeeded.
