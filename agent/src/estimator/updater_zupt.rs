@@ -41,7 +41,7 @@ pub const STILL_SPAN_S: f64 = 0.3;
 
 /// Mean distance, px, that the tracks of `frame` moved since the clone
 /// `reference` measured them (raw pixels), or `None` if fewer than
-/// [`MIN_DISPARITY_TRACKS`] tracks were measured at both.
+/// 10 tracks (`MIN_DISPARITY_TRACKS`) were measured at both.
 pub fn disparity_px(frame: &FeatureFrame, features: &FeatureDb, reference: u64) -> Option<f64> {
     let (mut sum, mut n) = (0.0, 0usize);
     for o in &frame.features {
