@@ -248,7 +248,7 @@ impl CentralEstimator {
                 .copied()
                 .collect();
             // The centralized reference runs on simulated IMUs: the IMU test.
-            if updater_zupt::try_update(&mut slot, &readings, &opts, &self.chi2, || false) {
+            if updater_zupt::try_update(&mut slot, &readings, &opts, &self.chi2, || None) {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
                 timing.cpu_ms = cpu_ms(cpu_start);

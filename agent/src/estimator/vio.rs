@@ -296,16 +296,12 @@ impl Estimator {
                 .rev()
                 .find(|(_, c)| c.t_cam <= frame.t - updater_zupt::STILL_SPAN_S)
                 .map(|(key, _)| *key);
-            // Asked only when the robot is slow and the IMU test failed: a moving
-            // robot's frames never pay for the track lookups.
+            // Asked only when the robot is slow: a moving robot's frames never
+            // pay for the track lookups.
             let features = &self.features;
-            let image_still = || {
-                opts.zupt_max_disparity_px > 0.0
-                    && reference
-                        .and_then(|key| updater_zupt::disparity_px(frame, features, key))
-                        .is_some_and(|d| d < opts.zupt_max_disparity_px)
-            };
-            if updater_zupt::try_update(state, &readings, &opts, &self.chi2, image_still) {
+            let images =
+                || reference.and_then(|key| updater_zupt::track_motion(frame, features, key));
+            if updater_zupt::try_update(state, &readings, &opts, &self.chi2, images) {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
                 timing.cpu_ms = cpu_ms(cpu_start);
