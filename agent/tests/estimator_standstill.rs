@@ -25,20 +25,7 @@ fn speed(t: f64) -> f64 {
 fn ate_pos(dir: &Path, zupt: bool) -> f64 {
     // A 60 s walk on the 3 m circle at 1.5 m/s with the stop above.
     circle_walk::write_circle_walk(&dir.join("stop.txt"), 1200, 0.25, speed);
-    let path = dir.join(format!("stop_{zupt}.yaml"));
-    std::fs::write(
-        &path,
-        format!("name: stop\nrobots:\n  - trajectory: stop.txt\nestimator:\n  zero_velocity_update: {zupt}\n"),
-    )
-    .expect("write scenario");
-    let scenario = Scenario::load(&path).expect("scenario");
-    let fleet = Fleet::build(&scenario, 1).expect("fleet");
-    let run = run_robot(
-        &fleet,
-        0,
-        options_for(&scenario.estimator, &fleet, Variant::Indp),
-    )
-    .expect("run");
+    let run = run_walk(dir, "stop", zupt, Variant::Indp);
     let (stood, standing) = standstills(&run, 20.5..34.5);
     let m = run.metrics();
     println!(
@@ -46,6 +33,19 @@ fn ate_pos(dir: &Path, zupt: bool) -> f64 {
         m.ate_ori_deg, m.ate_pos_m, m.nees_ori, m.nees_pos
     );
     m.ate_pos_m.unwrap_or(f64::INFINITY)
+}
+
+/// Runs the walk `<name>.txt` in `dir` with zero-velocity updates on or off.
+fn run_walk(dir: &Path, name: &str, zupt: bool, variant: Variant) -> RobotRun {
+    let path = dir.join(format!("{name}_{zupt}.yaml"));
+    std::fs::write(
+        &path,
+        format!("name: {name}\nrobots:\n  - trajectory: {name}.txt\nestimator:\n  zero_velocity_update: {zupt}\n"),
+    )
+    .expect("write scenario");
+    let scenario = Scenario::load(&path).expect("scenario");
+    let fleet = Fleet::build(&scenario, 1).expect("fleet");
+    run_robot(&fleet, 0, options_for(&scenario.estimator, &fleet, variant)).expect("run")
 }
 
 /// Frames in `span` (s) taken for standstills, and all frames in it.
@@ -96,20 +96,7 @@ fn creep_run(dir: &Path, creep_mps: f64, zupt: bool) -> ((usize, usize), f64) {
     circle_walk::write_walk(&dir.join("creep.txt"), 1000, 300.0, 1.0 / 300.0, |t| {
         creep_speed(creep_mps, t)
     });
-    let path = dir.join(format!("creep_{zupt}.yaml"));
-    std::fs::write(
-        &path,
-        format!("name: creep\nrobots:\n  - trajectory: creep.txt\nestimator:\n  zero_velocity_update: {zupt}\n"),
-    )
-    .expect("write scenario");
-    let scenario = Scenario::load(&path).expect("scenario");
-    let fleet = Fleet::build(&scenario, 1).expect("fleet");
-    let run = run_robot(
-        &fleet,
-        0,
-        options_for(&scenario.estimator, &fleet, Variant::IndpSlam),
-    )
-    .expect("run");
+    let run = run_walk(dir, "creep", zupt, Variant::IndpSlam);
     let (stood, creeping) = standstills(&run, 17.5..36.5);
     let m = run.metrics();
     println!(
