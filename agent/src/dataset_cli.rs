@@ -128,6 +128,14 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
         },
         |record| files.append(record),
     )?;
+    if run.frontend.images == 0 {
+        if let Some(first) = run.skipped_images.first() {
+            bail!(
+                "none of the {} images could be used; the first: {first}",
+                run.skipped_images.len()
+            );
+        }
+    }
     let rec = &run.record;
     files
         .finish(rec)
@@ -137,6 +145,13 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
     log.finish()?;
 
     let s = score(&run, &ds);
+    if !run.skipped_images.is_empty() {
+        println!(
+            "{} images could not be used and were skipped (their frames are lost); the first: {}",
+            run.skipped_images.len(),
+            run.skipped_images[0]
+        );
+    }
     println!(
         "{} images: {:.0} features/image (min {}), {} tracks from the first image to the last, mean track {:.1} images, frontend {:.2} ms/image",
         s.images,

@@ -3,7 +3,7 @@
 //! at the start, as in EuRoC and TUM-VI): no ground truth is used to run, only
 //! to score.
 
-use crate::dataset::{DatasetError, EurocDataset};
+use crate::dataset::EurocDataset;
 use crate::estimator::static_init::{static_start_sigmas, StaticInitOptions, StaticInitResult};
 use crate::estimator::{Estimator, EstimatorOptions, FrameRecord};
 use crate::frontend::{Frontend, FrontendError, FrontendOptions, FrontendOutput};
@@ -16,12 +16,10 @@ use simulator::SimEvent;
 use std::collections::{HashMap, HashSet};
 use thiserror::Error;
 
-/// Why a sequence could not be run.
+/// Why a sequence could not be run (an image that cannot be read is skipped,
+/// [`DatasetRun::skipped_images`]).
 #[derive(Debug, Error)]
 pub enum DatasetRunError {
-    /// Reading the data failed.
-    #[error(transparent)]
-    Data(#[from] DatasetError),
     /// The frontend failed.
     #[error(transparent)]
     Frontend(#[from] FrontendError),
@@ -40,6 +38,25 @@ pub struct DatasetRun {
     pub record: DatasetRecord,
     /// Inputs the estimator rejected, with the reason.
     pub rejected: Vec<String>,
+    /// Images that could not be read (missing, damaged) or are not the
+    /// camera's size, with the reason: their frames are lost, the run goes on.
+    pub skipped_images: Vec<String>,
+}
+
+/// Skipped images logged one by one; the rest are only counted.
+const SKIPPED_IMAGES_LOGGED: usize = 10;
+
+impl DatasetRun {
+    /// Records an image whose frame is lost, and logs the first few.
+    fn skip_image(&mut self, why: String) {
+        let n = self.skipped_images.len();
+        if n < SKIPPED_IMAGES_LOGGED {
+            tracing::warn!("image skipped: {why}");
+        } else if n == SKIPPED_IMAGES_LOGGED {
+            tracing::warn!("more images skipped: counted, not logged");
+        }
+        self.skipped_images.push(why);
+    }
 }
 
 /// What the frontend did over a sequence, gathered image by image.
@@ -214,7 +231,18 @@ pub fn run_dataset(
         ..DatasetRun::default()
     };
     for ev in ds.events() {
-        match ev? {
+        // Only images are read as the sequence goes (the IMU and the truth
+        // were read whole when it opened): one missing or damaged image loses
+        // its frame, as a camera driver dropping one would, and the tracks
+        // bridge the gap.
+        let ev = match ev {
+            Ok(ev) => ev,
+            Err(e) => {
+                run.skip_image(e.to_string());
+                continue;
+            }
+        };
+        match ev {
             SimEvent::Imu(s) => {
                 if let Err(e) = est.feed_imu(s) {
                     run.rejected.push(e.to_string());
@@ -224,7 +252,14 @@ pub fn run_dataset(
                 let Some(image) = c.image.as_ref() else {
                     continue;
                 };
-                let out = fe.process(c.frame.t, image)?;
+                let out = match fe.process(c.frame.t, image) {
+                    Ok(out) => out,
+                    Err(e @ FrontendError::ImageSize { .. }) => {
+                        run.skip_image(format!("image at t={:.6} s: {e}", c.frame.t));
+                        continue;
+                    }
+                    Err(e) => return Err(e.into()),
+                };
                 if run.init.is_none() {
                     // Only the IMU up to this image counts: the window ends here.
                     if let Ok(res) = est.initialize_static(init, &static_start_sigmas()) {

@@ -173,3 +173,81 @@ fn the_dataset_takes_the_imu_noise_of_its_sensor_file_and_the_estimator_override
     let e = dataset_options(&ds, Some(&yaml)).unwrap_err().to_string();
     assert!(e.contains("zupt_max_disparity_px"), "{e}");
 }
+
+/// A copy of the micro sequence (links to its files) in which image 30 is
+/// cut short, image 40 is missing and image 50 is 10x10 pixels.
+fn damaged_copy(dir: &std::path::Path) -> PathBuf {
+    use std::os::unix::fs::symlink;
+    let src = data("euroc_v1_01_micro/mav0");
+    let mav0 = dir.join("mav0");
+    std::fs::create_dir_all(mav0.join("cam0/data")).unwrap();
+    for f in ["body.yaml", "imu0", "cam0/data.csv", "cam0/sensor.yaml"] {
+        symlink(src.join(f), mav0.join(f)).unwrap();
+    }
+    let mut names: Vec<_> = std::fs::read_dir(src.join("cam0/data"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    names.sort();
+    for (k, name) in names.iter().enumerate() {
+        let (from, to) = (
+            src.join("cam0/data").join(name),
+            mav0.join("cam0/data").join(name),
+        );
+        match k {
+            29 => std::fs::write(&to, &std::fs::read(&from).unwrap()[..500]).unwrap(),
+            39 => {}
+            49 => std::fs::write(
+                &to,
+                GrayImage::new(10, 10, vec![0; 100])
+                    .unwrap()
+                    .to_png()
+                    .unwrap(),
+            )
+            .unwrap(),
+            _ => symlink(&from, &to).unwrap(),
+        }
+    }
+    mav0
+}
+
+/// Damaged, missing or wrong-sized images lose their frames, not the run: it
+/// goes on, says which images it skipped and why, and scores as the whole
+/// sequence does (measured: 92 images used, 56 estimates, ATE 0.633 deg /
+/// 0.001 m, against 95, 58 and 0.625 / 0.001 with every image).
+#[test]
+fn images_that_cannot_be_used_are_skipped_with_the_reason() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mav0 = damaged_copy(dir.path());
+    let gt = data("trajectories/V1_01_easy.csv");
+    let ds = EurocDataset::open(&mav0, Some(&gt)).expect("dataset");
+    let run = run_dataset(
+        &ds,
+        EstimatorOptions::default(),
+        FrontendOptions::default(),
+        &StaticInitOptions::default(),
+        |_, _| {},
+        |_| {},
+    )
+    .expect("the run goes on");
+    println!("{:#?}", run.skipped_images);
+    assert_eq!(run.skipped_images.len(), 3);
+    assert!(
+        run.skipped_images[0].contains("PNG"),
+        "{:?}",
+        run.skipped_images
+    );
+    assert!(run.skipped_images[1].contains(&ds.images[39].path.display().to_string()));
+    assert!(
+        run.skipped_images[2].contains("10x10"),
+        "{:?}",
+        run.skipped_images
+    );
+    let s = score(&run, &ds);
+    assert_eq!(s.images, 92);
+    let m = run.record.metrics();
+    println!("{} estimates, {m:?}", s.estimates);
+    assert!(s.estimates > 40, "{s:?}");
+    assert!(m.ate_pos_m.expect("ATE") < 0.05, "{m:?}");
+    assert!(m.ate_ori_deg.expect("ATE") < 1.0, "{m:?}");
+}
