@@ -240,46 +240,69 @@ pub fn load_png(path: &Path) -> Result<GrayImage, DatasetError> {
     })
 }
 
-/// `cam0/data.csv`: `timestamp [ns], filename` lines, increasing times.
+/// `cam0/data.csv`: `timestamp [ns], filename` lines, increasing times. An
+/// unfinished last line (no newline: the recording was cut off) that does not
+/// read is dropped with a warning.
 fn read_image_list(cam: &Path) -> Result<Vec<ImageStamp>, DatasetError> {
     let csv = cam.join("data.csv");
     let text = std::fs::read_to_string(&csv).map_err(io(&csv))?;
+    let lines = text.lines().count();
     let mut out: Vec<ImageStamp> = Vec::new();
     for (k, line) in text.lines().enumerate() {
-        let bad = |what: String| malformed(&csv, format!("line {}: {what}", k + 1));
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
+        match image_line(cam, line, out.last()) {
+            Ok(Some(stamp)) => out.push(stamp),
+            Ok(None) => {}
+            Err(what) if k + 1 == lines && !text.ends_with('\n') => {
+                tracing::warn!(
+                    "{}: the last line ({}) is cut short and dropped: {what}",
+                    csv.display(),
+                    k + 1
+                );
+            }
+            Err(what) => return Err(malformed(&csv, format!("line {}: {what}", k + 1))),
         }
-        if line.len() > MAX_CSV_LINE_BYTES {
-            return Err(bad("line too long".into()));
-        }
-        let mut fields = line.split(',').map(str::trim);
-        let ns: u64 = fields
-            .next()
-            .unwrap_or("")
-            .parse()
-            .map_err(|e| bad(format!("timestamp: {e}")))?;
-        let name = fields
-            .next()
-            .filter(|n| !n.is_empty())
-            .ok_or_else(|| bad("no file name".into()))?;
-        if name.contains("..") || Path::new(name).is_absolute() {
-            return Err(bad(format!("file name `{name}` leaves the data folder")));
-        }
-        let t = (ns / 1_000_000_000) as f64 + (ns % 1_000_000_000) as f64 * 1e-9;
-        if out.last().is_some_and(|p| t <= p.t) {
-            return Err(bad("timestamps must increase".into()));
-        }
-        out.push(ImageStamp {
-            t,
-            path: cam.join("data").join(name),
-        });
     }
     if out.is_empty() {
         return Err(malformed(&csv, "no images"));
     }
     Ok(out)
+}
+
+/// One line of `cam0/data.csv` after `previous`: `None` for a blank line or
+/// a comment, else the image or what is wrong.
+fn image_line(
+    cam: &Path,
+    line: &str,
+    previous: Option<&ImageStamp>,
+) -> Result<Option<ImageStamp>, String> {
+    let line = line.trim();
+    if line.is_empty() || line.starts_with('#') {
+        return Ok(None);
+    }
+    if line.len() > MAX_CSV_LINE_BYTES {
+        return Err("line too long".into());
+    }
+    let mut fields = line.split(',').map(str::trim);
+    let ns: u64 = fields
+        .next()
+        .unwrap_or("")
+        .parse()
+        .map_err(|e| format!("timestamp: {e}"))?;
+    let name = fields
+        .next()
+        .filter(|n| !n.is_empty())
+        .ok_or("no file name")?;
+    if name.contains("..") || Path::new(name).is_absolute() {
+        return Err(format!("file name `{name}` leaves the data folder"));
+    }
+    let t = (ns / 1_000_000_000) as f64 + (ns % 1_000_000_000) as f64 * 1e-9;
+    if previous.is_some_and(|p| t <= p.t) {
+        return Err("timestamps must increase".into());
+    }
+    Ok(Some(ImageStamp {
+        t,
+        path: cam.join("data").join(name),
+    }))
 }
 
 /// Frame rate from the median spacing of the stamps (20 Hz if there is one image).
@@ -351,5 +374,21 @@ mod tests {
         assert!(err.contains("leaves"), "{err}");
         std::fs::write(cam.join("data/x.png"), b"garbage").expect("write");
         assert!(load_png(&cam.join("data/x.png")).is_err());
+    }
+
+    /// A recording cut off mid-write: the image list's unfinished last line
+    /// is dropped; the same line finished is an error naming it.
+    #[test]
+    fn an_image_list_cut_short_loses_its_last_line() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let cam = dir.path();
+        std::fs::write(cam.join("data.csv"), "#t,f\n5,a.png\n6,b.png\n4").expect("write");
+        let images = read_image_list(cam).expect("the cut line is dropped");
+        assert_eq!(images.len(), 2);
+        std::fs::write(cam.join("data.csv"), "#t,f\n5,a.png\n6,b.png\n4\n").expect("write");
+        let err = read_image_list(cam).unwrap_err().to_string();
+        assert!(err.contains("line 4"), "{err}");
+        std::fs::write(cam.join("data.csv"), "5,a.png\n6,b.png").expect("write");
+        assert_eq!(read_image_list(cam).expect("whole").len(), 2);
     }
 }

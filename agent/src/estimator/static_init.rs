@@ -366,7 +366,9 @@ pub enum ImuCsvError {
 /// Blank lines and lines starting with `#` are skipped; values may be separated
 /// by commas or whitespace; extra columns are ignored. Lines longer than 4096
 /// bytes, unparsable or non-finite values, and timestamps that do not strictly
-/// increase are errors naming the line. At most [`MAX_IMU_SAMPLES`] are read.
+/// increase are errors naming the line, except on an unfinished last line (no
+/// newline: the recording was cut off), which is dropped with a warning. At
+/// most [`MAX_IMU_SAMPLES`] are read.
 pub fn read_euroc_imu_csv(path: impl AsRef<Path>) -> Result<Vec<ImuSample>, ImuCsvError> {
     let path = path.as_ref();
     let file = std::fs::File::open(path).map_err(|source| ImuCsvError::Read {
@@ -413,7 +415,19 @@ fn parse_euroc_imu(mut reader: impl BufRead, path: &Path) -> Result<Vec<ImuSampl
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
-        let sample = parse_imu_line(line).map_err(|reason| bad(line_no, reason))?;
+        let sample = match parse_imu_line(line) {
+            Ok(sample) => sample,
+            // The last line, unfinished (no newline): a recording cut off
+            // mid-write loses that sample, not the file.
+            Err(reason) if !buf.ends_with('\n') => {
+                tracing::warn!(
+                    "{}: the last line ({line_no}) is cut short and dropped: {reason}",
+                    path.display()
+                );
+                break;
+            }
+            Err(reason) => return Err(bad(line_no, reason)),
+        };
         if let Some(prev) = out.last() {
             if sample.t <= prev.t {
                 return Err(bad(
@@ -745,6 +759,21 @@ mod tests {
         assert_eq!(line_of("1,0,0,x,0,0,0\n"), 1);
         let long = format!("1,0,0,0,0,0,0{}\n", " ".repeat(MAX_LINE_BYTES));
         assert_eq!(line_of(&long), 1);
+    }
+
+    /// A recording cut off mid-write: its unfinished last line is dropped; a
+    /// whole last line without a newline is read.
+    #[test]
+    fn imu_csv_parser_drops_a_last_line_cut_short() {
+        let path = Path::new("mem.csv");
+        let read = |text: &str| {
+            parse_euroc_imu(std::io::Cursor::new(text), path)
+                .unwrap_or_else(|e| panic!("{e}"))
+                .len()
+        };
+        assert_eq!(read("1,0,0,0,0,0,0\n2,0,0,0,0.1"), 1);
+        assert_eq!(read("1,0,0,0,0,0,0\n2,0,0,0,0,0,0"), 2);
+        assert_eq!(read("1,0,0,0,0,0,0\n2,0,0,0,0,0,0\n"), 2);
     }
 
     #[test]
