@@ -247,8 +247,11 @@ impl CentralEstimator {
                 .filter(|s| s.t > t_prev && s.t <= t_imu)
                 .copied()
                 .collect();
-            // The centralized reference runs on simulated IMUs: the IMU test.
-            if updater_zupt::try_update(&mut slot, &readings, &opts, &self.chi2, || None) {
+            let reference = updater_zupt::still_reference(slot.means(), frame.t);
+            let features = &robot.features;
+            let images =
+                || reference.and_then(|key| updater_zupt::track_motion(frame, features, key));
+            if updater_zupt::try_update(&mut slot, &readings, &opts, &self.chi2, images) {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
                 timing.cpu_ms = cpu_ms(cpu_start);

@@ -44,6 +44,18 @@ const MIN_DISPARITY_TRACKS: usize = 10;
 /// 95 creeping frames were taken for standstills one frame apart.
 pub const STILL_SPAN_S: f64 = 0.3;
 
+/// The clone the images' standstill is judged against for an image at camera
+/// time `t_cam`: the newest at least [`STILL_SPAN_S`] older (at a standstill
+/// no clone is made, so it stays the last one before the robot stopped).
+pub fn still_reference(means: &Means, t_cam: f64) -> Option<u64> {
+    means
+        .clones
+        .iter()
+        .rev()
+        .find(|(_, c)| c.t_cam <= t_cam - STILL_SPAN_S)
+        .map(|(key, _)| *key)
+}
+
 /// How the tracks of an image moved since a reference clone measured them
 /// (raw pixels).
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -288,14 +288,7 @@ impl Estimator {
                 .filter(|s| s.t > t_prev && s.t <= t_imu)
                 .copied()
                 .collect();
-            // The tracks against the newest clone at least `STILL_SPAN_S` older
-            // (at a standstill no clone is made, so it stays the last one before).
-            let reference = state
-                .clones
-                .iter()
-                .rev()
-                .find(|(_, c)| c.t_cam <= frame.t - updater_zupt::STILL_SPAN_S)
-                .map(|(key, _)| *key);
+            let reference = updater_zupt::still_reference(&state.means, frame.t);
             // Asked only when the robot is slow: a moving robot's frames never
             // pay for the track lookups.
             let features = &self.features;
