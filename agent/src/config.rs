@@ -298,7 +298,8 @@ pub struct EstimatorSection {
     #[serde(default)]
     pub try_zupt: Option<bool>,
     /// A standstill also when the image's tracks moved less than this on
-    /// average over at least 0.3 s, px (0: by the IMU alone; OpenVINS's
+    /// average over at least 0.3 s, px (0: by the IMU alone, which tracks
+    /// moved beyond the pixel noise still refuse; OpenVINS's
     /// `zupt_max_disparity`).
     #[serde(default)]
     pub zupt_max_disparity_px: Option<f64>,

@@ -323,8 +323,9 @@ pub struct EstimatorOptions {
     pub zero_velocity_update: bool,
     /// A standstill is also recognized from the images: the image's tracks
     /// moved less than this on average over at least 0.3 s, px (0: from the
-    /// IMU alone). A real IMU at rest on a vehicle with running rotors or
-    /// engines vibrates far beyond its datasheet noise and fails the IMU test
+    /// IMU alone; tracks that moved beyond `pixel_sigma_px` still refuse
+    /// it). A real IMU at rest on a vehicle with running rotors or engines
+    /// vibrates far beyond its datasheet noise and fails the IMU test
     /// (OpenVINS's `zupt_max_disparity`).
     pub zupt_max_disparity_px: f64,
     /// Pixel measurement noise, px.
