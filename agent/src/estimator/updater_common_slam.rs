@@ -93,9 +93,16 @@ fn measurement_rows(
     for p in peers.iter_mut() {
         p.items.sort_unstable();
         p.items.dedup();
+        // The peer's poses only, not its intrinsics (unlike the common VIO
+        // update): with the intrinsics in the joint, two robots on one 3 m
+        // circle that estimate their intrinsics online (true calibration)
+        // diverged, 0.95 deg / 0.195 m with orientation NEES 122 (5 seeds),
+        // against 0.13 / 0.021, NEES 2.1, without; the blocks' NIS was 0.99
+        // either way, and the intrinsics' block alone (no cross-covariance
+        // with the poses) diverged too. Why is not understood (see README,
+        // Cooperative estimation).
         let Part::Poses(w) = p.part else { continue };
         let w = participants.get(w)?;
-        p.items.extend(w.intrinsics_item());
         let cols: usize = p.items.iter().map(|i| w.item_size(*i)).sum();
         p.h = DMatrix::zeros(m, cols);
     }
@@ -112,10 +119,6 @@ fn measurement_rows(
             .find(|p| p.part == Part::Poses(o.participant))?;
         let c = 6 * p.items.binary_search(&o.pose).ok()?;
         p.h.fixed_view_mut::<2, 6>(r, c).copy_from(&pm.h_pose);
-        if let Some(k) = w.intrinsics_item() {
-            let c = 6 * p.items.iter().position(|x| *x == k)?;
-            p.h.fixed_view_mut::<2, 8>(r, c).copy_from(&pm.h_intrinsics);
-        }
     }
     Some(CiRows {
         vars,
