@@ -97,10 +97,12 @@ fn measurement_rows(
         // update): with the intrinsics in the joint, two robots on one 3 m
         // circle that estimate their intrinsics online (true calibration)
         // diverged, 0.95 deg / 0.195 m with orientation NEES 122 (5 seeds),
-        // against 0.13 / 0.021, NEES 2.1, without; the blocks' NIS was 0.99
-        // either way, and the intrinsics' block alone (no cross-covariance
-        // with the poses) diverged too. Why is not understood (see README,
-        // Cooperative estimation).
+        // against 0.13 / 0.021, NEES 2.1, without. Their focal lengths ran
+        // away together (seed 1, robot 0: fx 458.5 px at 2 s, 478.7 at 24 s,
+        // 510.0 at 46 s, claiming σ 1.0-1.2 px; truth 458.65; without, within
+        // 0.6 px). The blocks' NIS was 0.99 either way, and the intrinsics'
+        // block alone (no cross-covariance with the poses) diverged too. Why
+        // is not understood (see README, Cooperative estimation).
         let Part::Poses(w) = p.part else { continue };
         let w = participants.get(w)?;
         let cols: usize = p.items.iter().map(|i| w.item_size(*i)).sum();
