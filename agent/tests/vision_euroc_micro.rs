@@ -18,10 +18,11 @@ fn data(rel: &str) -> PathBuf {
         .join(rel)
 }
 
-#[test]
-fn micro_sequence_is_tracked_through_all_images_and_the_static_start_gets_roll_and_pitch() {
+/// The sequence at `dir`, scored against V1_01's ground truth, through the
+/// default frontend and estimator.
+fn run_with_defaults(dir: &std::path::Path) -> (EurocDataset, agent::dataset_run::DatasetRun) {
     let gt = data("trajectories/V1_01_easy.csv");
-    let ds = EurocDataset::open(&data("euroc_v1_01_micro"), Some(&gt)).expect("dataset");
+    let ds = EurocDataset::open(dir, Some(&gt)).expect("dataset");
     let run = run_dataset(
         &ds,
         EstimatorOptions::default(),
@@ -30,7 +31,13 @@ fn micro_sequence_is_tracked_through_all_images_and_the_static_start_gets_roll_a
         |_, _| {},
         |_| {},
     )
-    .expect("run");
+    .expect("the run goes on");
+    (ds, run)
+}
+
+#[test]
+fn micro_sequence_is_tracked_through_all_images_and_the_static_start_gets_roll_and_pitch() {
+    let (ds, run) = run_with_defaults(&data("euroc_v1_01_micro"));
     let s = score(&run, &ds);
     println!("{s:?}");
     assert_eq!(s.images, 95);
@@ -219,17 +226,7 @@ fn damaged_copy(dir: &std::path::Path) -> PathBuf {
 fn images_that_cannot_be_used_are_skipped_with_the_reason() {
     let dir = tempfile::tempdir().expect("tempdir");
     let mav0 = damaged_copy(dir.path());
-    let gt = data("trajectories/V1_01_easy.csv");
-    let ds = EurocDataset::open(&mav0, Some(&gt)).expect("dataset");
-    let run = run_dataset(
-        &ds,
-        EstimatorOptions::default(),
-        FrontendOptions::default(),
-        &StaticInitOptions::default(),
-        |_, _| {},
-        |_| {},
-    )
-    .expect("the run goes on");
+    let (ds, run) = run_with_defaults(&mav0);
     println!("{:#?}", run.skipped_images);
     assert_eq!(run.skipped_images.len(), 3);
     assert!(
