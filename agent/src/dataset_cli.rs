@@ -145,11 +145,10 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
     log.finish()?;
 
     let s = score(&run, &ds);
-    if !run.skipped_images.is_empty() {
+    if let Some(first) = run.skipped_images.first() {
         println!(
-            "{} images could not be used and were skipped (their frames are lost); the first: {}",
-            run.skipped_images.len(),
-            run.skipped_images[0]
+            "{} images could not be used and were skipped (their frames are lost); the first: {first}",
+            run.skipped_images.len()
         );
     }
     println!(

@@ -247,10 +247,7 @@ impl CentralEstimator {
                 .filter(|s| s.t > t_prev && s.t <= t_imu)
                 .copied()
                 .collect();
-            let reference = updater_zupt::still_reference(slot.means(), frame.t);
-            let features = &robot.features;
-            let images =
-                || reference.and_then(|key| updater_zupt::track_motion(frame, features, key));
+            let images = updater_zupt::image_motion(slot.means(), frame, &robot.features);
             if updater_zupt::try_update(&mut slot, &readings, &opts, &self.chi2, images) {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;

@@ -44,16 +44,22 @@ const MIN_DISPARITY_TRACKS: usize = 10;
 /// 95 creeping frames were taken for standstills one frame apart.
 pub const STILL_SPAN_S: f64 = 0.3;
 
-/// The clone the images' standstill is judged against for an image at camera
-/// time `t_cam`: the newest at least [`STILL_SPAN_S`] older (at a standstill
-/// no clone is made, so it stays the last one before the robot stopped).
-pub fn still_reference(means: &Means, t_cam: f64) -> Option<u64> {
-    means
+/// The `images` argument of [`try_update`] for `frame`: how its tracks moved
+/// since the newest clone at least [`STILL_SPAN_S`] older (at a standstill no
+/// clone is made, so it stays the last one before the robot stopped). The
+/// reference is found now; the tracks are looked up only if asked.
+pub fn image_motion<'a>(
+    means: &Means,
+    frame: &'a FeatureFrame,
+    features: &'a FeatureDb,
+) -> impl FnOnce() -> Option<TrackMotion> + 'a {
+    let reference = means
         .clones
         .iter()
         .rev()
-        .find(|(_, c)| c.t_cam <= t_cam - STILL_SPAN_S)
-        .map(|(key, _)| *key)
+        .find(|(_, c)| c.t_cam <= frame.t - STILL_SPAN_S)
+        .map(|(key, _)| *key);
+    move || reference.and_then(|key| track_motion(frame, features, key))
 }
 
 /// How the tracks of an image moved since a reference clone measured them

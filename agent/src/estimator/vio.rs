@@ -288,12 +288,9 @@ impl Estimator {
                 .filter(|s| s.t > t_prev && s.t <= t_imu)
                 .copied()
                 .collect();
-            let reference = updater_zupt::still_reference(&state.means, frame.t);
             // Asked only when the robot is slow: a moving robot's frames never
             // pay for the track lookups.
-            let features = &self.features;
-            let images =
-                || reference.and_then(|key| updater_zupt::track_motion(frame, features, key));
+            let images = updater_zupt::image_motion(&state.means, frame, &self.features);
             if updater_zupt::try_update(state, &readings, &opts, &self.chi2, images) {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
