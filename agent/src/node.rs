@@ -1189,7 +1189,11 @@ pub fn run_node(
                     frames_seen += 1;
                     if !initialized {
                         if c.truth.t.is_finite() && c.truth.t >= start_t {
-                            est.initialize(&initial_state(spec, &c.truth));
+                            est.initialize(&initial_state(
+                                spec,
+                                &c.truth,
+                                &fleet.start_error(robot),
+                            ));
                             initialized = true;
                         }
                         let env = node.outbox.tracks(index, &c.frame, est.calibration());

@@ -5,9 +5,11 @@
 use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, FrameRecord, InitialState};
 use common::measurement::FeatureFrame;
 use common::metrics::{ate, nees, rpe, Alignment, PosePair, DEFAULT_RPE_SEGMENTS_M};
+use common::so3::exp_so3;
 use common::summary::MetricSet;
 use common::trajectory::{StampedCovariance, StampedPose};
 use simulator::camera_sim::{CameraEvent, TruthState};
+use simulator::perturb::StartError;
 use simulator::scenario::EstimatorSpec;
 use simulator::{Fleet, SimEvent};
 use std::str::FromStr;
@@ -236,7 +238,7 @@ pub fn run_stream(
                     if state.t < start {
                         continue;
                     }
-                    est.initialize(&initial_state(spec, &state));
+                    est.initialize(&initial_state(spec, &state, &fleet.start_error(robot)));
                     initialized = true;
                     continue;
                 }
@@ -260,16 +262,17 @@ pub fn run_stream(
     Ok(run)
 }
 
-/// The estimator's start from the true state, with the scenario's prior
-/// standard deviations (OpenVINS's simulation start).
-pub fn initial_state(spec: &EstimatorSpec, truth: &TruthState) -> InitialState {
+/// The estimator's start: the true state plus `err` (zero unless the scenario
+/// samples it from the prior), with the scenario's prior standard deviations
+/// (OpenVINS's simulation start when `err` is zero).
+pub fn initial_state(spec: &EstimatorSpec, truth: &TruthState, err: &StartError) -> InitialState {
     InitialState {
         t: truth.t,
-        rot: truth.rot,
-        pos: truth.pos,
-        vel: truth.vel,
-        bias_gyro: truth.biases.gyro,
-        bias_accel: truth.biases.accel,
+        rot: truth.rot * exp_so3(&err.rot),
+        pos: truth.pos + err.pos,
+        vel: truth.vel + err.vel,
+        bias_gyro: truth.biases.gyro + err.bias_gyro,
+        bias_accel: truth.biases.accel + err.bias_accel,
         sigma_ori_rad: spec.init_sigma_ori_rad,
         sigma_pos_m: spec.init_sigma_pos_m,
         sigma_vel_mps: spec.init_sigma_vel_mps,

@@ -126,7 +126,11 @@ fn largest_growth(use_fej: bool) -> f64 {
             SimEvent::Camera(c) => {
                 if !started {
                     if c.truth.t >= start {
-                        est.initialize(&initial_state(&sc.estimator, &c.truth));
+                        est.initialize(&initial_state(
+                            &sc.estimator,
+                            &c.truth,
+                            &fleet.start_error(0),
+                        ));
                         started = true;
                     }
                     continue;

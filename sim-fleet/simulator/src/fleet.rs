@@ -4,7 +4,7 @@
 use crate::bspline::SplineError;
 use crate::camera_sim::{CameraEvent, CameraGenerator};
 use crate::imu::{Biases, ImuGenerator};
-use crate::perturb::perturb_calibration;
+use crate::perturb::{perturb_calibration, start_error, StartError};
 use crate::render::{RenderError, Renderer};
 use crate::rng::{stream_rng, Stream};
 use crate::scenario::Scenario;
@@ -190,6 +190,13 @@ impl Fleet {
             &self.scenario.sensors.calibration_perturbation,
             &mut rng,
         )
+    }
+
+    /// The error robot `robot`'s estimator starts with (zero unless the scenario
+    /// asks for `initial_error: sampled`; its own random stream).
+    pub fn start_error(&self, robot: usize) -> StartError {
+        let mut rng = stream_rng(self.seed, Stream::InitialState(robot));
+        start_error(&self.scenario.estimator, &mut rng)
     }
 
     /// When robot `robot`'s estimator starts: once it moved `start_after_motion_m`.

@@ -1,10 +1,12 @@
 //! The estimator's initial calibration: the truth perturbed by the scenario's
-//! priors, as OpenVINS's simulator does, so online calibration is exercised.
+//! priors, as OpenVINS's simulator does, so online calibration is exercised;
+//! and, when asked, the error of the estimator's initial state.
 
 use crate::imu::normal3;
-use crate::scenario::CalibrationPerturbation;
+use crate::scenario::{CalibrationPerturbation, EstimatorSpec, InitialError};
 use common::calibration::CameraCalibration;
 use common::so3::exp_so3;
+use nalgebra::Vector3;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
@@ -32,4 +34,36 @@ pub fn perturb_calibration(
     c.rot_c_to_i *= exp_so3(&dtheta);
     c.p_c_in_i += normal3(rng) * p.extrinsic_pos_m;
     c
+}
+
+/// The error an estimator starts with: `estimate = truth ⊞ error`, with the
+/// orientation perturbed on the right (`R̂ = R Exp(δθ)`; the prior is isotropic,
+/// so the side does not change the distribution).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StartError {
+    /// Orientation, rad.
+    pub rot: Vector3<f64>,
+    /// Position, m.
+    pub pos: Vector3<f64>,
+    /// Velocity, m/s.
+    pub vel: Vector3<f64>,
+    /// Gyroscope bias, rad/s.
+    pub bias_gyro: Vector3<f64>,
+    /// Accelerometer bias, m/s².
+    pub bias_accel: Vector3<f64>,
+}
+
+/// Zero with `initial_error: truth`; otherwise one draw from the prior the
+/// estimator states (`init_sigma_*`).
+pub fn start_error(spec: &EstimatorSpec, rng: &mut ChaCha8Rng) -> StartError {
+    match spec.initial_error {
+        InitialError::Truth => StartError::default(),
+        InitialError::Sampled => StartError {
+            rot: normal3(rng) * spec.init_sigma_ori_rad,
+            pos: normal3(rng) * spec.init_sigma_pos_m,
+            vel: normal3(rng) * spec.init_sigma_vel_mps,
+            bias_gyro: normal3(rng) * spec.init_sigma_bias,
+            bias_accel: normal3(rng) * spec.init_sigma_bias,
+        },
+    }
 }

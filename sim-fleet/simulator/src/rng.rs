@@ -19,6 +19,8 @@ pub enum Stream {
     Texture,
     /// A robot's rendered image noise.
     Render(usize),
+    /// The error a robot's estimator starts with (`initial_error: sampled`).
+    InitialState(usize),
 }
 
 /// A ChaCha8 generator for `stream` of `seed`; streams never overlap.
@@ -30,6 +32,8 @@ pub fn stream_rng(seed: u64, stream: Stream) -> ChaCha8Rng {
         Stream::Calibration(r) => 3 + 4 * r as u64,
         // 4 + 4r is free for every r (the world took only 0).
         Stream::Render(r) => 4 + 4 * r as u64,
+        // Above every 4r + k of any realistic fleet.
+        Stream::InitialState(r) => (1 << 40) + r as u64,
         Stream::Texture => u64::MAX,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);

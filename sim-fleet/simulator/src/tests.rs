@@ -236,6 +236,40 @@ fn perturbed_calibration_differs_from_the_truth_by_the_configured_spread() {
 }
 
 #[test]
+fn a_sampled_start_error_has_the_prior_spread_and_the_default_is_none() {
+    let dir = tempfile::tempdir().unwrap();
+    let fleet = Fleet::build(&scenario(dir.path(), ""), 1).unwrap();
+    assert_eq!(fleet.start_error(0), crate::perturb::StartError::default());
+    let sampled = scenario(
+        dir.path(),
+        "estimator: {initial_error: sampled, init_sigma_ori_rad: 0.02, init_sigma_pos_m: 0.3}\n",
+    );
+    let fleet = Fleet::build(&sampled, 1).unwrap();
+    // Its own stream: a pure function of (seed, robot), different per robot.
+    assert_eq!(fleet.start_error(1), fleet.start_error(1));
+    assert_ne!(fleet.start_error(0), fleet.start_error(1));
+    let (mut s_rot, mut s_pos, mut n) = (0.0, 0.0, 0.0);
+    for seed in 0..300 {
+        let f = Fleet {
+            seed,
+            ..fleet.clone()
+        };
+        for r in 0..2 {
+            let e = f.start_error(r);
+            s_rot += e.rot.norm_squared();
+            s_pos += e.pos.norm_squared();
+            n += 3.0;
+        }
+    }
+    let (sigma_rot, sigma_pos) = ((s_rot / n).sqrt(), (s_pos / n).sqrt());
+    assert!(
+        (sigma_rot / 0.02 - 1.0).abs() < 0.08,
+        "orientation {sigma_rot}"
+    );
+    assert!((sigma_pos / 0.3 - 1.0).abs() < 0.08, "position {sigma_pos}");
+}
+
+#[test]
 fn measurements_survive_an_mcap_round_trip() {
     let dir = tempfile::tempdir().unwrap();
     let fleet = Fleet::build(&scenario(dir.path(), ""), 1).unwrap();
