@@ -101,8 +101,10 @@ fn measurement_rows(
         // away together (seed 1, robot 0: fx 458.5 px at 2 s, 478.7 at 24 s,
         // 510.0 at 46 s, claiming σ 1.0-1.2 px; truth 458.65; without, within
         // 0.6 px). The blocks' NIS was 0.99 either way, and the intrinsics'
-        // block alone (no cross-covariance with the poses) diverged too. Why
-        // is not understood (see README, Cooperative estimation).
+        // block alone (no cross-covariance with the poses) diverged too. It is
+        // the radially symmetric columns: fx and fy together, or k1, diverge;
+        // fx alone or fy alone do not. Why is not understood (see README,
+        // Cooperative estimation).
         let Part::Poses(w) = p.part else { continue };
         let w = participants.get(w)?;
         let cols: usize = p.items.iter().map(|i| w.item_size(*i)).sum();
