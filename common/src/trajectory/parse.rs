@@ -14,6 +14,9 @@ const MIN_QUATERNION_NORM: f64 = 1e-6;
 /// Reads `path` and parses every data line with `parse`, which gets the
 /// line's values (split at spaces, tabs and commas). Blank lines and lines
 /// starting with `#` are skipped. Times (`time_of`) must strictly increase.
+/// An unfinished last line (no newline after it: the file was cut off while
+/// being written) that does not read is dropped with a warning; any other bad
+/// line is an error naming it.
 pub(super) fn parse_file<T>(
     path: &Path,
     mut parse: impl FnMut(&[&str]) -> Result<T, LineError>,
@@ -24,6 +27,8 @@ pub(super) fn parse_file<T>(
         source,
     })?;
     let mut out: Vec<T> = Vec::new();
+    let lines = text.lines().count();
+    let unfinished = !text.ends_with('\n');
     for (index, raw) in text.lines().enumerate() {
         let line = raw.trim();
         if line.is_empty() || line.starts_with('#') {
@@ -38,14 +43,26 @@ pub(super) fn parse_file<T>(
             line: index + 1,
             kind,
         };
-        let item = parse(&fields).map_err(wrap)?;
-        let t = time_of(&item);
-        if let Some(previous) = out.last().map(&time_of) {
-            if t <= previous {
-                return Err(wrap(LineError::TimeNotIncreasing { t, previous }));
+        let checked = parse(&fields).and_then(|item| {
+            let t = time_of(&item);
+            match out.last().map(&time_of) {
+                Some(previous) if t <= previous => {
+                    Err(LineError::TimeNotIncreasing { t, previous })
+                }
+                _ => Ok(item),
             }
+        });
+        match checked {
+            Ok(item) => out.push(item),
+            Err(kind) if unfinished && index + 1 == lines => {
+                tracing::warn!(
+                    "{}: the last line ({}) is cut short and dropped: {kind}",
+                    path.display(),
+                    index + 1
+                );
+            }
+            Err(kind) => return Err(wrap(kind)),
         }
-        out.push(item);
     }
     Ok(out)
 }

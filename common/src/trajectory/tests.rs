@@ -220,3 +220,35 @@ fn laps_retrace_the_path_backwards_then_forwards_with_time_running_on() {
     assert_eq!(three[3].rot, traj[1].rot);
     assert!(three.windows(2).all(|w| w[1].t > w[0].t));
 }
+
+#[test]
+fn an_unfinished_last_line_is_dropped_and_a_finished_bad_one_is_not() {
+    let dir = tempfile::tempdir().unwrap();
+    // TUM, cut off mid-line: the two whole poses are kept.
+    let text = "1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n3 0 0.5";
+    let poses = read_tum(write_text(&dir, "cut.txt", text)).unwrap();
+    assert_eq!(poses.len(), 2);
+    // EuRoC ground truth cut inside its nanosecond stamp: the stamp would go
+    // back in time, and the line is dropped too.
+    let text = "#timestamp,x,y,z,qw,qx,qy,qz\n\
+                1403715273262142976,0,0,0,1,0,0,0\n\
+                1403715273267142912,0,0,0,1,0,0,0\n\
+                14037152";
+    let poses = read_euroc_csv(write_text(&dir, "gt.csv", text)).unwrap();
+    assert_eq!(poses.len(), 2);
+    // The same lines with a newline after the bad one were written whole:
+    // an error naming the line.
+    let text = "1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n3 0 0.5\n";
+    let err = read_tum(write_text(&dir, "bad.txt", text)).unwrap_err();
+    assert!(
+        matches!(err, TrajectoryError::Line { line: 3, .. }),
+        "{err}"
+    );
+    // A bad line before the last is an error whatever the ending.
+    let text = "1 0 0 0 0 0 0 1\n2 0 x 0 0 0 0 1\n3 0 0 0 0 0 0 1";
+    let err = read_tum(write_text(&dir, "mid.txt", text)).unwrap_err();
+    assert!(
+        matches!(err, TrajectoryError::Line { line: 2, .. }),
+        "{err}"
+    );
+}
