@@ -282,6 +282,9 @@ pub struct EstimatorSection {
     /// Maximum MSCKF features per update.
     #[serde(default)]
     pub max_msckf_in_update: Option<usize>,
+    /// Times the first MSCKF update is iterated (0: one plain update).
+    #[serde(default)]
+    pub first_update_iterations: Option<usize>,
     /// First-Estimates Jacobians.
     #[serde(default)]
     pub use_fej: Option<bool>,
@@ -358,6 +361,9 @@ impl EstimatorSection {
         if let Some(v) = self.max_msckf_in_update {
             o.max_msckf_in_update = v;
         }
+        if let Some(v) = self.first_update_iterations {
+            o.first_update_iterations = v;
+        }
         if let Some(v) = self.use_fej {
             o.use_fej = v;
         }
@@ -425,6 +431,7 @@ impl Default for EstimatorSection {
             max_slam: None,
             max_slam_in_update: None,
             max_msckf_in_update: None,
+            first_update_iterations: None,
             use_fej: None,
             calib_cam_extrinsics: None,
             calib_cam_intrinsics: None,

@@ -11,7 +11,7 @@
 
 use super::covariance::{Covariance, StateVar};
 use common::calibration::CameraCalibration;
-use common::so3::exp_so3;
+use common::so3::{exp_so3, log_so3};
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use std::collections::BTreeMap;
 use std::ops::{Deref, DerefMut};
@@ -188,6 +188,55 @@ impl Means {
                 }
             }
         }
+    }
+
+    /// The error state `δ` over `vars` (in that order) with `self = base ⊞ δ`
+    /// (the inverse of [`Means::apply`]); a variable either lacks is zero.
+    pub fn boxminus(&self, base: &Means, vars: &[Var]) -> DVector<f64> {
+        let n: usize = vars.iter().map(|v| v.size()).sum();
+        let mut d = DVector::zeros(n);
+        let mut o = 0;
+        for v in vars {
+            let mut put = |i: usize, x: Vector3<f64>| d.fixed_rows_mut::<3>(o + i).copy_from(&x);
+            match v {
+                Var::Imu => {
+                    put(0, log_so3(&(base.imu.rot.transpose() * self.imu.rot)));
+                    put(3, self.imu.pos - base.imu.pos);
+                    put(6, self.imu.vel - base.imu.vel);
+                    put(9, self.imu.bias_gyro - base.imu.bias_gyro);
+                    put(12, self.imu.bias_accel - base.imu.bias_accel);
+                }
+                Var::TimeOffset => d[o] = self.calib.time_offset_s - base.calib.time_offset_s,
+                Var::Extrinsic => {
+                    put(
+                        0,
+                        log_so3(&(base.calib.rot_c_to_i.transpose() * self.calib.rot_c_to_i)),
+                    );
+                    put(3, self.calib.p_c_in_i - base.calib.p_c_in_i);
+                }
+                Var::Intrinsics => {
+                    for i in 0..4 {
+                        d[o + i] =
+                            self.calib.camera.intrinsics[i] - base.calib.camera.intrinsics[i];
+                        d[o + 4 + i] =
+                            self.calib.camera.distortion[i] - base.calib.camera.distortion[i];
+                    }
+                }
+                Var::Clone(key) => {
+                    if let (Some(a), Some(b)) = (self.clones.get(key), base.clones.get(key)) {
+                        put(0, log_so3(&(b.rot.transpose() * a.rot)));
+                        put(3, a.pos - b.pos);
+                    }
+                }
+                Var::Feature(id) => {
+                    if let (Some(a), Some(b)) = (self.features.get(id), base.features.get(id)) {
+                        put(0, a.pos - b.pos);
+                    }
+                }
+            }
+            o += v.size();
+        }
+        d
     }
 
     /// Forgets the mean of a marginalized variable.
@@ -560,5 +609,32 @@ mod tests {
             )
             .unwrap_err();
         assert_eq!(e, StateError::Missing(Var::Clone(9)));
+    }
+
+    /// `boxminus` undoes `apply`: `(x ⊞ δ) ⊟ x = δ` for every kind of variable.
+    #[test]
+    fn boxminus_is_the_inverse_of_apply() {
+        let mut x = test_state();
+        x.augment(Var::Clone(3), &[], &DMatrix::identity(6, 6)).ok();
+        x.means.clones.insert(
+            3,
+            ClonePose {
+                t: 0.1,
+                t_cam: 0.1,
+                rot: exp_so3(&Vector3::new(0.3, -0.2, 1.0)),
+                pos: Vector3::new(1.0, 2.0, 3.0),
+                rot_fej: Matrix3::identity(),
+                pos_fej: Vector3::zeros(),
+            },
+        );
+        let vars: Vec<Var> = x.cov.index().iter().map(|(v, _)| *v).collect();
+        let n: usize = vars.iter().map(|v| v.size()).sum();
+        let delta = DVector::from_fn(n, |i, _| 0.01 * ((i * 7 % 11) as f64 - 5.0));
+        let mut y = x.means.clone();
+        for &(var, o) in x.cov.index() {
+            y.apply(var, o, &delta);
+        }
+        let back = y.boxminus(&x.means, &vars);
+        assert!((back - delta).abs().max() < 1e-12);
     }
 }

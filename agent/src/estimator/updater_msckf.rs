@@ -9,7 +9,7 @@ use super::feature_system::{build, Columns};
 use super::filter::Filter;
 use super::linalg::{compress_in_place, nullspace_project_in_place};
 use super::options::EstimatorOptions;
-use super::state::Var;
+use super::state::{State, Var};
 use super::triangulation::TriangulationOptions;
 use nalgebra::{DMatrix, DVector};
 
@@ -54,6 +54,118 @@ pub fn update_up_to<F: Filter + ?Sized>(
     tri: &TriangulationOptions,
     untriangulated: &mut Vec<u64>,
 ) -> (MsckfStats, usize) {
+    let (mut stats, tried, stacked) =
+        stack_up_to(state, db, ids, cap, opts, Some(chi2), tri, untriangulated);
+    if let Some(st) = stacked {
+        if state
+            .ekf_update(&st.vars, &st.h, &st.res, &st.noise())
+            .is_err()
+        {
+            stats.failed += stats.used;
+            stats.used = 0;
+        }
+    }
+    (stats, tried)
+}
+
+/// [`update_up_to`] iterated (an iterated EKF, for the filter's first update):
+/// after the update, the features it used are triangulated again at the
+/// updated clones and the system rebuilt there, and the update is redone from
+/// the prior with the residual moved to the prior's point,
+/// `r' = r(x_i) + H_i (x_i ⊟ x_0)`, `iterations` times. The first update comes
+/// after a whole window of flight on the start's errors alone: a tilt of a
+/// degree has bent every clone, and one linearized step leaves a third of it
+/// while the covariance claims it gone.
+#[allow(clippy::too_many_arguments)]
+pub fn iterated_update_up_to(
+    state: &mut State,
+    db: &FeatureDb,
+    ids: &[u64],
+    cap: usize,
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+    tri: &TriangulationOptions,
+    untriangulated: &mut Vec<u64>,
+    iterations: usize,
+) -> (MsckfStats, usize) {
+    let prior = state.clone();
+    let (mut stats, tried, stacked) =
+        stack_up_to(state, db, ids, cap, opts, Some(chi2), tri, untriangulated);
+    let Some(mut st) = stacked else {
+        return (stats, tried);
+    };
+    for k in 0..=iterations {
+        if k > 0 {
+            let Some(next) = stack_up_to(
+                state,
+                db,
+                &st.used,
+                usize::MAX,
+                opts,
+                None,
+                tri,
+                &mut Vec::new(),
+            )
+            .2
+            else {
+                break;
+            };
+            let delta = state.means.boxminus(&prior.means, &next.vars);
+            st = Stacked {
+                res: &next.res + &next.h * delta,
+                ..next
+            };
+            *state = prior.clone();
+        }
+        if state
+            .ekf_update(&st.vars, &st.h, &st.res, &st.noise())
+            .is_err()
+        {
+            *state = prior;
+            stats.failed += stats.used;
+            stats.used = 0;
+            break;
+        }
+    }
+    (stats, tried)
+}
+
+/// The stacked, compressed MSCKF system of some features (what
+/// [`update_up_to`] updates with).
+#[derive(Clone, Debug)]
+pub struct Stacked {
+    /// Our variables, the columns of `h`.
+    pub vars: Vec<Var>,
+    /// The Jacobian.
+    pub h: DMatrix<f64>,
+    /// The residual.
+    pub res: DVector<f64>,
+    /// The pixel variance of every row.
+    pub sigma2: f64,
+    /// The features in it.
+    pub used: Vec<u64>,
+}
+
+impl Stacked {
+    /// The rows' noise covariance.
+    pub fn noise(&self) -> DMatrix<f64> {
+        DMatrix::identity(self.res.len(), self.res.len()) * self.sigma2
+    }
+}
+
+/// [`update_up_to`] without the update: the system of the candidates, gated
+/// when `chi2` is given. `None` when no feature has rows.
+#[allow(clippy::too_many_arguments)]
+pub fn stack_up_to<F: Filter + ?Sized>(
+    state: &F,
+    db: &FeatureDb,
+    ids: &[u64],
+    cap: usize,
+    opts: &EstimatorOptions,
+    chi2: Option<&Chi2Table>,
+    tri: &TriangulationOptions,
+    untriangulated: &mut Vec<u64>,
+) -> (MsckfStats, usize, Option<Stacked>) {
     let mut stats = MsckfStats::default();
     let mut tried = 0;
     let cols = Columns::window(state);
@@ -67,6 +179,7 @@ pub fn update_up_to<F: Filter + ?Sized>(
     // Each feature's system over the variables it involves (calibration and the
     // clones that saw it): gating touches only that block of the covariance.
     let mut blocks: Vec<(Columns, DMatrix<f64>, DVector<f64>)> = Vec::with_capacity(ids.len());
+    let mut used = Vec::new();
     let mut rows = 0;
     for id in ids {
         if stats.used + stats.rejected_chi2 >= cap {
@@ -93,21 +206,24 @@ pub fn update_up_to<F: Filter + ?Sized>(
             stats.failed += 1;
             continue;
         }
-        let r = DMatrix::identity(sys.res.len(), sys.res.len()) * sigma2;
-        let Ok(d2) = state.mahalanobis(&fcols.vars, &sys.h_x, &sys.res, &r) else {
-            stats.failed += 1;
-            continue;
-        };
-        if d2 > opts.chi2_multiplier * chi2.get(sys.res.len()) {
-            stats.rejected_chi2 += 1;
-            continue;
+        if let Some(chi2) = chi2 {
+            let r = DMatrix::identity(sys.res.len(), sys.res.len()) * sigma2;
+            let Ok(d2) = state.mahalanobis(&fcols.vars, &sys.h_x, &sys.res, &r) else {
+                stats.failed += 1;
+                continue;
+            };
+            if d2 > opts.chi2_multiplier * chi2.get(sys.res.len()) {
+                stats.rejected_chi2 += 1;
+                continue;
+            }
         }
         rows += sys.res.len();
         blocks.push((fcols, sys.h_x, sys.res));
+        used.push(*id);
         stats.used += 1;
     }
     if rows == 0 {
-        return (stats, tried);
+        return (stats, tried, None);
     }
     let mut h = DMatrix::zeros(rows, cols.dim);
     let mut res = DVector::zeros(rows);
@@ -125,12 +241,14 @@ pub fn update_up_to<F: Filter + ?Sized>(
         r0 += m;
     }
     compress_in_place(&mut h, &mut res);
-    let r = DMatrix::identity(res.len(), res.len()) * sigma2;
-    if state.ekf_update(&cols.vars, &h, &res, &r).is_err() {
-        stats.failed += stats.used;
-        stats.used = 0;
-    }
-    (stats, tried)
+    let stacked = Stacked {
+        vars: cols.vars,
+        h,
+        res,
+        sigma2,
+        used,
+    };
+    (stats, tried, Some(stacked))
 }
 
 #[cfg(test)]

@@ -84,6 +84,8 @@ pub struct Estimator {
     /// What is taken from peers (when the options ask for anything).
     coop: Option<Cooperation>,
     vocabulary: Option<Arc<Vocabulary>>,
+    /// Whether an MSCKF update has run (the first one is iterated).
+    updated_once: bool,
 }
 
 fn ms(since: Instant) -> f64 {
@@ -108,6 +110,7 @@ impl Estimator {
             tri,
             coop: None,
             vocabulary: None,
+            updated_once: false,
         }
     }
 
@@ -350,16 +353,32 @@ impl Estimator {
             .filter(|id| !common.contains(id))
             .collect();
         let mut untriangulated = Vec::new();
-        let (mut msckf, tried) = updater_msckf::update_up_to(
-            state,
-            &self.features,
-            &independent,
-            opts.max_msckf_in_update,
-            &opts,
-            &self.chi2,
-            &self.tri,
-            &mut untriangulated,
-        );
+        let iterations = opts.first_update_iterations;
+        let (mut msckf, tried) = if !self.updated_once && iterations > 0 {
+            updater_msckf::iterated_update_up_to(
+                state,
+                &self.features,
+                &independent,
+                opts.max_msckf_in_update,
+                &opts,
+                &self.chi2,
+                &self.tri,
+                &mut untriangulated,
+                iterations,
+            )
+        } else {
+            updater_msckf::update_up_to(
+                state,
+                &self.features,
+                &independent,
+                opts.max_msckf_in_update,
+                &opts,
+                &self.chi2,
+                &self.tri,
+                &mut untriangulated,
+            )
+        };
+        self.updated_once |= msckf.used > 0;
 
         timing.msckf_ms = ms(t);
 

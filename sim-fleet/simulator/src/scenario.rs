@@ -363,6 +363,8 @@ pub struct EstimatorSpec {
     /// `max_clones + 1`, when the oldest clone of a full window leaves; unset: that
     /// count, whatever `max_clones` is).
     pub min_clones_to_update: Option<usize>,
+    /// Times the first MSCKF update is iterated (0: one plain update).
+    pub first_update_iterations: usize,
     /// SLAM feature parameterization: `global` (p_FinG) or `anchored` (in the
     /// camera of the clone that initialized it).
     pub feature_representation: FeatureRepresentation,
@@ -424,6 +426,7 @@ impl EstimatorSpec {
             max_slam_in_update: self.max_slam_in_update,
             slam_delay_s: self.slam_delay_s,
             min_clones_to_update: self.first_update_clones(),
+            first_update_iterations: self.first_update_iterations,
             feature_representation: self.feature_representation,
             max_msckf_in_update: self.max_msckf_in_update,
             use_fej: self.use_fej,
@@ -464,6 +467,7 @@ impl Default for EstimatorSpec {
             max_slam_in_update: o.max_slam_in_update,
             slam_delay_s: o.slam_delay_s,
             min_clones_to_update: None,
+            first_update_iterations: o.first_update_iterations,
             feature_representation: o.feature_representation,
             max_msckf_in_update: o.max_msckf_in_update,
             pixel_sigma_px: None,
