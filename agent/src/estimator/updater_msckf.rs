@@ -75,7 +75,8 @@ pub fn update_up_to<F: Filter + ?Sized>(
 /// `r' = r(x_i) + H_i (x_i ⊟ x_0)`, `iterations` times. The first update comes
 /// after a whole window of flight on the start's errors alone: a tilt of a
 /// degree has bent every clone, and one linearized step leaves a third of it
-/// while the covariance claims it gone.
+/// while the covariance claims it gone. With no iteration it is
+/// [`update_up_to`] (no copy of the state).
 #[allow(clippy::too_many_arguments)]
 pub fn iterated_update_up_to(
     state: &mut State,
@@ -88,6 +89,9 @@ pub fn iterated_update_up_to(
     untriangulated: &mut Vec<u64>,
     iterations: usize,
 ) -> (MsckfStats, usize) {
+    if iterations == 0 {
+        return update_up_to(state, db, ids, cap, opts, chi2, tri, untriangulated);
+    }
     let prior = state.clone();
     let (mut stats, tried, stacked) =
         stack_up_to(state, db, ids, cap, opts, Some(chi2), tri, untriangulated);

@@ -353,31 +353,23 @@ impl Estimator {
             .filter(|id| !common.contains(id))
             .collect();
         let mut untriangulated = Vec::new();
-        let iterations = opts.first_update_iterations;
-        let (mut msckf, tried) = if !self.updated_once && iterations > 0 {
-            updater_msckf::iterated_update_up_to(
-                state,
-                &self.features,
-                &independent,
-                opts.max_msckf_in_update,
-                &opts,
-                &self.chi2,
-                &self.tri,
-                &mut untriangulated,
-                iterations,
-            )
+        // The filter's first update is iterated (`first_update_iterations`).
+        let iterations = if self.updated_once {
+            0
         } else {
-            updater_msckf::update_up_to(
-                state,
-                &self.features,
-                &independent,
-                opts.max_msckf_in_update,
-                &opts,
-                &self.chi2,
-                &self.tri,
-                &mut untriangulated,
-            )
+            opts.first_update_iterations
         };
+        let (mut msckf, tried) = updater_msckf::iterated_update_up_to(
+            state,
+            &self.features,
+            &independent,
+            opts.max_msckf_in_update,
+            &opts,
+            &self.chi2,
+            &self.tri,
+            &mut untriangulated,
+            iterations,
+        );
         self.updated_once |= msckf.used > 0;
 
         timing.msckf_ms = ms(t);
