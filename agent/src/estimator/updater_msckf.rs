@@ -98,38 +98,44 @@ pub fn iterated_update_up_to(
     let Some(mut st) = stacked else {
         return (stats, tried);
     };
-    for k in 0..=iterations {
-        if k > 0 {
-            let Some(next) = stack_up_to(
-                state,
-                db,
-                &st.used,
-                usize::MAX,
-                opts,
-                None,
-                tri,
-                &mut Vec::new(),
-            )
-            .2
-            else {
-                break;
-            };
-            let delta = state.means.boxminus(&prior.means, &next.vars);
-            st = Stacked {
-                res: &next.res + &next.h * delta,
-                ..next
-            };
-            *state = prior.clone();
-        }
-        if state
+    if state
+        .ekf_update(&st.vars, &st.h, &st.res, &st.noise())
+        .is_err()
+    {
+        *state = prior;
+        stats.failed += stats.used;
+        stats.used = 0;
+        return (stats, tried);
+    }
+    for _ in 0..iterations {
+        let Some(next) = stack_up_to(
+            state,
+            db,
+            &st.used,
+            usize::MAX,
+            opts,
+            None,
+            tri,
+            &mut Vec::new(),
+        )
+        .2
+        else {
+            break;
+        };
+        let delta = state.means.boxminus(&prior.means, &next.vars);
+        st = Stacked {
+            res: &next.res + &next.h * delta,
+            ..next
+        };
+        // Redone from the prior; an iteration that fails keeps the last one.
+        let mut again = prior.clone();
+        if again
             .ekf_update(&st.vars, &st.h, &st.res, &st.noise())
             .is_err()
         {
-            *state = prior;
-            stats.failed += stats.used;
-            stats.used = 0;
             break;
         }
+        *state = again;
     }
     (stats, tried)
 }
