@@ -1189,11 +1189,7 @@ pub fn run_node(
                     frames_seen += 1;
                     if !initialized {
                         if c.truth.t.is_finite() && c.truth.t >= start_t {
-                            est.initialize(&initial_state(
-                                spec,
-                                &c.truth,
-                                &fleet.start_error(robot),
-                            ));
+                            est.initialize(&initial_state(fleet, robot, &c.truth));
                             initialized = true;
                         }
                         let env = node.outbox.tracks(index, &c.frame, est.calibration());

@@ -9,7 +9,6 @@ use common::so3::exp_so3;
 use common::summary::MetricSet;
 use common::trajectory::{StampedCovariance, StampedPose};
 use simulator::camera_sim::{CameraEvent, TruthState};
-use simulator::perturb::StartError;
 use simulator::scenario::EstimatorSpec;
 use simulator::{Fleet, SimEvent};
 use std::str::FromStr;
@@ -212,7 +211,6 @@ pub fn run_stream(
     events: impl Iterator<Item = SimEvent>,
     mut frames: impl FnMut(CameraEvent) -> Result<Option<FeatureFrame>, RunError>,
 ) -> Result<RobotRun, RunError> {
-    let spec = &fleet.scenario.estimator;
     let truth = fleet
         .truths
         .get(robot)
@@ -238,7 +236,7 @@ pub fn run_stream(
                     if state.t < start {
                         continue;
                     }
-                    est.initialize(&initial_state(spec, &state, &fleet.start_error(robot)));
+                    est.initialize(&initial_state(fleet, robot, &state));
                     initialized = true;
                     continue;
                 }
@@ -262,10 +260,12 @@ pub fn run_stream(
     Ok(run)
 }
 
-/// The estimator's start: the true state plus `err` (zero unless the scenario
-/// samples it from the prior), with the scenario's prior standard deviations
-/// (OpenVINS's simulation start when `err` is zero).
-pub fn initial_state(spec: &EstimatorSpec, truth: &TruthState, err: &StartError) -> InitialState {
+/// Robot `robot`'s start: the true state plus the fleet's start error for it
+/// (zero unless the scenario samples it from the prior), with the scenario's
+/// prior standard deviations (OpenVINS's simulation start when it is zero).
+pub fn initial_state(fleet: &Fleet, robot: usize, truth: &TruthState) -> InitialState {
+    let spec = &fleet.scenario.estimator;
+    let err = fleet.start_error(robot);
     InitialState {
         t: truth.t,
         rot: truth.rot * exp_so3(&err.rot),

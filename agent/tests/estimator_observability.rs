@@ -126,11 +126,7 @@ fn largest_growth(use_fej: bool) -> f64 {
             SimEvent::Camera(c) => {
                 if !started {
                     if c.truth.t >= start {
-                        est.initialize(&initial_state(
-                            &sc.estimator,
-                            &c.truth,
-                            &fleet.start_error(0),
-                        ));
+                        est.initialize(&initial_state(&fleet, 0, &c.truth));
                         started = true;
                     }
                     continue;

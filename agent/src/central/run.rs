@@ -63,7 +63,7 @@ pub fn run_central(fleet: &Fleet, variant: Variant) -> Result<Vec<RobotRun>, Run
             SimEvent::Camera(c) => {
                 if !initialized[r] {
                     if c.truth.t >= starts[r] {
-                        est.initialize(r, &initial_state(spec, &c.truth, &fleet.start_error(r)));
+                        est.initialize(r, &initial_state(fleet, r, &c.truth));
                         initialized[r] = true;
                     }
                     continue;
