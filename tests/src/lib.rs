@@ -69,19 +69,27 @@ pub fn workspace_root() -> PathBuf {
         .unwrap_or_default()
 }
 
-/// Writes a smooth 30 s loop trajectory (TUM format, 20 Hz) to `path`.
+/// Writes a smooth loop trajectory of `duration_s` (TUM format, 20 Hz) to
+/// `path`: a 3 m circle at 0.25 rad/s, heading along it, bobbing 0.2 m.
 pub fn write_loop_trajectory(path: &Path, duration_s: f64) -> std::io::Result<()> {
+    write_loop_trajectory_from(path, duration_s, 0.0)
+}
+
+/// [`write_loop_trajectory`] starting `phase_rad` further along the circle
+/// (`PI`: on the opposite side).
+pub fn write_loop_trajectory_from(
+    path: &Path,
+    duration_s: f64,
+    phase_rad: f64,
+) -> std::io::Result<()> {
     let mut text = String::from("# timestamp tx ty tz qx qy qz qw\n");
     let n = (duration_s * 20.0) as usize;
     for k in 0..=n {
         let s = k as f64 / 20.0;
-        let (x, y, z) = (
-            3.0 * (0.25 * s).cos(),
-            3.0 * (0.25 * s).sin(),
-            1.0 + 0.2 * (0.5 * s).sin(),
-        );
+        let a = 0.25 * s + phase_rad;
+        let (x, y, z) = (3.0 * a.cos(), 3.0 * a.sin(), 1.0 + 0.2 * (0.5 * s).sin());
         // Yaw about z following the loop: q = (0, 0, sin(yaw/2), cos(yaw/2)).
-        let yaw = 0.25 * s + 1.57;
+        let yaw = a + 1.57;
         let (qz, qw) = ((yaw / 2.0).sin(), (yaw / 2.0).cos());
         text.push_str(&format!(
             "{:.6} {x:.6} {y:.6} {z:.6} 0 0 {qz:.9} {qw:.9}\n",

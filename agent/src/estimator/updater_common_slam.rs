@@ -3,8 +3,9 @@
 //!
 //! * **Measurement update** (case i, and case ii without the constraint): the
 //!   peers' measurements of the feature, `z = π(R_CtoGᵀ (p_F − p_C)) + n`, with
-//!   our feature in our state and the peer's camera poses as participants
-//!   (Eq. 5.13). No nullspace projection: the feature is a state variable.
+//!   our feature in our state and the peer's camera poses (and intrinsics, when
+//!   it estimates them) as participants (Eq. 5.13). No nullspace projection:
+//!   the feature is a state variable.
 //! * **Constraint update** (case ii, Eqs. 5.22-5.24): our feature and the peer's
 //!   SLAM feature are the same point, `p_Fa − p_Fb = 0`, with a synthetic noise
 //!   (thesis: 2 cm) and the peer's landmark marginal as the participant. Only the
@@ -93,20 +94,11 @@ fn measurement_rows(
     for p in peers.iter_mut() {
         p.items.sort_unstable();
         p.items.dedup();
-        // The peer's poses only, not its intrinsics (unlike the common VIO
-        // update): with the intrinsics in the joint, two robots on one 3 m
-        // circle that estimate their intrinsics online (true calibration)
-        // diverged, 0.95 deg / 0.195 m with orientation NEES 122 (5 seeds),
-        // against 0.13 / 0.021, NEES 2.1, without. Their focal lengths ran
-        // away together (seed 1, robot 0: fx 458.5 px at 2 s, 478.7 at 24 s,
-        // 510.0 at 46 s, claiming σ 1.0-1.2 px; truth 458.65; without, within
-        // 0.6 px). The blocks' NIS was 0.99 either way, and the intrinsics'
-        // block alone (no cross-covariance with the poses) diverged too. It is
-        // the radially symmetric columns: fx and fy together, or k1, diverge;
-        // fx alone or fy alone do not. Why is not understood (see README,
-        // Cooperative estimation).
         let Part::Poses(w) = p.part else { continue };
         let w = participants.get(w)?;
+        // The peer's intrinsics after its poses, when it estimates them: its
+        // normalized coordinates carry its calibration error.
+        p.items.extend(w.intrinsics_item());
         let cols: usize = p.items.iter().map(|i| w.item_size(*i)).sum();
         p.h = DMatrix::zeros(m, cols);
     }
@@ -123,6 +115,11 @@ fn measurement_rows(
             .find(|p| p.part == Part::Poses(o.participant))?;
         let c = 6 * p.items.binary_search(&o.pose).ok()?;
         p.h.fixed_view_mut::<2, 6>(r, c).copy_from(&pm.h_pose);
+        if w.intrinsics_item().is_some() {
+            // The intrinsics item is the last, after 6 columns per pose.
+            let c = 6 * (p.items.len() - 1);
+            p.h.fixed_view_mut::<2, 8>(r, c).copy_from(&pm.h_intrinsics);
+        }
     }
     Some(CiRows {
         vars,
