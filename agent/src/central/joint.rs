@@ -266,6 +266,16 @@ impl Filter for RobotSlot<'_> {
             transition_rows(self.joint.cov.matrix_mut(), o, phi, q);
         }
     }
+    type Saved = JointState;
+    fn save(&self) -> JointState {
+        self.joint.clone()
+    }
+    fn restore(&mut self, saved: &JointState) {
+        self.joint.clone_from(saved);
+    }
+    fn saved_means<'s>(&self, saved: &'s JointState) -> Option<&'s Means> {
+        saved.means(self.robot)
+    }
 }
 
 #[cfg(test)]

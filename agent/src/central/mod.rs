@@ -47,6 +47,8 @@ struct Robot {
     start_t: f64,
     /// The newest processed frame, for the other robots' matching.
     latest: Option<FrameFeatures>,
+    /// Whether an MSCKF update has used a feature yet (the first is iterated).
+    updated_once: bool,
 }
 
 /// A track of a robot: `(robot, track id)`.
@@ -84,6 +86,7 @@ impl CentralEstimator {
                     last_frame_t: None,
                     start_t: 0.0,
                     latest: None,
+                    updated_once: false,
                 })
                 .collect(),
             opts,
@@ -324,7 +327,14 @@ impl CentralEstimator {
             return Err(FrameError::NotInitialized(frame.t));
         };
         let mut untriangulated = Vec::new();
-        let (msckf, tried) = updater_msckf::update_up_to(
+        // The robot's first update is iterated (`first_update_iterations`), as
+        // in the agents; its prior and every redo are the whole joint state.
+        let iterations = if robot.updated_once {
+            0
+        } else {
+            opts.first_update_iterations
+        };
+        let (msckf, tried) = updater_msckf::iterated_update_up_to(
             &mut slot,
             &robot.features,
             &independent,
@@ -333,7 +343,9 @@ impl CentralEstimator {
             &self.chi2,
             &self.tri,
             &mut untriangulated,
+            iterations,
         );
+        robot.updated_once |= msckf.used > 0;
 
         // Common tracks are used once, jointly or here, whatever the outcome.
         untriangulated.retain(|id| !common_ids.contains(id));

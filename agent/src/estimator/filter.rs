@@ -83,6 +83,15 @@ pub trait Filter: FilterView {
     /// Propagation's covariance step on the IMU block: `P_II ← Φ P_II Φᵀ + Q`,
     /// `P_Ix ← Φ P_Ix` for every other variable `x` (of any robot).
     fn propagate_covariance(&mut self, phi: &ImuMatrix, q: &ImuMatrix);
+    /// A copy of the whole filter (every robot's means and covariance) to
+    /// return to: an iterated update restarts from its prior.
+    type Saved: Clone;
+    /// Saves the filter.
+    fn save(&self) -> Self::Saved;
+    /// Returns the filter to `saved`.
+    fn restore(&mut self, saved: &Self::Saved);
+    /// This robot's means in `saved`.
+    fn saved_means<'s>(&self, saved: &'s Self::Saved) -> Option<&'s Means>;
 }
 
 /// `P_II ← Φ P_II Φᵀ + Q`, `P_Ix ← Φ P_Ix` on a joint matrix whose IMU block
@@ -171,5 +180,15 @@ impl Filter for State {
     fn propagate_covariance(&mut self, phi: &ImuMatrix, q: &ImuMatrix) {
         let o = self.offset(Var::Imu).unwrap_or(0);
         transition_rows(self.cov_mut(), o, phi, q);
+    }
+    type Saved = State;
+    fn save(&self) -> State {
+        self.clone()
+    }
+    fn restore(&mut self, saved: &State) {
+        self.clone_from(saved);
+    }
+    fn saved_means<'s>(&self, saved: &'s State) -> Option<&'s Means> {
+        Some(&saved.means)
     }
 }

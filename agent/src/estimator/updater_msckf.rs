@@ -9,7 +9,7 @@ use super::feature_system::{build, Columns};
 use super::filter::Filter;
 use super::linalg::{compress_in_place, nullspace_project_in_place};
 use super::options::EstimatorOptions;
-use super::state::{State, Var};
+use super::state::Var;
 use super::triangulation::TriangulationOptions;
 use nalgebra::{DMatrix, DVector};
 
@@ -78,8 +78,8 @@ pub fn update_up_to<F: Filter + ?Sized>(
 /// while the covariance claims it gone. With no iteration it is
 /// [`update_up_to`] (no copy of the state).
 #[allow(clippy::too_many_arguments)]
-pub fn iterated_update_up_to(
-    state: &mut State,
+pub fn iterated_update_up_to<F: Filter + ?Sized>(
+    state: &mut F,
     db: &FeatureDb,
     ids: &[u64],
     cap: usize,
@@ -92,7 +92,7 @@ pub fn iterated_update_up_to(
     if iterations == 0 {
         return update_up_to(state, db, ids, cap, opts, chi2, tri, untriangulated);
     }
-    let prior = state.clone();
+    let prior = state.save();
     let (mut stats, tried, stacked) =
         stack_up_to(state, db, ids, cap, opts, Some(chi2), tri, untriangulated);
     let Some(mut st) = stacked else {
@@ -102,7 +102,7 @@ pub fn iterated_update_up_to(
         .ekf_update(&st.vars, &st.h, &st.res, &st.noise())
         .is_err()
     {
-        *state = prior;
+        state.restore(&prior);
         stats.failed += stats.used;
         stats.used = 0;
         return (stats, tried);
@@ -122,20 +122,24 @@ pub fn iterated_update_up_to(
         else {
             break;
         };
-        let delta = state.means.boxminus(&prior.means, &next.vars);
+        let Some(prior_means) = state.saved_means(&prior) else {
+            break;
+        };
+        let delta = state.means().boxminus(prior_means, &next.vars);
         st = Stacked {
             res: &next.res + &next.h * delta,
             ..next
         };
         // Redone from the prior; an iteration that fails keeps the last one.
-        let mut again = prior.clone();
-        if again
+        let last = state.save();
+        state.restore(&prior);
+        if state
             .ekf_update(&st.vars, &st.h, &st.res, &st.noise())
             .is_err()
         {
+            state.restore(&last);
             break;
         }
-        *state = again;
     }
     (stats, tried)
 }
