@@ -103,7 +103,7 @@ fn the_centralized_estimator_runs_the_fleet_in_one_process() {
 /// taken at the measured point instead of the predicted one, the noise biased
 /// every update toward longer focal lengths, and both robots' focal lengths ran
 /// away together (this run, seeds 1-2: orientation NEES 19-28, 0.31-0.40 deg;
-/// now 1.0-1.6, 0.08 deg).
+/// now, seed 1: 0.96 and 1.61, 0.08 deg).
 #[test]
 fn robots_that_fuse_their_peers_intrinsics_keep_their_focal_lengths() {
     let dir = tempfile::tempdir().unwrap();
