@@ -123,6 +123,18 @@ impl TriangulationOptions {
             max_reprojection_error_normalized: 0.02,
         }
     }
+
+    /// These limits with the two on ray geometry (condition number and
+    /// depth/baseline ratio) 100 times looser: for a first update none of whose
+    /// candidates passed them, where the clones the rays come from are bent by
+    /// the start's errors and the iterations triangulate the points again.
+    pub fn relaxed(&self) -> Self {
+        Self {
+            max_condition_number: self.max_condition_number * 100.0,
+            max_baseline_ratio: self.max_baseline_ratio * 100.0,
+            ..*self
+        }
+    }
 }
 
 /// Why a feature could not be triangulated.
