@@ -75,7 +75,9 @@ pub fn update_up_to<F: Filter + ?Sized>(
 /// `r' = r(x_i) + H_i (x_i ⊟ x_0)`, `iterations` times. The first update comes
 /// after a whole window of flight on the start's errors alone: a tilt of a
 /// degree has bent every clone, and one linearized step leaves a third of it
-/// while the covariance claims it gone. With no iteration it is
+/// while the covariance claims it gone. When none of the candidates passes
+/// the ray-geometry limits, this update takes them looser
+/// ([`TriangulationOptions::relaxed`]). With no iteration it is
 /// [`update_up_to`] (no copy of the state).
 #[allow(clippy::too_many_arguments)]
 pub fn iterated_update_up_to<F: Filter + ?Sized>(
@@ -92,15 +94,14 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
     if iterations == 0 {
         return update_up_to(state, db, ids, cap, opts, chi2, tri, untriangulated);
     }
-    let prior = state.save();
     let before = untriangulated.len();
     let (mut stats, mut tried, mut stacked) =
         stack_up_to(state, db, ids, cap, opts, Some(chi2), tri, untriangulated);
-    // A tilted start bends the window's clones by the gravity it leaks (0.3 m
-    // over the first 1.1 s from 3 deg), and on a slow start no track may then
-    // pass the ray-geometry limits, frame after frame, while the error grows.
-    // Then this first update takes them looser, and its iterations triangulate
-    // the points again at the corrected clones.
+    // A tilted start bends the window's clones by the gravity it leaks
+    // (½ g sin 3° t² ≈ 0.3 m after 1.1 s), and on a slow start no track may
+    // then pass the ray-geometry limits, frame after frame, while the error
+    // grows. Then this first update takes them looser, and its iterations
+    // triangulate the points again at the corrected clones.
     let relaxed = tri.relaxed();
     let mut tri = tri;
     if stacked.is_none() && stats.rejected_chi2 == 0 && stats.failed > 0 {
@@ -120,6 +121,9 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
     let Some(mut st) = stacked else {
         return (stats, tried);
     };
+    // Saved only once there is something to update with (for the centralized
+    // estimator this is the whole joint state).
+    let prior = state.save();
     if state
         .ekf_update(&st.vars, &st.h, &st.res, &st.noise())
         .is_err()
@@ -348,33 +352,27 @@ mod tests {
             ..TriangulationOptions::default()
         };
         let ids: Vec<u64> = (0..6).collect();
-        let mut s = scene(8, 6, 1e-4, 1e-4);
-        let mut failed = Vec::new();
-        let (stats, _) = update_up_to(
-            &mut s.state,
-            &s.db,
-            &ids,
-            usize::MAX,
-            &opts,
-            &chi2,
-            &tri,
-            &mut failed,
-        );
+        // A later update (no iteration) and the first one, on the same scene.
+        let run = |iterations: usize| {
+            let mut s = scene(8, 6, 1e-4, 1e-4);
+            let mut failed = Vec::new();
+            let (stats, _) = iterated_update_up_to(
+                &mut s.state,
+                &s.db,
+                &ids,
+                usize::MAX,
+                &opts,
+                &chi2,
+                &tri,
+                &mut failed,
+                iterations,
+            );
+            (stats, failed)
+        };
+        let (stats, failed) = run(0);
         assert_eq!((stats.used, stats.failed), (0, 6), "{stats:?}");
         assert_eq!(failed, ids);
-        let mut s = scene(8, 6, 1e-4, 1e-4);
-        let mut failed = Vec::new();
-        let (stats, _) = iterated_update_up_to(
-            &mut s.state,
-            &s.db,
-            &ids,
-            usize::MAX,
-            &opts,
-            &chi2,
-            &tri,
-            &mut failed,
-            2,
-        );
+        let (stats, failed) = run(2);
         assert_eq!((stats.used, stats.failed), (6, 0), "{stats:?}");
         assert!(failed.is_empty(), "{failed:?}");
     }
