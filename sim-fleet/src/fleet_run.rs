@@ -707,8 +707,17 @@ fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
         f(s.sim_s, 1),
         f(s.wall_s, 1)
     );
+    // The trajectory column fits the longest name (derived robots add `+k`).
+    let w = s
+        .robots
+        .iter()
+        .map(|r| r.trajectory.chars().count())
+        .chain([21])
+        .max()
+        .unwrap_or(21);
     println!(
-        "robot  trajectory            ATE deg  ATE m   aligned m  NEES ori  NEES pos  KB/s sent  msgs in  dropped  peer windows  CPU %"
+        "robot  {:<w$} ATE deg  ATE m   aligned m  NEES ori  NEES pos  KB/s sent  msgs in  dropped  peer windows  CPU %",
+        "trajectory"
     );
     // CPU time per second of the robot's own data (its frames at the camera
     // rate): the share of a core the agent needs to keep up in real time.
@@ -721,7 +730,7 @@ fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
     for r in &s.robots {
         let m = &r.metrics;
         println!(
-            "{:<6} {:<21} {:>7}  {:>6}  {:>9}  {:>8}  {:>8}  {:>9}  {:>7}  {:>7}  {:>12}  {:>5}",
+            "{:<6} {:<w$} {:>7}  {:>6}  {:>9}  {:>8}  {:>8}  {:>9}  {:>7}  {:>7}  {:>12}  {:>5}",
             r.id,
             r.trajectory,
             f(m.ate_ori_deg, 3),
