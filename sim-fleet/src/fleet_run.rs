@@ -699,8 +699,19 @@ pub fn peer_windows(m: &MetricSet) -> String {
 }
 
 fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
+    print!("{}", summary_table(s, camera_rate_hz));
+    println!("summary: {}", out.join("summary.json").display());
+}
+
+/// The run's table: a line of totals, a header, one line per robot and, when
+/// known, the share of a core an agent needs in real time.
+fn summary_table(s: &RunSummary, camera_rate_hz: f64) -> String {
+    use std::fmt::Write as _;
     let f = |v: Option<f64>, d: usize| v.map_or("-".to_string(), |v| format!("{v:.d$}"));
-    println!(
+    let mut t = String::new();
+    // Writing to a String cannot fail.
+    let _ = writeln!(
+        t,
         "{} robots over {}, {} s of fleet time in {} s",
         s.robots.len(),
         s.transport.as_deref().unwrap_or("?"),
@@ -715,7 +726,8 @@ fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
         .chain([21])
         .max()
         .unwrap_or(21);
-    println!(
+    let _ = writeln!(
+        t,
         "robot  {:<w$} ATE deg  ATE m   aligned m  NEES ori  NEES pos  KB/s sent  msgs in  dropped  peer windows  CPU %",
         "trajectory"
     );
@@ -729,7 +741,8 @@ fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
     };
     for r in &s.robots {
         let m = &r.metrics;
-        println!(
+        let _ = writeln!(
+            t,
             "{:<6} {:<w$} {:>7}  {:>6}  {:>9}  {:>8}  {:>8}  {:>9}  {:>7}  {:>7}  {:>12}  {:>5}",
             r.id,
             r.trajectory,
@@ -753,13 +766,14 @@ fn print_summary(s: &RunSummary, out: &Path, camera_rate_hz: f64) {
         }
     });
     if let Some(x) = (data > 0.0 && cpu > 0.0).then(|| cpu / data) {
-        println!(
+        let _ = writeln!(
+            t,
             "real time needs {:.1} % of a core per agent: {:.0} agents per core (simulated sensors included)",
             100.0 * x,
             1.0 / x
         );
     }
-    println!("summary: {}", out.join("summary.json").display());
+    t
 }
 
 #[cfg(test)]
@@ -779,5 +793,41 @@ mod tests {
         assert_eq!(sc.robots[4].name.as_deref(), Some("a+2"));
         let two = derive_scenario(&base, 1, 3.0);
         assert_eq!(two.robots.len(), 1);
+    }
+
+    #[test]
+    fn the_summary_columns_line_up_whatever_the_trajectory_names() {
+        let robot = |id: u32, name: &str| common::summary::RobotSummary {
+            id,
+            trajectory: name.into(),
+            metrics: MetricSet {
+                ate_ori_deg: Some(0.25),
+                ate_pos_m: Some(0.03),
+                ..MetricSet::default()
+            },
+        };
+        for names in [
+            vec!["V1_01_easy", "V1_02_medium"],
+            vec!["tum_corridor1_512_16_okvis", "tum_corridor1_512_16_okvis+1"],
+        ] {
+            let s = RunSummary {
+                robots: names
+                    .iter()
+                    .enumerate()
+                    .map(|(i, n)| robot(i as u32, n))
+                    .collect(),
+                ..RunSummary::default()
+            };
+            let table = summary_table(&s, 10.0);
+            let lines: Vec<&str> = table.lines().skip(1).collect();
+            assert_eq!(lines.len(), 1 + names.len(), "{table}");
+            // Every column of the header ends where the robots' values end.
+            let end_of = |line: &str, key: &str| line.find(key).map(|i| i + key.len());
+            let deg_end = end_of(lines[0], "ATE deg");
+            for line in &lines[1..] {
+                assert_eq!(end_of(line, "0.250"), deg_end, "{table}");
+                assert_eq!(line.chars().count(), lines[0].chars().count(), "{table}");
+            }
+        }
     }
 }
