@@ -723,9 +723,7 @@ fn summary_table(s: &RunSummary, camera_rate_hz: f64) -> String {
         .robots
         .iter()
         .map(|r| r.trajectory.chars().count())
-        .chain([21])
-        .max()
-        .unwrap_or(21);
+        .fold(21, usize::max);
     let _ = writeln!(
         t,
         "robot  {:<w$} ATE deg  ATE m   aligned m  NEES ori  NEES pos  KB/s sent  msgs in  dropped  peer windows  CPU %",
