@@ -819,7 +819,8 @@ mod tests {
             let table = summary_table(&s, 10.0);
             let lines: Vec<&str> = table.lines().skip(1).collect();
             assert_eq!(lines.len(), 1 + names.len(), "{table}");
-            // Every column of the header ends where the robots' values end.
+            // The ATE column ends where the header's does on every robot's line,
+            // and every line is as long as the header.
             let end_of = |line: &str, key: &str| line.find(key).map(|i| i + key.len());
             let deg_end = end_of(lines[0], "ATE deg");
             for line in &lines[1..] {
