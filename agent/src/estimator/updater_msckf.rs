@@ -68,6 +68,10 @@ pub fn update_up_to<F: Filter + ?Sized>(
     (stats, tried)
 }
 
+/// The first update relaxes the ray-geometry limits when more than this many
+/// candidates fail them for each one that passes.
+pub const RELAX_WHEN_FAILED_PER_PASSED: usize = 10;
+
 /// [`update_up_to`] iterated (an iterated EKF, for the filter's first update):
 /// after the update, the features it used are triangulated again at the
 /// updated clones and the system rebuilt there, and the update is redone from
@@ -75,8 +79,9 @@ pub fn update_up_to<F: Filter + ?Sized>(
 /// `r' = r(x_i) + H_i (x_i ⊟ x_0)`, `iterations` times. The first update comes
 /// after a whole window of flight on the start's errors alone: a tilt of a
 /// degree has bent every clone, and one linearized step leaves a third of it
-/// while the covariance claims it gone. When none of the candidates passes
-/// the ray-geometry limits, this update takes them looser
+/// while the covariance claims it gone. When (nearly) none of the candidates
+/// passes the ray-geometry limits, fewer than one for every
+/// [`RELAX_WHEN_FAILED_PER_PASSED`] that fail, this update takes them looser
 /// ([`TriangulationOptions::relaxed`]). With no iteration it is
 /// [`update_up_to`] (no copy of the state).
 #[allow(clippy::too_many_arguments)]
@@ -100,11 +105,14 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
     // A tilted start bends the window's clones by the gravity it leaks
     // (½ g sin 3° t² ≈ 0.3 m after 1.1 s), and on a slow start no track may
     // then pass the ray-geometry limits, frame after frame, while the error
-    // grows. Then this first update takes them looser, and its iterations
+    // grows; or one track passes of a hundred, and the whole first update
+    // rests on it (V1_01, seed 3 from a 3 deg tilt: 1 of 110, and the filter
+    // diverged). Then this first update takes them looser, and its iterations
     // triangulate the points again at the corrected clones.
     let relaxed = tri.relaxed();
     let mut tri = tri;
-    if stacked.is_none() && stats.rejected_chi2 == 0 && stats.failed > 0 {
+    let passed = stats.used + stats.rejected_chi2;
+    if stats.failed > 0 && passed * RELAX_WHEN_FAILED_PER_PASSED < stats.failed {
         untriangulated.truncate(before);
         (stats, tried, stacked) = stack_up_to(
             state,
@@ -375,5 +383,44 @@ mod tests {
         let (stats, failed) = run(2);
         assert_eq!((stats.used, stats.failed), (6, 0), "{stats:?}");
         assert!(failed.is_empty(), "{failed:?}");
+    }
+
+    /// A first update that only a few of its candidates pass (under a tenth of
+    /// those tried) takes the looser limits too: one feature would have to
+    /// carry the whole first update (seed 3 of V1_01 from a 3 deg tilt: 1 of
+    /// 110 passed, and the filter diverged).
+    #[test]
+    fn a_first_update_that_few_candidates_pass_relaxes_the_ray_limits() {
+        let opts = EstimatorOptions::default();
+        let chi2 = Chi2Table::new(0.95, 500);
+        let ids: Vec<u64> = (0..12).collect();
+        let run = |limit: f64, iterations: usize| {
+            let tri = TriangulationOptions {
+                max_baseline_ratio: limit,
+                ..TriangulationOptions::default()
+            };
+            let mut s = scene(8, 12, 1e-4, 1e-4);
+            iterated_update_up_to(
+                &mut s.state,
+                &s.db,
+                &ids,
+                usize::MAX,
+                &opts,
+                &chi2,
+                &tri,
+                &mut Vec::new(),
+                iterations,
+            )
+            .0
+        };
+        // At a depth/baseline limit of 2.92 only the nearest of these 12
+        // landmarks passes: a later update takes it alone, the first all 12.
+        let stats = run(2.92, 0);
+        assert_eq!((stats.used, stats.failed), (1, 11), "{stats:?}");
+        let stats = run(2.92, 2);
+        assert_eq!((stats.used, stats.failed), (12, 0), "{stats:?}");
+        // At 3.0 two pass, a sixth of those tried: the limits stay.
+        let stats = run(3.0, 2);
+        assert_eq!((stats.used, stats.failed), (2, 10), "{stats:?}");
     }
 }
