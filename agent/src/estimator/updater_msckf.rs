@@ -347,40 +347,45 @@ mod tests {
         assert_eq!((stats.used, tried), (6, 6), "{stats:?}");
     }
 
+    /// The update of `scene(8, n, ..)`'s tracks `0..n` under a depth/baseline
+    /// limit: with `iterations` > 0 it is the filter's first update. Returns
+    /// its stats and the tracks it could not triangulate.
+    fn update_under_baseline_limit(
+        n: usize,
+        limit: f64,
+        iterations: usize,
+    ) -> (MsckfStats, Vec<u64>) {
+        let tri = TriangulationOptions {
+            max_baseline_ratio: limit,
+            ..TriangulationOptions::default()
+        };
+        let ids: Vec<u64> = (0..n as u64).collect();
+        let mut s = scene(8, n, 1e-4, 1e-4);
+        let mut failed = Vec::new();
+        let (stats, _) = iterated_update_up_to(
+            &mut s.state,
+            &s.db,
+            &ids,
+            usize::MAX,
+            &EstimatorOptions::default(),
+            &Chi2Table::new(0.95, 500),
+            &tri,
+            &mut failed,
+            iterations,
+        );
+        (stats, failed)
+    }
+
     /// A first update none of whose candidates passes the ray-geometry limits
     /// takes them 100 times looser; a later update does not.
     #[test]
     fn a_first_update_with_no_triangulable_candidate_relaxes_the_ray_limits() {
-        let opts = EstimatorOptions::default();
-        let chi2 = Chi2Table::new(0.95, 500);
         // A depth/baseline limit of 0.1 rejects every track of this scene; the
         // relaxed 10 none.
-        let tri = TriangulationOptions {
-            max_baseline_ratio: 0.1,
-            ..TriangulationOptions::default()
-        };
-        let ids: Vec<u64> = (0..6).collect();
-        // A later update (no iteration) and the first one, on the same scene.
-        let run = |iterations: usize| {
-            let mut s = scene(8, 6, 1e-4, 1e-4);
-            let mut failed = Vec::new();
-            let (stats, _) = iterated_update_up_to(
-                &mut s.state,
-                &s.db,
-                &ids,
-                usize::MAX,
-                &opts,
-                &chi2,
-                &tri,
-                &mut failed,
-                iterations,
-            );
-            (stats, failed)
-        };
-        let (stats, failed) = run(0);
+        let (stats, failed) = update_under_baseline_limit(6, 0.1, 0);
         assert_eq!((stats.used, stats.failed), (0, 6), "{stats:?}");
-        assert_eq!(failed, ids);
-        let (stats, failed) = run(2);
+        assert_eq!(failed, (0..6).collect::<Vec<u64>>());
+        let (stats, failed) = update_under_baseline_limit(6, 0.1, 2);
         assert_eq!((stats.used, stats.failed), (6, 0), "{stats:?}");
         assert!(failed.is_empty(), "{failed:?}");
     }
@@ -391,36 +396,14 @@ mod tests {
     /// 110 passed, and the filter diverged).
     #[test]
     fn a_first_update_that_few_candidates_pass_relaxes_the_ray_limits() {
-        let opts = EstimatorOptions::default();
-        let chi2 = Chi2Table::new(0.95, 500);
-        let ids: Vec<u64> = (0..12).collect();
-        let run = |limit: f64, iterations: usize| {
-            let tri = TriangulationOptions {
-                max_baseline_ratio: limit,
-                ..TriangulationOptions::default()
-            };
-            let mut s = scene(8, 12, 1e-4, 1e-4);
-            iterated_update_up_to(
-                &mut s.state,
-                &s.db,
-                &ids,
-                usize::MAX,
-                &opts,
-                &chi2,
-                &tri,
-                &mut Vec::new(),
-                iterations,
-            )
-            .0
-        };
         // At a depth/baseline limit of 2.92 only the nearest of these 12
         // landmarks passes: a later update takes it alone, the first all 12.
-        let stats = run(2.92, 0);
+        let (stats, _) = update_under_baseline_limit(12, 2.92, 0);
         assert_eq!((stats.used, stats.failed), (1, 11), "{stats:?}");
-        let stats = run(2.92, 2);
+        let (stats, _) = update_under_baseline_limit(12, 2.92, 2);
         assert_eq!((stats.used, stats.failed), (12, 0), "{stats:?}");
         // At 3.0 two pass, a sixth of those tried: the limits stay.
-        let stats = run(3.0, 2);
+        let (stats, _) = update_under_baseline_limit(12, 3.0, 2);
         assert_eq!((stats.used, stats.failed), (2, 10), "{stats:?}");
     }
 }
