@@ -285,6 +285,10 @@ pub struct EstimatorSection {
     /// Times the first MSCKF update is iterated (0: one plain update).
     #[serde(default)]
     pub first_update_iterations: Option<usize>,
+    /// Redo a first update whose step left its rays apart at the current
+    /// estimate.
+    #[serde(default)]
+    pub rescue_first_update: Option<bool>,
     /// First-Estimates Jacobians.
     #[serde(default)]
     pub use_fej: Option<bool>,
@@ -364,6 +368,9 @@ impl EstimatorSection {
         if let Some(v) = self.first_update_iterations {
             o.first_update_iterations = v;
         }
+        if let Some(v) = self.rescue_first_update {
+            o.rescue_first_update = v;
+        }
         if let Some(v) = self.use_fej {
             o.use_fej = v;
         }
@@ -432,6 +439,7 @@ impl Default for EstimatorSection {
             max_slam_in_update: None,
             max_msckf_in_update: None,
             first_update_iterations: None,
+            rescue_first_update: None,
             use_fej: None,
             calib_cam_extrinsics: None,
             calib_cam_intrinsics: None,

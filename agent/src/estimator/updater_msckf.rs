@@ -22,6 +22,8 @@ pub struct MsckfStats {
     pub rejected_chi2: usize,
     /// Features that could not be triangulated or projected.
     pub failed: usize,
+    /// Whether this (first) update was rescued (see [`rescue`]).
+    pub rescued: bool,
 }
 
 /// Updates `state` with the features `ids` of `db`, all of them.
@@ -82,7 +84,9 @@ pub const RELAX_WHEN_FAILED_PER_PASSED: usize = 10;
 /// while the covariance claims it gone. When (nearly) none of the candidates
 /// passes the ray-geometry limits, fewer than one for every
 /// [`RELAX_WHEN_FAILED_PER_PASSED`] that fail, this update takes them looser
-/// ([`TriangulationOptions::relaxed`]). With no iteration it is
+/// ([`TriangulationOptions::relaxed`]). When its first step leaves the rays
+/// of most of its features apart, it is redone at the current estimate
+/// ([`rescue`], `rescue_first_update`). With no iteration it is
 /// [`update_up_to`] (no copy of the state).
 #[allow(clippy::too_many_arguments)]
 pub fn iterated_update_up_to<F: Filter + ?Sized>(
@@ -141,8 +145,51 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
         stats.used = 0;
         return (stats, tried);
     }
+    // Whether the step left the rays apart is checked only when a rescue may
+    // follow; without it the iterations go on with the features that still
+    // triangulate.
+    let check_rays = opts.rescue_first_update;
+    if relinearize(
+        state, db, &mut st, &prior, opts, tri, iterations, check_rays,
+    ) == Relinearized::RaysApart
+    {
+        stats.rescued = rescue(state, db, &st, &prior, opts, tri);
+    }
+    (stats, tried)
+}
+
+/// Iterations of a rescued first update (see [`rescue`]).
+pub const RESCUE_ITERATIONS: usize = 8;
+
+/// What [`relinearize`] found.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Relinearized {
+    /// It iterated (or stopped where an iteration could not be made).
+    Done,
+    /// After the first step fewer than half of the features' rays still met.
+    RaysApart,
+}
+
+/// The iterations of [`iterated_update_up_to`]: the features of `st` triangulated
+/// again at the current estimate, the system rebuilt there with its residual
+/// moved to the prior's point, `r' = r(x_i) + H_i (x_i ⊟ x_0)`, and the update
+/// redone from `prior`, `iterations` times. With `check_rays`, the first
+/// rebuild is a test of the step the update took: when fewer than half of its
+/// features can be triangulated at the updated clones, it returns
+/// [`Relinearized::RaysApart`] and leaves the state as the step left it.
+#[allow(clippy::too_many_arguments)]
+fn relinearize<F: Filter + ?Sized>(
+    state: &mut F,
+    db: &FeatureDb,
+    st: &mut Stacked,
+    prior: &F::Saved,
+    opts: &EstimatorOptions,
+    tri: &TriangulationOptions,
+    iterations: usize,
+    mut check_rays: bool,
+) -> Relinearized {
     for _ in 0..iterations {
-        let Some(next) = stack_up_to(
+        let (again, _, next) = stack_up_to(
             state,
             db,
             &st.used,
@@ -151,22 +198,25 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
             None,
             tri,
             &mut Vec::new(),
-        )
-        .2
-        else {
+        );
+        if check_rays && again.used * 2 < st.used.len() {
+            return Relinearized::RaysApart;
+        }
+        check_rays = false;
+        let Some(next) = next else {
             break;
         };
-        let Some(prior_means) = state.saved_means(&prior) else {
+        let Some(prior_means) = state.saved_means(prior) else {
             break;
         };
         let delta = state.means().boxminus(prior_means, &next.vars);
-        st = Stacked {
+        *st = Stacked {
             res: &next.res + &next.h * delta,
             ..next
         };
         // Redone from the prior; an iteration that fails keeps the last one.
         let last = state.save();
-        state.restore(&prior);
+        state.restore(prior);
         if state
             .ekf_update(&st.vars, &st.h, &st.res, &st.noise())
             .is_err()
@@ -175,7 +225,85 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
             break;
         }
     }
-    (stats, tried)
+    Relinearized::Done
+}
+
+/// A first update whose step left its features' rays apart (see
+/// [`relinearize`]): a start a few degrees off and a gyro bias of 0.02 rad/s have
+/// bent the window's clones so far that the Jacobians at their first estimates
+/// point the step the wrong way (V1_01 from OpenVINS's prior, seed 3: the first
+/// update turned a 3.5 deg tilt into 2.7 deg of yaw, no track triangulated
+/// afterwards, and the filter diverged). It is redone from the prior as a
+/// Gauss-Newton iteration should be: Jacobians at the current estimate, not at
+/// the first estimates, rays triangulated under the looser limits (the clones
+/// are still far off), [`RESCUE_ITERATIONS`] times. The clones' and the IMU
+/// state's first estimates are then reset to the result: the start's errors
+/// were a window's worth of propagation on a wrong state, and linearizing the
+/// rest of the flight there would keep them. Taken when this happens only, so
+/// a first update whose step stays near its prior is unchanged. Returns
+/// whether the update was redone (else the step stands).
+fn rescue<F: Filter + ?Sized>(
+    state: &mut F,
+    db: &FeatureDb,
+    st: &Stacked,
+    prior: &F::Saved,
+    opts: &EstimatorOptions,
+    tri: &TriangulationOptions,
+) -> bool {
+    let current = EstimatorOptions {
+        use_fej: false,
+        ..opts.clone()
+    };
+    let relaxed = tri.relaxed();
+    let last = state.save();
+    state.restore(prior);
+    let rebuilt = stack_up_to(
+        state,
+        db,
+        &st.used,
+        usize::MAX,
+        &current,
+        None,
+        &relaxed,
+        &mut Vec::new(),
+    )
+    .2;
+    let Some(mut again) = rebuilt else {
+        state.restore(&last);
+        return false;
+    };
+    if state
+        .ekf_update(&again.vars, &again.h, &again.res, &again.noise())
+        .is_err()
+    {
+        state.restore(&last);
+        return false;
+    }
+    relinearize(
+        state,
+        db,
+        &mut again,
+        prior,
+        &current,
+        &relaxed,
+        RESCUE_ITERATIONS,
+        false,
+    );
+    tracing::info!(
+        features = again.used.len(),
+        "first update rescued: its step left the rays apart, redone at the current estimate"
+    );
+    let m = state.means_mut();
+    for c in m.clones.values_mut() {
+        c.rot_fej = c.rot;
+        c.pos_fej = c.pos;
+    }
+    m.imu_fej = super::state::ImuFej {
+        rot: m.imu.rot,
+        pos: m.imu.pos,
+        vel: m.imu.vel,
+    };
+    true
 }
 
 /// The stacked, compressed MSCKF system of some features (what

@@ -365,6 +365,9 @@ pub struct EstimatorSpec {
     pub min_clones_to_update: Option<usize>,
     /// Times the first MSCKF update is iterated (0: one plain update).
     pub first_update_iterations: usize,
+    /// Redo a first update whose step left its rays apart at the current
+    /// estimate (`EstimatorOptions::rescue_first_update`).
+    pub rescue_first_update: bool,
     /// SLAM feature parameterization: `global` (p_FinG) or `anchored` (in the
     /// camera of the clone that initialized it).
     pub feature_representation: FeatureRepresentation,
@@ -427,6 +430,7 @@ impl EstimatorSpec {
             slam_delay_s: self.slam_delay_s,
             min_clones_to_update: self.first_update_clones(),
             first_update_iterations: self.first_update_iterations,
+            rescue_first_update: self.rescue_first_update,
             feature_representation: self.feature_representation,
             max_msckf_in_update: self.max_msckf_in_update,
             use_fej: self.use_fej,
@@ -468,6 +472,7 @@ impl Default for EstimatorSpec {
             slam_delay_s: o.slam_delay_s,
             min_clones_to_update: None,
             first_update_iterations: o.first_update_iterations,
+            rescue_first_update: o.rescue_first_update,
             feature_representation: o.feature_representation,
             max_msckf_in_update: o.max_msckf_in_update,
             pixel_sigma_px: None,
