@@ -6,7 +6,7 @@ use crate::frontend::FrontendOptions;
 use crate::runner::Variant;
 use crate::transport::{Iceoryx2Settings, TransportKind, TransportSettings, ZenohSettings};
 use common::estimator_options::{
-    CommonProjection, EstimatorOptions, FeatureRepresentation, TriangulationLimits,
+    CommonProjection, EstimatorOptions, FeatureRepresentation, MsckfJacobians, TriangulationLimits,
 };
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -289,6 +289,10 @@ pub struct EstimatorSection {
     /// estimate.
     #[serde(default)]
     pub rescue_first_update: Option<bool>,
+    /// Where the MSCKF's Jacobians are evaluated (`first_estimates` or
+    /// `observability_constrained`).
+    #[serde(default)]
+    pub msckf_jacobians: Option<MsckfJacobians>,
     /// First-Estimates Jacobians.
     #[serde(default)]
     pub use_fej: Option<bool>,
@@ -371,6 +375,9 @@ impl EstimatorSection {
         if let Some(v) = self.rescue_first_update {
             o.rescue_first_update = v;
         }
+        if let Some(v) = self.msckf_jacobians {
+            o.msckf_jacobians = v;
+        }
         if let Some(v) = self.use_fej {
             o.use_fej = v;
         }
@@ -440,6 +447,7 @@ impl Default for EstimatorSection {
             max_msckf_in_update: None,
             first_update_iterations: None,
             rescue_first_update: None,
+            msckf_jacobians: None,
             use_fej: None,
             calib_cam_extrinsics: None,
             calib_cam_intrinsics: None,

@@ -17,6 +17,20 @@ pub enum FeatureRepresentation {
     Anchored,
 }
 
+/// Where the MSCKF's measurement Jacobians are evaluated (with `use_fej`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MsckfJacobians {
+    /// At the clones' first estimates (FEJ, OpenVINS).
+    #[default]
+    FirstEstimates,
+    /// At the current estimate, then projected so that they give no
+    /// information along the unobservable directions of the first estimates
+    /// (observability-constrained, after Hesch et al.'s OC-EKF). Better on
+    /// slow platforms without SLAM features (README).
+    ObservabilityConstrained,
+}
+
 /// IMU noise model used by the filter (continuous-time densities).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ImuNoise {
@@ -321,6 +335,13 @@ pub struct EstimatorOptions {
     /// OpenVINS's prior, 20 seeds: 2 runs diverged, none with it; README).
     /// It only acts when that happens: every truth-start table is unchanged.
     pub rescue_first_update: bool,
+    /// Where the MSCKF's Jacobians are evaluated when `use_fej`: at the first
+    /// estimates (default), or at the current estimate with the unobservable
+    /// directions projected out. On a slowly starting circle without SLAM
+    /// features (20 seeds from the truth) the first gives 0.414 m, position
+    /// NEES 14.3, the second 0.231 m, NEES 1.46; on the reference trajectories
+    /// both are within seed noise of each other (README).
+    pub msckf_jacobians: MsckfJacobians,
     /// Global or anchored 3-D SLAM features.
     pub feature_representation: FeatureRepresentation,
     /// Maximum MSCKF features used per frame (the longest tracks first). A
@@ -434,6 +455,7 @@ impl Default for EstimatorOptions {
             min_clones_to_update: 12,
             first_update_iterations: 2,
             rescue_first_update: true,
+            msckf_jacobians: MsckfJacobians::default(),
             feature_representation: Default::default(),
             max_msckf_in_update: 40,
             use_fej: true,

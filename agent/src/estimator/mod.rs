@@ -18,6 +18,7 @@ pub mod frame_output;
 pub mod gated_update;
 pub mod inputs;
 pub mod linalg;
+pub mod observability;
 pub mod options;
 pub mod peer_window;
 pub mod projection;

@@ -8,7 +8,8 @@ use super::feature_db::FeatureDb;
 use super::feature_system::{build, Columns};
 use super::filter::Filter;
 use super::linalg::{compress_in_place, nullspace_project_in_place};
-use super::options::EstimatorOptions;
+use super::observability;
+use super::options::{EstimatorOptions, MsckfJacobians};
 use super::state::Var;
 use super::triangulation::TriangulationOptions;
 use nalgebra::{DMatrix, DVector};
@@ -372,12 +373,19 @@ pub fn stack_up_to<F: Filter + ?Sized>(
                 .map(|m| Var::Clone(m.clone_key)),
         );
         let fcols = Columns::of(vars);
-        let Some(mut sys) = build(state.means(), feature, &fcols, opts.use_fej, tri) else {
+        let constrained =
+            opts.use_fej && opts.msckf_jacobians == MsckfJacobians::ObservabilityConstrained;
+        let at_fej = opts.use_fej && !constrained;
+        let Some(mut sys) = build(state.means(), feature, &fcols, at_fej, tri) else {
             untriangulated.push(*id);
             stats.failed += 1;
             continue;
         };
         nullspace_project_in_place(&mut sys.h_f, &mut sys.h_x, &mut sys.res);
+        if constrained {
+            let n = observability::unobservable_directions(&fcols, state.means());
+            observability::project_out(&mut sys.h_x, &n);
+        }
         if sys.res.is_empty() {
             stats.failed += 1;
             continue;

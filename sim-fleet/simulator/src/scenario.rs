@@ -9,7 +9,8 @@ use crate::render::RenderSpec;
 use common::calibration::CameraCalibration;
 use common::camera::{CameraModel, Distortion};
 use common::estimator_options::{
-    CooperationOptions, EstimatorOptions, FeatureRepresentation, ImuNoise, TriangulationLimits,
+    CooperationOptions, EstimatorOptions, FeatureRepresentation, ImuNoise, MsckfJacobians,
+    TriangulationLimits,
 };
 use nalgebra::{Matrix3, Vector3, Vector4};
 use serde::{Deserialize, Serialize};
@@ -368,6 +369,9 @@ pub struct EstimatorSpec {
     /// Redo a first update whose step left its rays apart at the current
     /// estimate (`EstimatorOptions::rescue_first_update`).
     pub rescue_first_update: bool,
+    /// Where the MSCKF's Jacobians are evaluated: `first_estimates` or
+    /// `observability_constrained` (`EstimatorOptions::msckf_jacobians`).
+    pub msckf_jacobians: MsckfJacobians,
     /// SLAM feature parameterization: `global` (p_FinG) or `anchored` (in the
     /// camera of the clone that initialized it).
     pub feature_representation: FeatureRepresentation,
@@ -431,6 +435,7 @@ impl EstimatorSpec {
             min_clones_to_update: self.first_update_clones(),
             first_update_iterations: self.first_update_iterations,
             rescue_first_update: self.rescue_first_update,
+            msckf_jacobians: self.msckf_jacobians,
             feature_representation: self.feature_representation,
             max_msckf_in_update: self.max_msckf_in_update,
             use_fej: self.use_fej,
@@ -473,6 +478,7 @@ impl Default for EstimatorSpec {
             min_clones_to_update: None,
             first_update_iterations: o.first_update_iterations,
             rescue_first_update: o.rescue_first_update,
+            msckf_jacobians: o.msckf_jacobians,
             feature_representation: o.feature_representation,
             max_msckf_in_update: o.max_msckf_in_update,
             pixel_sigma_px: None,
