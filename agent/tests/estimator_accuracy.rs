@@ -32,12 +32,23 @@ fn write_walk(path: &Path) {
 
 /// [`write_walk`] starting `phase_rad` further along the circle.
 fn write_walk_from(path: &Path, phase_rad: f64) {
+    write_circle(path, DURATION_S, |s| (0.3 * s + phase_rad, 1.0));
+}
+
+/// Writes a 4 m radius circle (TUM text, 20 Hz, `duration_s`): `along(s)` gives
+/// the angle travelled at time `s` and the gain of the height's oscillation;
+/// roll and pitch oscillate, yaw follows the circle.
+fn write_circle(path: &Path, duration_s: f64, along: impl Fn(f64) -> (f64, f64)) {
     let mut text = String::from("# timestamp tx ty tz qx qy qz qw\n");
-    let n = (DURATION_S * 20.0) as usize;
+    let n = (duration_s * 20.0) as usize;
     for k in 0..=n {
         let s = k as f64 / 20.0;
-        let a = 0.3 * s + phase_rad;
-        let (x, y, z) = (4.0 * a.cos(), 4.0 * a.sin(), 1.2 + 0.3 * (0.6 * s).sin());
+        let (a, gain) = along(s);
+        let (x, y, z) = (
+            4.0 * a.cos(),
+            4.0 * a.sin(),
+            1.2 + 0.3 * (0.6 * s).sin() * gain,
+        );
         let roll = 0.15 * (0.7 * s).sin();
         let pitch = 0.12 * (0.9 * s + 1.0).sin();
         let yaw = a + std::f64::consts::FRAC_PI_2;
@@ -401,29 +412,10 @@ fn no_feature_update_before_the_oldest_clone_leaves_and_no_track_is_lost_meanwhi
 /// `ramp_s`, as a platform that sets off gently (EuRoC V1_01). The filter
 /// starts after 1.1 m of travel, still at a walking pace.
 fn write_slow_start(path: &Path, ramp_s: f64) {
-    let mut text = String::from("# timestamp tx ty tz qx qy qz qw\n");
-    for k in 0..=1000 {
-        let s = k as f64 / 20.0;
+    write_circle(path, 50.0, |s| {
         let ease = 1.0 - (-s / ramp_s).exp();
-        let a = 0.3 * (s - ramp_s * ease);
-        let (x, y, z) = (
-            4.0 * a.cos(),
-            4.0 * a.sin(),
-            1.2 + 0.3 * (0.6 * s).sin() * ease,
-        );
-        let roll = 0.15 * (0.7 * s).sin();
-        let pitch = 0.12 * (0.9 * s + 1.0).sin();
-        let q = UnitQuaternion::from_euler_angles(roll, pitch, a + std::f64::consts::FRAC_PI_2);
-        text.push_str(&format!(
-            "{:.6} {x:.6} {y:.6} {z:.6} {:.9} {:.9} {:.9} {:.9}\n",
-            100.0 + s,
-            q.i,
-            q.j,
-            q.k,
-            q.w
-        ));
-    }
-    std::fs::write(path, text).expect("write trajectory");
+        (0.3 * (s - ramp_s * ease), ease)
+    });
 }
 
 /// From OpenVINS's own prior (1 deg, 5 cm, 1 cm/s, 0.02 per bias axis) on a
