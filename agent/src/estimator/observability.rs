@@ -11,8 +11,9 @@
 //! cloned; the Jacobians at those stale poses then misplace the scale, and
 //! the filter claims it (a circle started at 0.34 m/s: MSCKF-only position
 //! NEES 14.3 with first estimates, 1.46 with these Jacobians). Evaluated at
-//! the current estimate alone they would leak yaw information (V1_02,
-//! orientation NEES 18); the projection keeps FEJ's nullspace.
+//! the current estimate without the projection they leak yaw information
+//! (V1_02 with every measurement Jacobian there: orientation NEES 17.6); the
+//! projection keeps FEJ's nullspace.
 
 use super::feature_system::Columns;
 use super::state::{Means, Var};
