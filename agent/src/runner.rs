@@ -347,13 +347,13 @@ pub fn record_metrics(
 }
 
 /// The header line of `timing.csv` (one row per frame, [`timing_row`]).
-pub const TIMING_HEADER: &str = "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed,matching_ms,common_vio_ms,common_slam_ms,constraint_ms,common_vio_used,common_vio_rejected,common_slam_used,constraints_used,participants,historical_participants,ci_participants,omega_own,ci_update_ms,cpu_ms,evidence_ms,zero_velocity";
+pub const TIMING_HEADER: &str = "t,propagate_ms,msckf_ms,slam_update_ms,slam_init_ms,marginalize_ms,total_ms,msckf_features,msckf_rejected,msckf_failed,slam_features,slam_updated,slam_rejected,slam_initialized,slam_init_failed,matching_ms,common_vio_ms,common_slam_ms,constraint_ms,common_vio_used,common_vio_rejected,common_slam_used,constraints_used,participants,historical_participants,ci_participants,omega_own,ci_update_ms,cpu_ms,evidence_ms,zero_velocity,first_update_rescued";
 
 /// One row of `timing.csv` (no newline): a frame's costs and counts.
 pub fn timing_row(f: &FrameRecord) -> String {
     let t = &f.timing;
     format!(
-        "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{:.6},{:.4},{:.4},{:.4},{}",
+        "{:.6},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{},{:.4},{:.4},{:.4},{:.4},{},{},{},{},{},{},{},{:.6},{:.4},{:.4},{:.4},{},{}",
         f.t,
         t.propagate_ms,
         t.msckf_ms,
@@ -384,7 +384,8 @@ pub fn timing_row(f: &FrameRecord) -> String {
         f.coop.ci_update_ms,
         t.cpu_ms,
         f.coop.evidence_ms,
-        u8::from(f.zero_velocity)
+        u8::from(f.zero_velocity),
+        u8::from(f.msckf.rescued)
     )
 }
 

@@ -454,16 +454,22 @@ fn a_first_update_whose_step_leaves_the_rays_apart_is_redone() {
     // 0.60 deg / 0.439 m, NEES 2.42 / 26.5 (max 0.71 m: the slow start leaves
     // the scale weakly observed, and the position NEES is poor with or without
     // the rescue on this path).
-    let diverged = max_position_error(&runs_with(false, 1));
+    let rescued_frames = |r: &RobotRun| r.frames.iter().filter(|f| f.msckf.rescued).count();
+    let plain = runs_with(false, 1);
+    let diverged = max_position_error(&plain);
     assert!(
         diverged > 100.0,
         "seed 1 without the rescue: {diverged:.3} m"
     );
+    assert_eq!(rescued_frames(&plain), 0);
     let rescued = runs_with(true, 1);
+    // Its frame says so (`timing.csv`'s `first_update_rescued`).
+    assert_eq!(rescued_frames(&rescued), 1);
     let m = checked_metrics(&rescued, "seed 1 with the rescue");
     let ori = m.nees_ori.unwrap_or(f64::NAN);
     assert!(NEES_RANGE.contains(&ori), "orientation NEES {ori:.2}");
     let (a, b) = (runs_with(false, 2), runs_with(true, 2));
+    assert_eq!(rescued_frames(&b), 0);
     assert_eq!(a.estimate, b.estimate, "seed 2 changed");
     assert_eq!(a.covariance, b.covariance, "seed 2 changed");
 }
