@@ -199,11 +199,7 @@ fn propagate_mean(
     if use_fej {
         fej_transition(&mut phi_sum, state, (r0, p0, v0), dt_sum, &g);
     }
-    state.imu_fej = ImuFej {
-        rot: state.imu.rot,
-        pos: state.imu.pos,
-        vel: state.imu.vel,
-    };
+    state.imu_fej = ImuFej::of(&state.imu);
     state.t = t1;
     Ok((phi_sum, q_sum, omega))
 }

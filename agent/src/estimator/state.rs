@@ -88,6 +88,17 @@ pub struct ImuFej {
     pub vel: Vector3<f64>,
 }
 
+impl ImuFej {
+    /// The first estimates taken at `imu`'s current values.
+    pub fn of(imu: &ImuState) -> Self {
+        Self {
+            rot: imu.rot,
+            pos: imu.pos,
+            vel: imu.vel,
+        }
+    }
+}
+
 /// A cloned IMU pose.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ClonePose {
@@ -141,15 +152,22 @@ impl Means {
     pub fn new(t: f64, imu: ImuState, calib: CameraCalibration) -> Self {
         Self {
             t,
-            imu_fej: ImuFej {
-                rot: imu.rot,
-                pos: imu.pos,
-                vel: imu.vel,
-            },
+            imu_fej: ImuFej::of(&imu),
             imu,
             calib,
             clones: BTreeMap::new(),
             features: BTreeMap::new(),
+        }
+    }
+
+    /// Takes the current IMU state and clones as their first estimates (a
+    /// filter that starts over its linearization, see
+    /// `updater_msckf::rescue`).
+    pub fn reset_first_estimates(&mut self) {
+        self.imu_fej = ImuFej::of(&self.imu);
+        for c in self.clones.values_mut() {
+            c.rot_fej = c.rot;
+            c.pos_fej = c.pos;
         }
     }
 

@@ -294,16 +294,7 @@ fn rescue<F: Filter + ?Sized>(
         features = again.used.len(),
         "first update rescued: its step left the rays apart, redone at the current estimate"
     );
-    let m = state.means_mut();
-    for c in m.clones.values_mut() {
-        c.rot_fej = c.rot;
-        c.pos_fej = c.pos;
-    }
-    m.imu_fej = super::state::ImuFej {
-        rot: m.imu.rot,
-        pos: m.imu.pos,
-        vel: m.imu.vel,
-    };
+    state.means_mut().reset_first_estimates();
     true
 }
 
