@@ -314,7 +314,8 @@ pub struct EstimatorSection {
     /// `zupt_max_disparity`).
     #[serde(default)]
     pub zupt_max_disparity_px: Option<f64>,
-    /// SLAM feature representation: `global` or `anchored`.
+    /// SLAM feature representation: `global`, `anchored` or
+    /// `anchored_inverse_depth`.
     #[serde(default)]
     pub feat_rep_slam: Option<FeatureRepresentation>,
     /// Largest condition number of a triangulation (`fi_max_cond_number`).

@@ -15,6 +15,12 @@ pub enum FeatureRepresentation {
     /// `p_FinA` in the camera of the clone the feature was initialized at; the
     /// anchor moves to the newest clone when its clone leaves the window.
     Anchored,
+    /// `(α, β, ρ) = (x/z, y/z, 1/z)` of `p_FinA`, anchored as `anchored` (thesis
+    /// Appendix A.6.5; OpenVINS's `ANCHORED_MSCKF_INVERSE_DEPTH`). The pixels of a
+    /// point seen over a short baseline are nearly linear in its inverse depth,
+    /// not in its depth.
+    #[serde(rename = "anchored_inverse_depth")]
+    AnchoredInverseDepth,
 }
 
 /// Where the MSCKF's measurement Jacobians are evaluated (with `use_fej`).

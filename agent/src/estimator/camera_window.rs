@@ -218,6 +218,7 @@ mod tests {
                 pos: p,
                 pos_fej: p,
                 anchor: Some(1),
+                inverse_depth: false,
             },
         );
         let n = s.dim();

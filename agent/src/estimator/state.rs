@@ -121,12 +121,15 @@ pub struct ClonePose {
 #[derive(Clone, Debug, PartialEq)]
 pub struct SlamFeature {
     /// `p_FinG` (global representation) or `p_FinA`, the position in the anchor
-    /// clone's camera frame (anchored representation), m.
+    /// clone's camera frame (anchored representation), m; with `inverse_depth`,
+    /// `(α, β, ρ) = (x/z, y/z, 1/z)` of `p_FinA` (1, 1, 1/m).
     pub pos: Vector3<f64>,
     /// First estimate (the value at initialization or at the last anchor change).
     pub pos_fej: Vector3<f64>,
     /// The anchor clone of an anchored feature; `None` for a global one.
     pub anchor: Option<u64>,
+    /// Whether an anchored feature's `pos` is its inverse-depth parameters.
+    pub inverse_depth: bool,
 }
 
 /// One robot's means: its time, IMU state and first estimates, calibration,

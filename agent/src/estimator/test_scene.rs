@@ -178,6 +178,7 @@ impl Scene {
                     pos: p,
                     pos_fej: p,
                     anchor: None,
+                    inverse_depth: false,
                 },
             );
         }

@@ -9,7 +9,7 @@ use super::filter::Filter;
 use super::linalg::givens_qr_split;
 use super::options::EstimatorOptions;
 use super::projection::{predict, project, Projection};
-use super::slam_feature::{global_position, in_anchor, FeatureRepresentation};
+use super::slam_feature::{anchor_params, global_position, in_anchor, FeatureRepresentation};
 use super::state::{SlamFeature, Var};
 use super::triangulation::TriangulationOptions;
 use nalgebra::{DMatrix, DVector, Vector3};
@@ -194,24 +194,31 @@ pub fn initialize<F: Filter + ?Sized>(
     let Some(mut sys) = build(state.means(), feature, &cols, opts.use_fej, tri) else {
         return false;
     };
-    // Anchored: the new variable is p_FinA in the newest clone's camera; H_f and
-    // H_x follow p_FinG = R_A (R_CtoI p_FinA + p_CinI) + p_A (at first estimates).
-    let anchor = match opts.feature_representation {
-        FeatureRepresentation::Global => None,
-        FeatureRepresentation::Anchored => state.means().clones.keys().next_back().copied(),
+    // Anchored: the new variable is p_FinA in the newest clone's camera (or its
+    // inverse depth); H_f and H_x follow p_FinG = R_A (R_CtoI p_FinA + p_CinI) +
+    // p_A (at first estimates).
+    let newest = state.means().clones.keys().next_back().copied();
+    let (anchor, inverse_depth) = match opts.feature_representation {
+        FeatureRepresentation::Global => (None, false),
+        FeatureRepresentation::Anchored => (newest, false),
+        FeatureRepresentation::AnchoredInverseDepth => (newest, true),
     };
     let (mut p_init, mut p_init_fej) = (sys.p_f, sys.p_f);
     if let Some(a) = anchor {
         let (Some(p_a), Some(p_a_fej)) = (
-            in_anchor(state.means(), a, &sys.p_f, false),
-            in_anchor(state.means(), a, &sys.p_f, opts.use_fej),
+            in_anchor(state.means(), a, &sys.p_f, false)
+                .and_then(|p| anchor_params(&p, inverse_depth)),
+            in_anchor(state.means(), a, &sys.p_f, opts.use_fej)
+                .and_then(|p| anchor_params(&p, inverse_depth)),
         ) else {
             return false;
         };
+        let (p_a, p_a_fej) = (p_a.0, p_a_fej.0);
         let probe = SlamFeature {
             pos: p_a,
             pos_fej: p_a_fej,
             anchor: Some(a),
+            inverse_depth,
         };
         let Some((_, jac)) = global_position(state, id, &probe, true) else {
             return false;
@@ -260,6 +267,7 @@ pub fn initialize<F: Filter + ?Sized>(
             pos,
             pos_fej: p_init_fej,
             anchor,
+            inverse_depth,
         },
     );
     // Eq. 2.45: the remaining rows update the whole state (the new feature through

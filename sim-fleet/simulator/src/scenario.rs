@@ -372,8 +372,9 @@ pub struct EstimatorSpec {
     /// Where the MSCKF's Jacobians are evaluated: `first_estimates` or
     /// `observability_constrained` (`EstimatorOptions::msckf_jacobians`).
     pub msckf_jacobians: MsckfJacobians,
-    /// SLAM feature parameterization: `global` (p_FinG) or `anchored` (in the
-    /// camera of the clone that initialized it).
+    /// SLAM feature parameterization: `global` (p_FinG), `anchored` (in the
+    /// camera of the clone that initialized it) or `anchored_inverse_depth` (its
+    /// inverse depth there).
     pub feature_representation: FeatureRepresentation,
     /// Maximum MSCKF features per update.
     pub max_msckf_in_update: usize,
