@@ -1,11 +1,14 @@
 //! Estimator speed: milliseconds per camera frame (propagation + updates +
-//! marginalization, one thread) with and without SLAM features, side by side.
+//! marginalization, one thread) with and without SLAM features, side by side,
+//! and with the SLAM features kept as anchored inverse depths instead of the
+//! scenario's representation.
 //!
 //! `cargo bench -p agent --bench estimator_speed [-- SCENARIO [ROUNDS]]`
 //! (default `sim-fleet/scenarios/v1_01_easy.yaml`, 3 rounds). The variants run
 //! alternately so a noisy machine affects both alike; per-stage means and the
 //! p50/p95 of the frame total are printed for each.
 use agent::runner::{options_for, run_robot, Variant};
+use common::estimator_options::FeatureRepresentation;
 use simulator::{Fleet, Scenario};
 use std::path::PathBuf;
 
@@ -20,11 +23,23 @@ fn main() -> anyhow::Result<()> {
     let rounds: usize = args.get(1).and_then(|r| r.parse().ok()).unwrap_or(3);
     let scenario = Scenario::load(&path)?;
     let fleet = Fleet::build(&scenario, scenario.seed)?;
-    let variants = [Variant::IndpSlam, Variant::Indp];
+    let variants = [
+        ("indp-slam", Variant::IndpSlam, None),
+        ("indp", Variant::Indp, None),
+        (
+            "indp-slam, inverse depth",
+            Variant::IndpSlam,
+            Some(FeatureRepresentation::AnchoredInverseDepth),
+        ),
+    ];
     let mut frames: Vec<Vec<agent::estimator::FrameRecord>> = vec![Vec::new(); variants.len()];
     for _ in 0..rounds {
-        for (i, v) in variants.iter().enumerate() {
-            let run = run_robot(&fleet, 0, options_for(&scenario.estimator, &fleet, *v))?;
+        for (i, (_, v, representation)) in variants.iter().enumerate() {
+            let mut opts = options_for(&scenario.estimator, &fleet, *v);
+            if let Some(r) = representation {
+                opts.feature_representation = *r;
+            }
+            let run = run_robot(&fleet, 0, opts)?;
             frames[i].extend(run.frames);
         }
     }
@@ -33,9 +48,9 @@ fn main() -> anyhow::Result<()> {
         scenario.name
     );
     println!(
-        "variant     frames  propagate  msckf  slam_upd  slam_init  marg    mean    p50     p95"
+        "variant                   frames  propagate  msckf  slam_upd  slam_init  marg    mean    p50     p95"
     );
-    for (v, f) in variants.iter().zip(&frames) {
+    for ((label, _, _), f) in variants.iter().zip(&frames) {
         let n = f.len().max(1) as f64;
         let mean = |g: fn(&agent::estimator::vio::FrameTiming) -> f64| {
             f.iter().map(|o| g(&o.timing)).sum::<f64>() / n
@@ -48,8 +63,8 @@ fn main() -> anyhow::Result<()> {
                 .unwrap_or(f64::NAN)
         };
         println!(
-            "{:<10} {:>7} {:>10.3} {:>6.3} {:>9.3} {:>10.3} {:>5.3} {:>7.3} {:>6.3} {:>7.3}",
-            v.name(),
+            "{:<24} {:>7} {:>10.3} {:>6.3} {:>9.3} {:>10.3} {:>5.3} {:>7.3} {:>6.3} {:>7.3}",
+            label,
             f.len(),
             mean(|t| t.propagate_ms),
             mean(|t| t.msckf_ms),
