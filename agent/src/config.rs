@@ -917,6 +917,43 @@ mod tests {
     }
 
     #[test]
+    fn slam_representations_take_our_names_and_openvins_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.yaml");
+        for (name, want) in [
+            ("global", FeatureRepresentation::Global),
+            ("GLOBAL_3D", FeatureRepresentation::Global),
+            ("anchored", FeatureRepresentation::Anchored),
+            ("ANCHORED_3D", FeatureRepresentation::Anchored),
+            (
+                "anchored_inverse_depth",
+                FeatureRepresentation::AnchoredInverseDepth,
+            ),
+            (
+                "ANCHORED_MSCKF_INVERSE_DEPTH",
+                FeatureRepresentation::AnchoredInverseDepth,
+            ),
+        ] {
+            std::fs::write(
+                &p,
+                format!("{MINIMAL}estimator:\n  feat_rep_slam: {name}\n"),
+            )
+            .unwrap();
+            let mut o = EstimatorOptions::default();
+            AgentConfig::load(&p).unwrap().estimator.apply(&mut o);
+            assert_eq!(o.feature_representation, want, "{name}");
+        }
+        // OpenVINS's other representations are not implemented: said, not guessed.
+        std::fs::write(
+            &p,
+            format!("{MINIMAL}estimator:\n  feat_rep_slam: GLOBAL_FULL_INVERSE_DEPTH\n"),
+        )
+        .unwrap();
+        let e = AgentConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("GLOBAL_FULL_INVERSE_DEPTH"), "{e}");
+    }
+
+    #[test]
     fn unknown_keys_and_bad_values_are_reported() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.yaml");

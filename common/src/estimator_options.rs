@@ -5,21 +5,28 @@
 
 use serde::{Deserialize, Serialize};
 
-/// How SLAM features are parameterized in the state.
+/// How SLAM features are parameterized in the state. OpenVINS's names
+/// (`GLOBAL_3D`, `ANCHORED_3D`, `ANCHORED_MSCKF_INVERSE_DEPTH`) are accepted too,
+/// so its `feat_rep_slam` values can be copied into an agent configuration.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum FeatureRepresentation {
     /// `p_FinG`.
     #[default]
+    #[serde(alias = "GLOBAL_3D")]
     Global,
     /// `p_FinA` in the camera of the clone the feature was initialized at; the
     /// anchor moves to the newest clone when its clone leaves the window.
+    #[serde(alias = "ANCHORED_3D")]
     Anchored,
     /// `(α, β, ρ) = (x/z, y/z, 1/z)` of `p_FinA`, anchored as `anchored` (thesis
     /// Appendix A.6.5; OpenVINS's `ANCHORED_MSCKF_INVERSE_DEPTH`). The pixels of a
     /// point seen over a short baseline are nearly linear in its inverse depth,
     /// not in its depth.
-    #[serde(rename = "anchored_inverse_depth")]
+    #[serde(
+        rename = "anchored_inverse_depth",
+        alias = "ANCHORED_MSCKF_INVERSE_DEPTH"
+    )]
     AnchoredInverseDepth,
 }
 
