@@ -418,6 +418,15 @@ fn write_slow_start(path: &Path, ramp_s: f64) {
     });
 }
 
+/// A one-robot scenario on the `slow.txt` of `dir` (see [`write_slow_start`]),
+/// with `settings` (YAML top-level sections) after its robot, saved as `file`.
+fn slow_start_scenario(dir: &Path, file: &str, settings: &str) -> Scenario {
+    let path = dir.join(file);
+    let yaml = format!("name: slow\nrobots:\n  - trajectory: slow.txt\n{settings}");
+    std::fs::write(&path, yaml).expect("write scenario");
+    Scenario::load(&path).expect("load scenario")
+}
+
 /// From OpenVINS's own prior (1 deg, 5 cm, 1 cm/s, 0.02 per bias axis) on a
 /// slow start, the window's clones can be bent so far by the drawn tilt and
 /// gyro bias that the first update's step, taken with the Jacobians at their
@@ -430,13 +439,14 @@ fn a_first_update_whose_step_leaves_the_rays_apart_is_redone() {
     let dir = tempfile::tempdir().expect("tempdir");
     write_slow_start(&dir.path().join("slow.txt"), 20.0);
     let runs_with = |rescue: bool, seed: u64| {
-        let path = dir.path().join(format!("slow_{rescue}.yaml"));
-        let yaml = format!(
-            "name: slow\nrobots:\n  - trajectory: slow.txt\nestimator: {{initial_error: sampled, \
-             init_sigma_ori_rad: 0.017, init_sigma_bias: 0.02, rescue_first_update: {rescue}}}\n"
+        let sc = slow_start_scenario(
+            dir.path(),
+            &format!("slow_{rescue}.yaml"),
+            &format!(
+                "estimator: {{initial_error: sampled, init_sigma_ori_rad: 0.017, \
+                 init_sigma_bias: 0.02, rescue_first_update: {rescue}}}\n"
+            ),
         );
-        std::fs::write(&path, yaml).expect("write scenario");
-        let sc = Scenario::load(&path).expect("load scenario");
         let r = run(&sc, seed, Variant::IndpSlam);
         let m = r.metrics();
         println!(
@@ -485,12 +495,11 @@ fn observability_constrained_msckf_jacobians_keep_a_slow_start_consistent() {
     write_slow_start(&dir.path().join("slow.txt"), 20.0);
     let mut figures = Vec::new();
     for jacobians in ["first_estimates", "observability_constrained"] {
-        let path = dir.path().join(format!("{jacobians}.yaml"));
-        let yaml = format!(
-            "name: slow\nrobots:\n  - trajectory: slow.txt\nestimator: {{msckf_jacobians: {jacobians}}}\n"
+        let sc = slow_start_scenario(
+            dir.path(),
+            &format!("{jacobians}.yaml"),
+            &format!("estimator: {{msckf_jacobians: {jacobians}}}\n"),
         );
-        std::fs::write(&path, yaml).expect("write scenario");
-        let sc = Scenario::load(&path).expect("load scenario");
         let ms: Vec<MetricSet> = (1..=8)
             .map(|seed| {
                 let r = run(&sc, seed, Variant::Indp);
@@ -536,16 +545,16 @@ fn inverse_depth_slam_features_keep_a_noise_free_slow_start_on_its_path() {
     write_slow_start(&dir.path().join("slow.txt"), 30.0);
     let mut figures = Vec::new();
     for representation in ["global", "anchored_inverse_depth"] {
-        let path = dir.path().join(format!("{representation}.yaml"));
-        let yaml = format!(
-            "name: slow\nrobots:\n  - trajectory: slow.txt\nsensors:\n  \
-             calibration_perturbation:\n    enabled: false\n  camera:\n    \
-             pixel_noise_px: 0.0\nestimator: {{calib_extrinsics: false, calib_intrinsics: false, \
-             calib_time_offset: false, pixel_sigma_px: 1.0, feature_representation: \
-             {representation}}}\n"
+        let sc = slow_start_scenario(
+            dir.path(),
+            &format!("{representation}.yaml"),
+            &format!(
+                "sensors:\n  calibration_perturbation:\n    enabled: false\n  camera:\n    \
+                 pixel_noise_px: 0.0\nestimator: {{calib_extrinsics: false, \
+                 calib_intrinsics: false, calib_time_offset: false, pixel_sigma_px: 1.0, \
+                 feature_representation: {representation}}}\n"
+            ),
         );
-        std::fs::write(&path, yaml).expect("write scenario");
-        let sc = Scenario::load(&path).expect("load scenario");
         let r = run(&sc, 9, Variant::IndpSlam);
         let m = r.metrics();
         let (ate, nees) = (

@@ -185,7 +185,6 @@ fn reanchor_one<F: Filter + ?Sized>(filter: &mut F, id: u64, new: u64) -> bool {
     }
     // The same variable may appear twice (e.g. the extrinsic): sum them; then
     // chain p_FinB to the new parameters.
-    let g = DMatrix::from_iterator(3, 3, dparams_dp.iter().copied());
     let mut merged: Vec<(Var, DMatrix<f64>)> = Vec::new();
     for (v, j) in jac {
         match merged.iter_mut().find(|(mv, _)| *mv == v) {
@@ -194,6 +193,7 @@ fn reanchor_one<F: Filter + ?Sized>(filter: &mut F, id: u64, new: u64) -> bool {
         }
     }
     if f.inverse_depth {
+        let g = DMatrix::from_iterator(3, 3, dparams_dp.iter().copied());
         for (_, j) in merged.iter_mut() {
             *j = &g * &*j;
         }

@@ -205,15 +205,16 @@ pub fn initialize<F: Filter + ?Sized>(
     };
     let (mut p_init, mut p_init_fej) = (sys.p_f, sys.p_f);
     if let Some(a) = anchor {
-        let (Some(p_a), Some(p_a_fej)) = (
-            in_anchor(state.means(), a, &sys.p_f, false)
-                .and_then(|p| anchor_params(&p, inverse_depth)),
-            in_anchor(state.means(), a, &sys.p_f, opts.use_fej)
-                .and_then(|p| anchor_params(&p, inverse_depth)),
-        ) else {
+        // The parameters of the triangulated point in the anchor (current and
+        // first-estimate anchor pose).
+        let params_in = |fej: bool| {
+            in_anchor(state.means(), a, &sys.p_f, fej)
+                .and_then(|p| anchor_params(&p, inverse_depth))
+                .map(|(params, _)| params)
+        };
+        let (Some(p_a), Some(p_a_fej)) = (params_in(false), params_in(opts.use_fej)) else {
             return false;
         };
-        let (p_a, p_a_fej) = (p_a.0, p_a_fej.0);
         let probe = SlamFeature {
             pos: p_a,
             pos_fej: p_a_fej,
