@@ -124,6 +124,11 @@ pub enum CiWeighting {
     FixedOwn,
     /// Minimize the trace of the updated covariance.
     MinTrace,
+    /// Minimize the trace of our current pose's updated covariance (orientation
+    /// and position, rad² and m²). The whole state's trace adds up units that do
+    /// not compare (the intrinsics' px² outweigh the rest), and the weights that
+    /// minimize it need not serve the pose (README).
+    MinPoseTrace,
     /// Minimize the determinant of the updated covariance.
     MinDeterminant,
 }

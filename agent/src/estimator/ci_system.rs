@@ -201,6 +201,7 @@ pub fn update(
         }
         common::estimator_options::CiWeighting::FixedOwn => CiWeights::FixedOwn(opts.ci_own_weight),
         common::estimator_options::CiWeighting::MinTrace => CiWeights::MinTrace,
+        common::estimator_options::CiWeighting::MinPoseTrace => CiWeights::MinPoseTrace,
         common::estimator_options::CiWeighting::MinDeterminant => CiWeights::MinDeterminant,
     };
     let eye = DMatrix::identity(res.len(), res.len());

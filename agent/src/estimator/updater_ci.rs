@@ -46,9 +46,17 @@ pub enum CiWeights {
     FixedOwn(f64),
     /// Minimize the trace of the updated covariance.
     MinTrace,
+    /// Minimize the trace of the updated covariance of our current pose
+    /// (orientation and position of the IMU state), [`POSE_ROWS`].
+    MinPoseTrace,
     /// Minimize the determinant of the updated covariance.
     MinDeterminant,
 }
+
+/// The rows of the IMU block that [`CiWeights::MinPoseTrace`] weighs:
+/// orientation then position (rad², m²: a degree and a few centimetres weigh
+/// alike).
+pub const POSE_ROWS: usize = 6;
 
 /// What an update used.
 #[derive(Clone, Debug, PartialEq)]
@@ -65,7 +73,8 @@ pub struct CiOutcome {
 struct Pieces {
     /// `H P Hᵀ` of this robot.
     hph: DMatrix<f64>,
-    /// `(P Hᵀ)ᵀ (P Hᵀ)`, for the trace objective only.
+    /// `(P Hᵀ)ᵀ (P Hᵀ)` over the rows whose trace is minimized, for the trace
+    /// objectives only.
     gram: Option<DMatrix<f64>>,
     /// `H_o P_o H_oᵀ` per peer.
     peers: Vec<DMatrix<f64>>,
@@ -103,7 +112,7 @@ impl Pieces {
         let s = &self.hph / omega + &r_o;
         let chol = s.clone().cholesky()?;
         match which {
-            CiWeights::MinTrace => {
+            CiWeights::MinTrace | CiWeights::MinPoseTrace => {
                 // tr(P⁺) = tr(P)/ω − tr(S⁻¹ G)/ω², and tr(P) is a constant
                 // factor of 1/ω: keep it through the caller's tr(P).
                 let sg = chol.solve(self.gram.as_ref()?);
@@ -166,8 +175,19 @@ pub fn update(
     }
     let zero = DMatrix::zeros(m, m);
     let (hph, pht) = state.innovation(vars, h, &zero)?;
+    // The rows whose trace `MinPoseTrace` minimizes (all with `MinTrace`).
+    let traced = match weights {
+        CiWeights::MinPoseTrace => state.offset(Var::Imu).map(|o| (o, POSE_ROWS)),
+        _ => None,
+    }
+    .unwrap_or((0, state.dim()));
     let pieces = Pieces {
-        gram: (*weights == CiWeights::MinTrace && !peers.is_empty()).then(|| pht.tr_mul(&pht)),
+        gram: (matches!(weights, CiWeights::MinTrace | CiWeights::MinPoseTrace)
+            && !peers.is_empty())
+        .then(|| {
+            let rows = pht.rows(traced.0, traced.1);
+            rows.tr_mul(&rows)
+        }),
         hph,
         peers: peers
             .iter()
@@ -186,7 +206,9 @@ pub fn update(
         r: r.clone(),
         n: state.dim(),
     };
-    let trace_p = state.cov().trace();
+    let trace_p: f64 = (traced.0..traced.0 + traced.1)
+        .map(|i| state.cov()[(i, i)])
+        .sum();
     let omega = if peers.is_empty() {
         1.0
     } else {
@@ -195,7 +217,7 @@ pub fn update(
             CiWeights::FixedPeer(_) => {
                 (1.0 - pieces.nominal.iter().sum::<f64>()).clamp(MIN_OWN_WEIGHT, 1.0 - 1e-6)
             }
-            CiWeights::MinTrace => golden_min(1e-4, 1.0 - 1e-4, |w| {
+            CiWeights::MinTrace | CiWeights::MinPoseTrace => golden_min(1e-4, 1.0 - 1e-4, |w| {
                 pieces
                     .objective(w, weights)
                     .map_or(f64::INFINITY, |v| trace_p / w + v)
@@ -376,6 +398,53 @@ mod tests {
             let (t, d) = run(&CiWeights::FixedOwn(w));
             assert!(best_trace <= t * (1.0 + 1e-9), "ω {w}: {best_trace} > {t}");
             assert!(best_det <= d * (1.0 + 1e-6), "ω {w}: {best_det} > {d}");
+        }
+    }
+
+    /// `MinPoseTrace` minimizes the pose block's trace, not the whole state's: it
+    /// beats every fixed weight there, and its covariance still bounds the
+    /// actual error whatever the true correlation with the peer.
+    #[test]
+    fn pose_trace_weights_minimize_the_pose_block_and_stay_conservative() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let pose_trace = |s: &State| (0..POSE_ROWS).map(|i| s.cov()[(i, i)]).sum::<f64>();
+        for trial in 0..10 {
+            let (ni, no, m) = (15, 6, 5);
+            let joint = random_spd(ni + no, &mut rng);
+            let p_i = joint.view((0, 0), (ni, ni)).into_owned();
+            let p_o = joint.view((ni, ni), (no, no)).into_owned();
+            let p_io = joint.view((0, ni), (ni, no)).into_owned();
+            let h_i = DMatrix::from_fn(m, ni, |_, _| rng.random_range(-1.0..1.0));
+            let h_o = DMatrix::from_fn(m, no, |_, _| rng.random_range(-1.0..1.0));
+            let r = DMatrix::identity(m, m) * 0.2;
+            let peer = [PeerTerm {
+                h: h_o.clone(),
+                cov: p_o.clone(),
+                weight: None,
+            }];
+            let run = |w: &CiWeights| {
+                let mut s = state_with(&p_i);
+                let out =
+                    update(&mut s, &[Var::Imu], &h_i, &DVector::zeros(m), &r, &peer, w).unwrap();
+                (s, out)
+            };
+            let (best, out) = run(&CiWeights::MinPoseTrace);
+            for w in [0.1, 0.3, 0.5, 0.7, 0.9, 0.99] {
+                let (fixed, _) = run(&CiWeights::FixedOwn(w));
+                assert!(
+                    pose_trace(&best) <= pose_trace(&fixed) * (1.0 + 1e-9),
+                    "trial {trial}, ω {w}"
+                );
+            }
+            // The bound of Eq. (5.14) holds at the chosen weights.
+            let (wi, wo) = (out.omega_own, out.omega_peers[0]);
+            let s_ci = &h_i * &p_i * h_i.transpose() / wi + &h_o * &p_o * h_o.transpose() / wo + &r;
+            let k = &p_i / wi * h_i.transpose() * s_ci.try_inverse().unwrap();
+            let actual = actual_error_cov(&k, &h_i, &h_o, &p_i, &p_o, &p_io, &r);
+            let gap = best.cov() - actual;
+            let gap = (&gap + gap.transpose()) * 0.5;
+            let min_eig = gap.symmetric_eigen().eigenvalues.min();
+            assert!(min_eig > -1e-9, "trial {trial}: min eigenvalue {min_eig}");
         }
     }
 
