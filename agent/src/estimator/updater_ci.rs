@@ -304,6 +304,76 @@ mod tests {
             + k * r * k.transpose()
     }
 
+    /// A random update of robot i with one peer (15 and 6 variables, 5 rows)
+    /// under a true joint prior with strong random cross-correlation.
+    struct Correlated {
+        p_i: DMatrix<f64>,
+        p_o: DMatrix<f64>,
+        p_io: DMatrix<f64>,
+        h_i: DMatrix<f64>,
+        h_o: DMatrix<f64>,
+        r: DMatrix<f64>,
+    }
+
+    impl Correlated {
+        fn draw(rng: &mut ChaCha8Rng) -> Self {
+            let (ni, no, m) = (15, 6, 5);
+            let joint = random_spd(ni + no, rng);
+            Self {
+                p_i: joint.view((0, 0), (ni, ni)).into_owned(),
+                p_o: joint.view((ni, ni), (no, no)).into_owned(),
+                p_io: joint.view((0, ni), (ni, no)).into_owned(),
+                h_i: DMatrix::from_fn(m, ni, |_, _| rng.random_range(-1.0..1.0)),
+                h_o: DMatrix::from_fn(m, no, |_, _| rng.random_range(-1.0..1.0)),
+                r: DMatrix::identity(m, m) * 0.2,
+            }
+        }
+
+        /// Robot i after a CI update with `weights` (a zero residual), and what
+        /// the update used.
+        fn update(&self, weights: &CiWeights) -> (State, CiOutcome) {
+            let mut s = state_with(&self.p_i);
+            let peer = [PeerTerm {
+                h: self.h_o.clone(),
+                cov: self.p_o.clone(),
+                weight: None,
+            }];
+            let zero = DVector::zeros(self.r.nrows());
+            let out = update(
+                &mut s,
+                &[Var::Imu],
+                &self.h_i,
+                &zero,
+                &self.r,
+                &peer,
+                weights,
+            )
+            .unwrap();
+            (s, out)
+        }
+
+        /// The smallest eigenvalue of `reported − actual`, the actual error
+        /// covariance after the update with gain `k`: at least 0 when the
+        /// reported covariance bounds the error.
+        fn bound_gap(&self, reported: &DMatrix<f64>, k: &DMatrix<f64>) -> f64 {
+            let (h_i, h_o) = (&self.h_i, &self.h_o);
+            let actual = actual_error_cov(k, h_i, h_o, &self.p_i, &self.p_o, &self.p_io, &self.r);
+            let gap = reported - actual;
+            let gap = (&gap + gap.transpose()) * 0.5;
+            gap.symmetric_eigen().eigenvalues.min()
+        }
+
+        /// The gain the CI update used: `K = (P_i/ω_i) H_iᵀ S⁻¹`.
+        fn ci_gain(&self, out: &CiOutcome) -> DMatrix<f64> {
+            let (wi, wo) = (out.omega_own, out.omega_peers[0]);
+            let (h_i, h_o) = (&self.h_i, &self.h_o);
+            let s_ci = h_i * &self.p_i * h_i.transpose() / wi
+                + h_o * &self.p_o * h_o.transpose() / wo
+                + &self.r;
+            &self.p_i / wi * h_i.transpose() * s_ci.try_inverse().unwrap()
+        }
+    }
+
     /// The CI bound holds whatever the true cross-covariance: the covariance
     /// this robot reports after the update is at least the actual covariance of
     /// its error, computed with the true correlated joint prior.
@@ -312,44 +382,16 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(7);
         let mut naive_violations = 0;
         for trial in 0..50 {
-            let (ni, no, m) = (15, 6, 5);
-            // A true joint prior with strong random cross-correlation.
-            let joint = random_spd(ni + no, &mut rng);
-            let p_i = joint.view((0, 0), (ni, ni)).into_owned();
-            let p_o = joint.view((ni, ni), (no, no)).into_owned();
-            let p_io = joint.view((0, ni), (ni, no)).into_owned();
-            let h_i = DMatrix::from_fn(m, ni, |_, _| rng.random_range(-1.0..1.0));
-            let h_o = DMatrix::from_fn(m, no, |_, _| rng.random_range(-1.0..1.0));
-            let r = DMatrix::identity(m, m) * 0.2;
+            let c = Correlated::draw(&mut rng);
             let weights = match trial % 3 {
                 0 => CiWeights::FixedOwn(rng.random_range(0.05..0.95)),
                 1 => CiWeights::MinTrace,
                 _ => CiWeights::MinDeterminant,
             };
-            let mut s = state_with(&p_i);
-            let out = update(
-                &mut s,
-                &[Var::Imu],
-                &h_i,
-                &DVector::zeros(m),
-                &r,
-                &[PeerTerm {
-                    h: h_o.clone(),
-                    cov: p_o.clone(),
-                    weight: None,
-                }],
-                &weights,
-            )
-            .unwrap();
+            let (s, out) = c.update(&weights);
             let (wi, wo) = (out.omega_own, out.omega_peers[0]);
             assert!((wi + wo - 1.0).abs() < 1e-12);
-            // The gain used: K = (P_i/ω_i) H_iᵀ S⁻¹.
-            let s_ci = &h_i * &p_i * h_i.transpose() / wi + &h_o * &p_o * h_o.transpose() / wo + &r;
-            let k = &p_i / wi * h_i.transpose() * s_ci.try_inverse().unwrap();
-            let actual = actual_error_cov(&k, &h_i, &h_o, &p_i, &p_o, &p_io, &r);
-            let gap = s.cov() - actual;
-            let gap = (&gap + gap.transpose()) * 0.5;
-            let min_eig = gap.symmetric_eigen().eigenvalues.min();
+            let min_eig = c.bound_gap(s.cov(), &c.ci_gain(&out));
             assert!(
                 min_eig > -1e-9,
                 "trial {trial} ({weights:?}): min eigenvalue {min_eig}"
@@ -357,14 +399,11 @@ mod tests {
 
             // Control: ignoring the correlation (no inflation) is overconfident in
             // some trials, so the bound above is not vacuous.
-            let s_naive = &h_i * &p_i * h_i.transpose() + &h_o * &p_o * h_o.transpose() + &r;
-            let k = &p_i * h_i.transpose() * s_naive.try_inverse().unwrap();
-            let actual = actual_error_cov(&k, &h_i, &h_o, &p_i, &p_o, &p_io, &r);
-            let a = DMatrix::identity(ni, ni) - &k * &h_i;
-            let reported = &a * &p_i;
-            let gap = &reported - actual;
-            let gap = (&gap + gap.transpose()) * 0.5;
-            if gap.symmetric_eigen().eigenvalues.min() < -1e-6 {
+            let (h_i, h_o, p_i) = (&c.h_i, &c.h_o, &c.p_i);
+            let s_naive = h_i * p_i * h_i.transpose() + h_o * &c.p_o * h_o.transpose() + &c.r;
+            let k = p_i * h_i.transpose() * s_naive.try_inverse().unwrap();
+            let reported = (DMatrix::identity(p_i.nrows(), p_i.nrows()) - &k * h_i) * p_i;
+            if c.bound_gap(&reported, &k) < -1e-6 {
                 naive_violations += 1;
             }
         }
@@ -409,41 +448,17 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(11);
         let pose_trace = |s: &State| (0..POSE_ROWS).map(|i| s.cov()[(i, i)]).sum::<f64>();
         for trial in 0..10 {
-            let (ni, no, m) = (15, 6, 5);
-            let joint = random_spd(ni + no, &mut rng);
-            let p_i = joint.view((0, 0), (ni, ni)).into_owned();
-            let p_o = joint.view((ni, ni), (no, no)).into_owned();
-            let p_io = joint.view((0, ni), (ni, no)).into_owned();
-            let h_i = DMatrix::from_fn(m, ni, |_, _| rng.random_range(-1.0..1.0));
-            let h_o = DMatrix::from_fn(m, no, |_, _| rng.random_range(-1.0..1.0));
-            let r = DMatrix::identity(m, m) * 0.2;
-            let peer = [PeerTerm {
-                h: h_o.clone(),
-                cov: p_o.clone(),
-                weight: None,
-            }];
-            let run = |w: &CiWeights| {
-                let mut s = state_with(&p_i);
-                let out =
-                    update(&mut s, &[Var::Imu], &h_i, &DVector::zeros(m), &r, &peer, w).unwrap();
-                (s, out)
-            };
-            let (best, out) = run(&CiWeights::MinPoseTrace);
+            let c = Correlated::draw(&mut rng);
+            let (best, out) = c.update(&CiWeights::MinPoseTrace);
             for w in [0.1, 0.3, 0.5, 0.7, 0.9, 0.99] {
-                let (fixed, _) = run(&CiWeights::FixedOwn(w));
+                let (fixed, _) = c.update(&CiWeights::FixedOwn(w));
                 assert!(
                     pose_trace(&best) <= pose_trace(&fixed) * (1.0 + 1e-9),
                     "trial {trial}, ω {w}"
                 );
             }
             // The bound of Eq. (5.14) holds at the chosen weights.
-            let (wi, wo) = (out.omega_own, out.omega_peers[0]);
-            let s_ci = &h_i * &p_i * h_i.transpose() / wi + &h_o * &p_o * h_o.transpose() / wo + &r;
-            let k = &p_i / wi * h_i.transpose() * s_ci.try_inverse().unwrap();
-            let actual = actual_error_cov(&k, &h_i, &h_o, &p_i, &p_o, &p_io, &r);
-            let gap = best.cov() - actual;
-            let gap = (&gap + gap.transpose()) * 0.5;
-            let min_eig = gap.symmetric_eigen().eigenvalues.min();
+            let min_eig = c.bound_gap(best.cov(), &c.ci_gain(&out));
             assert!(min_eig > -1e-9, "trial {trial}: min eigenvalue {min_eig}");
         }
     }
