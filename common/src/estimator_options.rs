@@ -126,7 +126,7 @@ pub enum CiWeighting {
     MinTrace,
     /// Minimize the trace of our current pose's updated covariance (orientation
     /// and position, rad² and m²). The whole state's trace adds up units that do
-    /// not compare (the intrinsics' px² outweigh the rest), and the weights that
+    /// not compare (the intrinsics' px² against our position's m²), and the weights that
     /// minimize it need not serve the pose (README).
     MinPoseTrace,
     /// Minimize the determinant of the updated covariance.
