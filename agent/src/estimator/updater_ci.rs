@@ -8,11 +8,13 @@
 //! determinant of the updated covariance, a one-dimensional search over `ω_i`
 //! with the rest split evenly among the peers. Both objectives only need
 //! `m x m` matrices (`m` measurement rows): the trace through
-//! `tr(P Hᵀ S⁻¹ H P) = tr(S⁻¹ G)`, `G = (P Hᵀ)ᵀ (P Hᵀ)`, and the determinant
-//! through the determinant lemma, `det P⁺ = det(P / ω) det R_o / det S`.
+//! `tr(P Hᵀ S⁻¹ H P) = tr(S⁻¹ G)`, `G = (P Hᵀ)ᵀ (P Hᵀ) = Wᵀ W` with `W` at most
+//! `m` rows (one Cholesky factor of `S` and a triangular solve per weight
+//! tried), and the determinant through the determinant lemma,
+//! `det P⁺ = det(P / ω) det R_o / det S`.
 
 use super::state::{State, StateError, Var};
-use nalgebra::{DMatrix, DVector};
+use nalgebra::{Cholesky, DMatrix, DVector, Dyn};
 
 /// A peer's part of a measurement: its Jacobian (`m x n_o`) and the covariance
 /// of the peer states it involves (`n_o x n_o`, from the peer's snapshot).
@@ -73,11 +75,15 @@ pub struct CiOutcome {
 struct Pieces {
     /// `H P Hᵀ` of this robot.
     hph: DMatrix<f64>,
-    /// `(P Hᵀ)ᵀ (P Hᵀ)` over the rows whose trace is minimized, for the trace
-    /// objectives only.
-    gram: Option<DMatrix<f64>>,
+    /// `Wᵀ` (`m x k`, `k ≤ m`) with `Wᵀ W = (P Hᵀ)ᵀ (P Hᵀ)` over the rows whose
+    /// trace is minimized, for the trace objectives only: those rows themselves
+    /// when they are at most `m`, else the triangular factor of their QR.
+    traced_factor: Option<DMatrix<f64>>,
     /// `H_o P_o H_oᵀ` per peer.
     peers: Vec<DMatrix<f64>>,
+    /// `Σ H_o P_o H_oᵀ / s_o` with `s_o` each peer's share of `1 − ω_i`: the
+    /// peers' part of `R_o` is this over `1 − ω_i`, for the searches.
+    peers_at_unit_share: DMatrix<f64>,
     /// Each peer's nominal weight: its weight with `FixedPeer`, its relative
     /// share of `1 − ω_i` otherwise.
     nominal: Vec<f64>,
@@ -108,22 +114,25 @@ impl Pieces {
 
     /// The objective at weight `omega` (`None` where `S` is not positive).
     fn objective(&self, omega: f64, which: &CiWeights) -> Option<f64> {
-        let r_o = self.r_others(omega);
+        let r_o = &self.r + &self.peers_at_unit_share / (1.0 - omega);
         let s = &self.hph / omega + &r_o;
-        let chol = s.clone().cholesky()?;
+        let chol = s.cholesky()?;
         match which {
             CiWeights::MinTrace | CiWeights::MinPoseTrace => {
                 // tr(P⁺) = tr(P)/ω − tr(S⁻¹ G)/ω², and tr(P) is a constant
-                // factor of 1/ω: keep it through the caller's tr(P).
-                let sg = chol.solve(self.gram.as_ref()?);
-                Some(-sg.trace() / (omega * omega))
+                // factor of 1/ω: keep it through the caller's tr(P). With
+                // S = L Lᵀ and G = Wᵀ W, tr(S⁻¹ G) = ‖L⁻¹ Wᵀ‖²: one triangular
+                // solve with k right-hand sides instead of m.
+                let y = chol
+                    .l_dirty()
+                    .solve_lower_triangular(self.traced_factor.as_ref()?)?;
+                Some(-y.norm_squared() / (omega * omega))
             }
             CiWeights::MinDeterminant => {
-                let ln_det = |m: DMatrix<f64>| -> Option<f64> {
-                    let c = m.cholesky()?;
-                    Some(2.0 * c.l().diagonal().iter().map(|d| d.ln()).sum::<f64>())
+                let ln_det = |c: &Cholesky<f64, Dyn>| {
+                    2.0 * c.l_dirty().diagonal().iter().map(|d| d.ln()).sum::<f64>()
                 };
-                Some(-(self.n as f64) * omega.ln() + ln_det(r_o)? - ln_det(s)?)
+                Some(-(self.n as f64) * omega.ln() + ln_det(&r_o.cholesky()?) - ln_det(&chol))
             }
             CiWeights::FixedPeer(_) | CiWeights::FixedOwn(_) => Some(0.0),
         }
@@ -181,28 +190,49 @@ pub fn update(
         _ => None,
     }
     .unwrap_or((0, state.dim()));
+    let searched = !peers.is_empty()
+        && matches!(
+            weights,
+            CiWeights::MinTrace | CiWeights::MinPoseTrace | CiWeights::MinDeterminant
+        );
+    let peer_terms: Vec<DMatrix<f64>> = peers
+        .iter()
+        .map(|p| &p.h * &p.cov * p.h.transpose())
+        .collect();
+    let nominal: Vec<f64> = peers
+        .iter()
+        .map(|p| {
+            let default = match weights {
+                CiWeights::FixedPeer(w) => *w,
+                _ => 1.0,
+            };
+            p.weight.unwrap_or(default).max(1e-9)
+        })
+        .collect();
+    // The peers share 1 − ω_i in proportion to their nominal weights.
+    let total = nominal.iter().sum::<f64>().max(f64::MIN_POSITIVE);
+    let peers_at_unit_share = if searched {
+        let zero = DMatrix::zeros(m, m);
+        peer_terms
+            .iter()
+            .zip(&nominal)
+            .fold(zero, |sum, (t, w)| sum + t * (total / w))
+    } else {
+        DMatrix::zeros(0, 0)
+    };
     let pieces = Pieces {
-        gram: (matches!(weights, CiWeights::MinTrace | CiWeights::MinPoseTrace)
-            && !peers.is_empty())
-        .then(|| {
+        traced_factor: (searched && !matches!(weights, CiWeights::MinDeterminant)).then(|| {
             let rows = pht.rows(traced.0, traced.1);
-            rows.tr_mul(&rows)
+            if traced.1 <= m {
+                rows.transpose()
+            } else {
+                rows.into_owned().qr().r().transpose()
+            }
         }),
         hph,
-        peers: peers
-            .iter()
-            .map(|p| &p.h * &p.cov * p.h.transpose())
-            .collect(),
-        nominal: peers
-            .iter()
-            .map(|p| {
-                let default = match weights {
-                    CiWeights::FixedPeer(w) => *w,
-                    _ => 1.0,
-                };
-                p.weight.unwrap_or(default).max(1e-9)
-            })
-            .collect(),
+        peers: peer_terms,
+        peers_at_unit_share,
+        nominal,
         r: r.clone(),
         n: state.dim(),
     };
@@ -418,25 +448,42 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let p_i = random_spd(15, &mut rng);
         let p_o = random_spd(6, &mut rng);
-        let h_i = DMatrix::from_fn(4, 15, |_, _| rng.random_range(-1.0..1.0));
-        let h_o = DMatrix::from_fn(4, 6, |_, _| rng.random_range(-1.0..1.0));
-        let r = DMatrix::identity(4, 4) * 0.3;
-        let peer = [PeerTerm {
-            h: h_o,
-            cov: p_o,
-            weight: None,
-        }];
-        let run = |w: &CiWeights| {
-            let mut s = state_with(&p_i);
-            update(&mut s, &[Var::Imu], &h_i, &DVector::zeros(4), &r, &peer, w).unwrap();
-            (s.cov().trace(), s.cov().determinant())
-        };
-        let (best_trace, _) = run(&CiWeights::MinTrace);
-        let (_, best_det) = run(&CiWeights::MinDeterminant);
-        for w in [0.1, 0.3, 0.5, 0.7, 0.9, 0.99] {
-            let (t, d) = run(&CiWeights::FixedOwn(w));
-            assert!(best_trace <= t * (1.0 + 1e-9), "ω {w}: {best_trace} > {t}");
-            assert!(best_det <= d * (1.0 + 1e-6), "ω {w}: {best_det} > {d}");
+        let pose_trace = |c: &DMatrix<f64>| (0..POSE_ROWS).map(|i| c[(i, i)]).sum::<f64>();
+        // Fewer rows than traced variables (the search works from the QR factor
+        // of the traced rows of P Hᵀ) and more (from the rows themselves).
+        for m in [4, 20] {
+            let h_i = DMatrix::from_fn(m, 15, |_, _| rng.random_range(-1.0..1.0));
+            let h_o = DMatrix::from_fn(m, 6, |_, _| rng.random_range(-1.0..1.0));
+            let r = DMatrix::identity(m, m) * 0.3;
+            let peer = [PeerTerm {
+                h: h_o,
+                cov: p_o.clone(),
+                weight: None,
+            }];
+            let run = |w: &CiWeights| {
+                let mut s = state_with(&p_i);
+                update(&mut s, &[Var::Imu], &h_i, &DVector::zeros(m), &r, &peer, w).unwrap();
+                s.cov().clone()
+            };
+            let best_trace = run(&CiWeights::MinTrace).trace();
+            let best_pose = pose_trace(&run(&CiWeights::MinPoseTrace));
+            let best_det = run(&CiWeights::MinDeterminant).determinant();
+            for w in [0.1, 0.3, 0.5, 0.7, 0.9, 0.99] {
+                let c = run(&CiWeights::FixedOwn(w));
+                let (t, d) = (c.trace(), c.determinant());
+                assert!(
+                    best_trace <= t * (1.0 + 1e-9),
+                    "m {m}, ω {w}: {best_trace} > {t}"
+                );
+                assert!(
+                    best_pose <= pose_trace(&c) * (1.0 + 1e-9),
+                    "m {m}, ω {w}: pose"
+                );
+                assert!(
+                    best_det <= d * (1.0 + 1e-6),
+                    "m {m}, ω {w}: {best_det} > {d}"
+                );
+            }
         }
     }
 
