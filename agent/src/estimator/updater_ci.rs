@@ -190,11 +190,9 @@ pub fn update(
         _ => None,
     }
     .unwrap_or((0, state.dim()));
-    let searched = !peers.is_empty()
-        && matches!(
-            weights,
-            CiWeights::MinTrace | CiWeights::MinPoseTrace | CiWeights::MinDeterminant
-        );
+    let traced_objective = matches!(weights, CiWeights::MinTrace | CiWeights::MinPoseTrace);
+    let searched =
+        !peers.is_empty() && (traced_objective || matches!(weights, CiWeights::MinDeterminant));
     let peer_terms: Vec<DMatrix<f64>> = peers
         .iter()
         .map(|p| &p.h * &p.cov * p.h.transpose())
@@ -221,7 +219,7 @@ pub fn update(
         DMatrix::zeros(0, 0)
     };
     let pieces = Pieces {
-        traced_factor: (searched && !matches!(weights, CiWeights::MinDeterminant)).then(|| {
+        traced_factor: (searched && traced_objective).then(|| {
             let rows = pht.rows(traced.0, traced.1);
             if traced.1 <= m {
                 rows.transpose()
