@@ -118,7 +118,8 @@ pub enum CommonProjection {
 #[serde(rename_all = "snake_case")]
 pub enum CiWeighting {
     /// Each participant (a peer's window) gets `ci_peer_weight`; ours is the rest.
-    #[default]
+    /// The thesis' simulation setting; the scenarios that reproduce its tables
+    /// name it.
     FixedPeer,
     /// Ours is `ci_own_weight`; the participants split the rest evenly.
     FixedOwn,
@@ -128,6 +129,12 @@ pub enum CiWeighting {
     /// and position, rad² and m²). The whole state's trace adds up units that do
     /// not compare (the intrinsics' px² against our position's m²), and the weights that
     /// minimize it need not serve the pose (README).
+    ///
+    /// The default: it needs no weight tuned on the fleet first, and over long
+    /// missions it keeps the reported covariance near the error, where a fixed
+    /// weight inflates it at every CI update however little the peers' rows
+    /// tell (README, "an hour of flight").
+    #[default]
     MinPoseTrace,
     /// Minimize the determinant of the updated covariance.
     MinDeterminant,
@@ -265,7 +272,9 @@ pub struct CooperationOptions {
 }
 
 impl Default for CooperationOptions {
-    /// Nothing from peers (the independent variants); the thesis' weights.
+    /// Nothing from peers (the independent variants); CI weights chosen per
+    /// update on our pose (the thesis' fixed weights are kept for `fixed_peer`
+    /// and `fixed_own`).
     fn default() -> Self {
         Self {
             common_vio: false,
@@ -273,7 +282,7 @@ impl Default for CooperationOptions {
             slam_constraint: false,
             historical: false,
             projection: CommonProjection::TwoStage,
-            ci_weighting: CiWeighting::FixedPeer,
+            ci_weighting: CiWeighting::MinPoseTrace,
             ci_peer_weight: 0.001,
             ci_own_weight: 0.99,
             constraint_peer_weight: 0.005,

@@ -139,6 +139,9 @@ mod cases {
     /// positive, which passes the gate but not the CI system) after our own
     /// rows went in must not send the tracks to the MSCKF: their measurements
     /// would be used twice. Without own rows (combined projection) they fall back.
+    /// The fixed peer weight divides the negative covariance by 0.001, which
+    /// makes the innovation covariance fail; a searched weight stays where it
+    /// does not.
     #[test]
     fn a_failed_ci_update_spends_each_measurement_once() {
         for projection in [CommonProjection::TwoStage, CommonProjection::Combined] {
@@ -151,6 +154,7 @@ mod cases {
                 .collect();
             let mut opts = EstimatorOptions::default();
             opts.cooperation.projection = projection;
+            opts.cooperation.ci_weighting = common::estimator_options::CiWeighting::FixedPeer;
             let before = sc.state.cov().trace();
             let out = sc.common_update(&tracks, &opts);
             assert_eq!(out.stats.used, 0, "{projection:?}: {:?}", out.stats);
