@@ -11,7 +11,7 @@
 //! changes our own state); historical windows are used exactly as stored.
 
 use common::camera::CameraModel;
-use common::messages::{StateSnapshot, INTRINSICS_DIM};
+use common::messages::{cover_f32_rounding, StateSnapshot, INTRINSICS_DIM};
 use common::so3::skew;
 use nalgebra::{DMatrix, Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 
@@ -59,15 +59,22 @@ pub struct PeerWindow {
 
 impl PeerWindow {
     /// The window of `snap` sent by `peer`; `None` when the covariance does not
-    /// match the poses or has a non-positive diagonal (such a message is unusable;
-    /// the decoder already rejects non-finite values).
+    /// match the poses, has a non-positive diagonal or is not positive definite
+    /// once its `f32` rounding is covered (such a message is unusable; the
+    /// decoder already rejects non-finite values).
+    ///
+    /// The covariances are taken at least as large as the peer's own before it
+    /// rounded them to `f32` (`to_dmatrix_at_least_sent`): CI is consistent only
+    /// with participants no smaller than the truth, and rounding moves a
+    /// window's smallest eigenvalues by more than their size.
     pub fn from_snapshot(peer: u32, key: u64, snap: &StateSnapshot) -> Option<Self> {
         let n = snap.clones.len();
-        let cov = snap.covariance.to_dmatrix();
+        let cov = snap.covariance.to_dmatrix_at_least_sent();
         let dim = cov.nrows();
         if n == 0
             || (dim != 6 * n && dim != 6 * n + INTRINSICS_DIM)
             || (0..dim).any(|i| cov[(i, i)].is_nan() || cov[(i, i)] <= 0.0)
+            || cov.clone().cholesky().is_none()
         {
             return None;
         }
@@ -90,10 +97,14 @@ impl PeerWindow {
             landmarks: snap
                 .landmarks
                 .iter()
-                .map(|l| PeerLandmark {
-                    id: l.id,
-                    pos: l.position(),
-                    cov: l.covariance(),
+                .filter_map(|l| {
+                    let mut cov = l.covariance();
+                    cover_f32_rounding(&mut cov);
+                    cov.cholesky().is_some().then(|| PeerLandmark {
+                        id: l.id,
+                        pos: l.position(),
+                        cov,
+                    })
                 })
                 .collect(),
         })
@@ -338,6 +349,40 @@ mod tests {
         assert_eq!(exact.h_feature, moved.h_feature);
         assert_eq!(exact.h_intrinsics, moved.h_intrinsics);
         assert!(exact.res.norm() < 1e-12 && moved.res.norm() > 1.0);
+    }
+
+    fn sample_snapshot() -> StateSnapshot {
+        match common::messages::samples::snapshot(40, 11, 3, true).body {
+            common::messages::Body::Snapshot(s) => s,
+            other => panic!("not a snapshot: {other:?}"),
+        }
+    }
+
+    /// A window is a CI participant only if its covariance is one: positive
+    /// variances are not enough (two poses claiming to be perfectly
+    /// anti-correlated beyond what their variances allow).
+    #[test]
+    fn a_window_whose_covariance_is_not_positive_definite_is_refused() {
+        let snap = sample_snapshot();
+        let w = PeerWindow::from_snapshot(2, 7, &snap).expect("a valid window");
+        assert_eq!(w.poses.len(), 11);
+        assert_eq!(w.landmarks.len(), 3);
+        // At least what was sent: each variance is raised, none lowered.
+        let sent = snap.covariance.to_dmatrix();
+        assert!((0..sent.nrows()).all(|i| w.cov[(i, i)] > sent[(i, i)]));
+
+        let mut bad = snap.clone();
+        let mut p = bad.covariance.to_dmatrix();
+        let (a, b) = (3, 9); // the first two positions' x
+        p[(a, b)] = -2.0 * (p[(a, a)] * p[(b, b)]).sqrt();
+        p[(b, a)] = p[(a, b)];
+        bad.covariance = common::messages::PackedCovariance::from_dmatrix(&p).unwrap();
+        assert!(PeerWindow::from_snapshot(2, 7, &bad).is_none());
+
+        let mut bad_landmark = snap;
+        bad_landmark.landmarks[1].cov_upper[1] = 1.0; // xy covariance ≫ √(xx yy)
+        let w = PeerWindow::from_snapshot(2, 7, &bad_landmark).expect("the window stays");
+        assert_eq!(w.landmarks.len(), 2, "only the broken landmark is dropped");
     }
 
     #[test]
