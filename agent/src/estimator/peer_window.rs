@@ -71,9 +71,10 @@ impl PeerWindow {
         let n = snap.clones.len();
         let cov = snap.covariance.to_dmatrix_at_least_sent();
         let dim = cov.nrows();
+        // The variances as sent: the cover would lift a zero one above zero.
         if n == 0
             || (dim != 6 * n && dim != 6 * n + INTRINSICS_DIM)
-            || (0..dim).any(|i| cov[(i, i)].is_nan() || cov[(i, i)] <= 0.0)
+            || snap.covariance.diagonal().any(|v| v.is_nan() || v <= 0.0)
             || cov.clone().cholesky().is_none()
         {
             return None;
@@ -378,6 +379,11 @@ mod tests {
         p[(b, a)] = p[(a, b)];
         bad.covariance = common::messages::PackedCovariance::from_dmatrix(&p).unwrap();
         assert!(PeerWindow::from_snapshot(2, 7, &bad).is_none());
+
+        let mut zero_variance = snap.clone();
+        let k = common::messages::PackedCovariance::packed_index(4, 4);
+        zero_variance.covariance.lower[k] = 0.0;
+        assert!(PeerWindow::from_snapshot(2, 7, &zero_variance).is_none());
 
         let mut bad_landmark = snap;
         bad_landmark.landmarks[1].cov_upper[1] = 1.0; // xy covariance ≫ √(xx yy)

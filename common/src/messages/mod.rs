@@ -39,9 +39,10 @@
 //! slightly negative (15 % of the EuRoC fleet's windows, stop 47): a receiver
 //! takes [`PackedCovariance::to_dmatrix_at_least_sent`], which raises each
 //! variance by the rounding bound of its row so that the matrix is at least
-//! the sender's, and checks a Cholesky factorization before trusting it. Poses, positions and times stay `f64`:
-//! metres over a building with sub-millimetre resolution, and seconds over
-//! hours with microseconds, are beyond `f32`.
+//! the sender's, and checks a Cholesky factorization before trusting it.
+//! Poses, positions and times stay `f64`: metres over a building with
+//! sub-millimetre resolution, and seconds over hours with microseconds, are
+//! beyond `f32`.
 
 mod body;
 mod bounded_vec;

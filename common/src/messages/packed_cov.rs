@@ -128,8 +128,7 @@ impl PackedCovariance {
 /// below what rounding moves. Measured on the EuRoC fleet (stop 47), the f64
 /// windows' smallest eigenvalue was about 9e-11 and 15 % of the windows came
 /// out of `f32` with a negative one (down to −3.8e-10, the largest about 2 px²
-/// of the intrinsics); the raise is of the same order, about 1e-10 on a pose
-/// variance.
+/// of the intrinsics). The raise is `ε` (1.2e-7) times the row's absolute sum.
 pub fn cover_f32_rounding<R: Dim, C: Dim, S: StorageMut<f64, R, C>>(p: &mut Matrix<f64, R, C, S>) {
     let n = p.nrows().min(p.ncols());
     let eps = f64::from(f32::EPSILON);
