@@ -2,6 +2,7 @@
 //! tracks the estimator is about to use, with the peer windows (CI
 //! participants) they belong to, and the peers' SLAM landmarks for constraints.
 
+use super::window_cache::WindowCache;
 use super::{Cooperation, Link, LinkSource, Peers, CONSTRAINT_FLAG};
 use crate::estimator::peer_window::PeerWindow;
 use crate::estimator::updater_common::{CommonTrack, PeerObservation};
@@ -37,7 +38,7 @@ pub struct Evidence {
 impl Cooperation {
     /// Step 2: the peers' unused measurements behind the links of our tracks
     /// `vio_ids` (about to leave the window) and of our SLAM features `slam_ids`.
-    pub fn evidence(&self, vio_ids: &[u64], slam_ids: &[u64], peers: &Peers) -> Evidence {
+    pub fn evidence(&mut self, vio_ids: &[u64], slam_ids: &[u64], peers: &Peers) -> Evidence {
         let mut ev = Evidence::default();
         let mut index: BTreeMap<(u32, LinkSource), Option<usize>> = BTreeMap::new();
         let mut taken: BTreeSet<(u32, u64, u64)> = BTreeSet::new();
@@ -74,7 +75,7 @@ impl Cooperation {
                 };
                 let Some(p) = *index
                     .entry((link.peer, link.source))
-                    .or_insert_with(|| participant(&mut ev, link, h))
+                    .or_insert_with(|| participant(&mut ev, &mut self.windows, link, h))
                 else {
                     continue;
                 };
@@ -288,8 +289,14 @@ fn busiest_windows(chosen: &[(u64, bool, Vec<Link>)], cap: usize) -> BTreeSet<(u
 }
 
 /// The participant behind `link`: its index in `ev.participants` (added now if
-/// new), or `None` when the peer's window is not usable.
-fn participant(ev: &mut Evidence, link: &Link, h: &PeerHistory) -> Option<usize> {
+/// new, from `cache` when a recent frame built it), or `None` when the peer's
+/// window is not usable.
+fn participant(
+    ev: &mut Evidence,
+    cache: &mut WindowCache,
+    link: &Link,
+    h: &PeerHistory,
+) -> Option<usize> {
     let (snap, historical) = match link.source {
         LinkSource::Window => (h.latest.as_ref()?, false),
         LinkSource::Keyframe(k) => (&h.keyframes.get(&k)?.snapshot, true),
@@ -302,7 +309,7 @@ fn participant(ev: &mut Evidence, link: &Link, h: &PeerHistory) -> Option<usize>
     {
         return Some(i);
     }
-    let w = PeerWindow::from_snapshot(link.peer, key, snap)?;
+    let w = cache.window(link.peer, key, historical, snap)?;
     ev.participants.push(w);
     ev.historical.push(historical);
     Some(ev.participants.len() - 1)

@@ -18,6 +18,7 @@ mod linking;
 pub mod loop_closure;
 pub mod matcher;
 mod used_marks;
+mod window_cache;
 
 pub use evidence::Evidence;
 
@@ -28,6 +29,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 use used_marks::UsedMarks;
 use vocabulary::Vocabulary;
+use window_cache::WindowCache;
 
 /// The vocabulary for random binary descriptors (the simulator's landmarks),
 /// trained once per process from a fixed seed: every agent of a simulated fleet
@@ -110,6 +112,8 @@ pub struct Cooperation {
     pub stats: CooperationStats,
     /// Pixel-to-normalized scale of the epipolar thresholds (our focal length).
     focal_px: f64,
+    /// The peer windows of recent frames' updates.
+    windows: WindowCache,
 }
 
 impl Cooperation {
@@ -127,6 +131,7 @@ impl Cooperation {
             used_tracks: BTreeSet::new(),
             stats: CooperationStats::default(),
             focal_px: focal_px.max(1.0),
+            windows: WindowCache::default(),
         }
     }
 

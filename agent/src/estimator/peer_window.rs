@@ -14,6 +14,7 @@ use common::camera::CameraModel;
 use common::messages::{cover_f32_rounding, StateSnapshot, INTRINSICS_DIM};
 use common::so3::skew;
 use nalgebra::{DMatrix, Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
+use std::sync::Arc;
 
 /// Camera pose of one clone of a peer's window.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -48,8 +49,9 @@ pub struct PeerWindow {
     /// Camera poses, oldest first.
     pub poses: Vec<PeerPose>,
     /// Their joint covariance, per pose `[δθ, δp]`, then (when the peer
-    /// estimates them) its intrinsics `[fx, fy, cx, cy, d0..d3]`.
-    pub cov: DMatrix<f64>,
+    /// estimates them) its intrinsics `[fx, fy, cx, cy, d0..d3]`. Shared: a
+    /// window is a participant in many frames' updates and is never changed.
+    pub cov: Arc<DMatrix<f64>>,
     /// The peer's camera model as it estimated it (its normalized coordinates
     /// were undistorted with it).
     pub camera: CameraModel,
@@ -93,7 +95,7 @@ impl PeerWindow {
             peer,
             key,
             poses,
-            cov,
+            cov: Arc::new(cov),
             camera,
             landmarks: snap
                 .landmarks
@@ -307,7 +309,7 @@ mod tests {
             peer: 1,
             key: 0,
             poses: vec![pose],
-            cov: DMatrix::identity(14, 14),
+            cov: Arc::new(DMatrix::identity(14, 14)),
             camera: estimate,
             landmarks: Vec::new(),
         };
@@ -338,7 +340,7 @@ mod tests {
                 rot: Matrix3::identity(),
                 pos: Vector3::zeros(),
             }],
-            cov: DMatrix::identity(14, 14),
+            cov: Arc::new(DMatrix::identity(14, 14)),
             camera,
             landmarks: Vec::new(),
         };

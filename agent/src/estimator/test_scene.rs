@@ -112,7 +112,7 @@ pub fn scene(n: usize, n_landmarks: usize, clone_var: f64, peer_var: f64) -> Sce
     let peer = PeerWindow {
         peer: 1,
         key: 1,
-        cov: DMatrix::identity(6 * n, 6 * n) * peer_var,
+        cov: std::sync::Arc::new(DMatrix::identity(6 * n, 6 * n) * peer_var),
         poses,
         camera: calib.camera.clone(),
         landmarks: Vec::new(),

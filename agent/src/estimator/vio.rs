@@ -339,7 +339,7 @@ impl Estimator {
         let t = Instant::now();
         let ev = self
             .coop
-            .as_ref()
+            .as_mut()
             .map(|c| c.evidence(msckf_ids, &slam_ids, peers))
             .unwrap_or_default();
         coop.evidence_ms = ms(t);
