@@ -34,6 +34,7 @@ pub mod updater_msckf;
 pub mod updater_slam;
 pub mod updater_zupt;
 pub mod vio;
+mod weight_search;
 
 pub use options::EstimatorOptions;
 pub use vio::{Estimator, FrameError, FrameOutput, FrameRecord, InitialState, InputError};

@@ -6,14 +6,15 @@
 //!
 //! The weights are fixed (configuration) or chosen to minimize the trace or the
 //! determinant of the updated covariance, a one-dimensional search over `ω_i`
-//! with the rest split evenly among the peers. Both objectives only need
-//! `m x m` matrices (`m` measurement rows): the trace through
+//! (`weight_search`) with the rest split evenly among the peers. Both
+//! objectives only need `m x m` matrices (`m` measurement rows): the trace through
 //! `tr(P Hᵀ S⁻¹ H P) = tr(S⁻¹ G)`, `G = (P Hᵀ)ᵀ (P Hᵀ) = Wᵀ W` with `W` at most
 //! `m` rows (one Cholesky factor of `S` and a triangular solve per weight
 //! tried), and the determinant through the determinant lemma,
 //! `det P⁺ = det(P / ω) det R_o / det S`.
 
 use super::state::{State, StateError, Var};
+use super::weight_search::minimize_weight;
 use nalgebra::{Cholesky, DMatrix, DVector, Dyn};
 
 /// A peer's part of a measurement: its Jacobian (`m x n_o`) and the covariance
@@ -139,33 +140,6 @@ impl Pieces {
     }
 }
 
-/// Golden-section search of `f` on `[a, b]`.
-fn golden_min(mut a: f64, mut b: f64, f: impl Fn(f64) -> f64) -> f64 {
-    let g = (5f64.sqrt() - 1.0) / 2.0;
-    let mut c = b - g * (b - a);
-    let mut d = a + g * (b - a);
-    let (mut fc, mut fd) = (f(c), f(d));
-    for _ in 0..60 {
-        if fc < fd {
-            b = d;
-            d = c;
-            fd = fc;
-            c = b - g * (b - a);
-            fc = f(c);
-        } else {
-            a = c;
-            c = d;
-            fc = fd;
-            d = a + g * (b - a);
-            fd = f(d);
-        }
-        if (b - a).abs() < 1e-6 {
-            break;
-        }
-    }
-    0.5 * (a + b)
-}
-
 /// Updates `state` with residual `res` (`m`), this robot's Jacobian `h` over
 /// `vars`, the peers' terms and noise `r`, with CI weights chosen by `weights`.
 /// With no peer the update is the standard EKF (`ω_i = 1`).
@@ -245,12 +219,12 @@ pub fn update(
             CiWeights::FixedPeer(_) => {
                 (1.0 - pieces.nominal.iter().sum::<f64>()).clamp(MIN_OWN_WEIGHT, 1.0 - 1e-6)
             }
-            CiWeights::MinTrace | CiWeights::MinPoseTrace => golden_min(1e-4, 1.0 - 1e-4, |w| {
+            CiWeights::MinTrace | CiWeights::MinPoseTrace => minimize_weight(1e-4, |w| {
                 pieces
                     .objective(w, weights)
                     .map_or(f64::INFINITY, |v| trace_p / w + v)
             }),
-            CiWeights::MinDeterminant => golden_min(1e-4, 1.0 - 1e-4, |w| {
+            CiWeights::MinDeterminant => minimize_weight(1e-4, |w| {
                 pieces.objective(w, weights).unwrap_or(f64::INFINITY)
             }),
         }
