@@ -203,6 +203,9 @@ pub fn update(
         common::estimator_options::CiWeighting::MinTrace => CiWeights::MinTrace,
         common::estimator_options::CiWeighting::MinPoseTrace => CiWeights::MinPoseTrace,
         common::estimator_options::CiWeighting::MinDeterminant => CiWeights::MinDeterminant,
+        common::estimator_options::CiWeighting::MinPoseFeaturesDeterminant => {
+            CiWeights::MinPoseFeaturesDeterminant
+        }
     };
     let eye = DMatrix::identity(res.len(), res.len());
     updater_ci::update(state, &cols.vars, &h, &res, &eye, &terms, &weights).map(Some)

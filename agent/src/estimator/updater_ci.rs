@@ -11,7 +11,9 @@
 //! `tr(P Hᵀ S⁻¹ H P) = tr(S⁻¹ G)`, `G = (P Hᵀ)ᵀ (P Hᵀ) = Wᵀ W` with `W` at most
 //! `m` rows (one Cholesky factor of `S` and a triangular solve per weight
 //! tried), and the determinant through the determinant lemma,
-//! `det P⁺ = det(P / ω) det R_o / det S`.
+//! `det P⁺ = det(P / ω) det R_o / det S`. The determinant of a block (our pose
+//! and the SLAM features measured) needs that block's `k x k` prior too:
+//! `ln det P⁺_BB = −k ln ω + ln det(P_BB − Zᵀ Z / ω)` with `Z = L⁻¹ Wᵀ`.
 
 use super::state::{State, StateError, Var};
 use super::weight_search::minimize_weight;
@@ -54,6 +56,11 @@ pub enum CiWeights {
     MinPoseTrace,
     /// Minimize the determinant of the updated covariance.
     MinDeterminant,
+    /// Minimize the determinant of the updated covariance of our current pose
+    /// ([`POSE_ROWS`]) together with the SLAM features the update measures. A
+    /// determinant compares no units, where a trace would weigh a feature's cm²
+    /// against the pose's mm².
+    MinPoseFeaturesDeterminant,
 }
 
 /// The rows of the IMU block that [`CiWeights::MinPoseTrace`] weighs:
@@ -80,6 +87,9 @@ struct Pieces {
     /// trace is minimized, for the trace objectives only: those rows themselves
     /// when they are at most `m`, else the triangular factor of their QR.
     traced_factor: Option<DMatrix<f64>>,
+    /// For [`CiWeights::MinPoseFeaturesDeterminant`]: the prior covariance of
+    /// the weighed block (`k x k`) and `Wᵀ` (`m x k`), `W` its rows of `P Hᵀ`.
+    block: Option<(DMatrix<f64>, DMatrix<f64>)>,
     /// `H_o P_o H_oᵀ` per peer.
     peers: Vec<DMatrix<f64>>,
     /// `Σ H_o P_o H_oᵀ / s_o` with `s_o` each peer's share of `1 − ω_i`: the
@@ -135,6 +145,22 @@ impl Pieces {
                 };
                 Some(-(self.n as f64) * omega.ln() + ln_det(&r_o.cholesky()?) - ln_det(&chol))
             }
+            CiWeights::MinPoseFeaturesDeterminant => {
+                // P⁺_BB = (P_BB − W S⁻¹ Wᵀ / ω) / ω over the block's k rows, so
+                // ln det P⁺_BB = −k ln ω + ln det(P_BB − Zᵀ Z / ω), Z = L⁻¹ Wᵀ.
+                let (p_bb, w_t) = self.block.as_ref()?;
+                let z = chol.l_dirty().solve_lower_triangular(w_t)?;
+                let reduced = p_bb - z.tr_mul(&z) / omega;
+                let ln_det = 2.0
+                    * reduced
+                        .cholesky()?
+                        .l_dirty()
+                        .diagonal()
+                        .iter()
+                        .map(|d| d.ln())
+                        .sum::<f64>();
+                Some(-(p_bb.nrows() as f64) * omega.ln() + ln_det)
+            }
             CiWeights::FixedPeer(_) | CiWeights::FixedOwn(_) => Some(0.0),
         }
     }
@@ -165,8 +191,27 @@ pub fn update(
     }
     .unwrap_or((0, state.dim()));
     let traced_objective = matches!(weights, CiWeights::MinTrace | CiWeights::MinPoseTrace);
-    let searched =
-        !peers.is_empty() && (traced_objective || matches!(weights, CiWeights::MinDeterminant));
+    let searched = !peers.is_empty()
+        && (traced_objective
+            || matches!(
+                weights,
+                CiWeights::MinDeterminant | CiWeights::MinPoseFeaturesDeterminant
+            ));
+    // The rows `MinPoseFeaturesDeterminant` weighs: our pose, then each SLAM
+    // feature the update measures.
+    let block_rows: Vec<usize> = match (weights, state.offset(Var::Imu)) {
+        (CiWeights::MinPoseFeaturesDeterminant, Some(imu)) if searched => (imu..imu + POSE_ROWS)
+            .chain(
+                vars.iter()
+                    .filter_map(|v| match v {
+                        Var::Feature(_) => state.offset(*v).map(|o| o..o + v.size()),
+                        _ => None,
+                    })
+                    .flatten(),
+            )
+            .collect(),
+        _ => Vec::new(),
+    };
     let peer_terms: Vec<DMatrix<f64>> = peers
         .iter()
         .map(|p| &p.h * &p.cov * p.h.transpose())
@@ -201,6 +246,13 @@ pub fn update(
                 rows.into_owned().qr().r().transpose()
             }
         }),
+        block: (!block_rows.is_empty()).then(|| {
+            let p_bb = state
+                .cov()
+                .select_rows(&block_rows)
+                .select_columns(&block_rows);
+            (p_bb, pht.select_rows(&block_rows).transpose())
+        }),
         hph,
         peers: peer_terms,
         peers_at_unit_share,
@@ -224,9 +276,11 @@ pub fn update(
                     .objective(w, weights)
                     .map_or(f64::INFINITY, |v| trace_p / w + v)
             }),
-            CiWeights::MinDeterminant => minimize_weight(1e-4, |w| {
-                pieces.objective(w, weights).unwrap_or(f64::INFINITY)
-            }),
+            CiWeights::MinDeterminant | CiWeights::MinPoseFeaturesDeterminant => {
+                minimize_weight(1e-4, |w| {
+                    pieces.objective(w, weights).unwrap_or(f64::INFINITY)
+                })
+            }
         }
     };
     let r_others = pieces.r_others(omega);
@@ -477,6 +531,79 @@ mod tests {
                 );
             }
             // The bound of Eq. (5.14) holds at the chosen weights.
+            let min_eig = c.bound_gap(best.cov(), &c.ci_gain(&out));
+            assert!(min_eig > -1e-9, "trial {trial}: min eigenvalue {min_eig}");
+        }
+    }
+
+    /// `MinPoseFeaturesDeterminant` minimizes the determinant of the block of
+    /// our pose and the SLAM features the update measures (not of a feature it
+    /// does not measure): it beats every fixed weight there, and the CI bound
+    /// holds at its weights.
+    #[test]
+    fn pose_feature_determinant_weights_minimize_their_block_and_stay_conservative() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let feature_cov = DMatrix::identity(3, 3);
+        // IMU (15), feature 0 (measured), feature 1 (not measured).
+        let (ni, no, m) = (21, 6, 7);
+        let measured = [Var::Imu, Var::Feature(0)];
+        for trial in 0..10 {
+            let joint = random_spd(ni + no, &mut rng);
+            let p_i = joint.view((0, 0), (ni, ni)).into_owned();
+            let p_o = joint.view((ni, ni), (no, no)).into_owned();
+            let p_io = joint.view((0, ni), (ni, no)).into_owned();
+            // Jacobian over the measured variables (IMU and feature 0, 18
+            // columns), and the same embedded in the whole state.
+            let h_meas = DMatrix::from_fn(m, 18, |_, _| rng.random_range(-1.0..1.0));
+            let mut h_full = DMatrix::zeros(m, ni);
+            h_full.columns_mut(0, 18).copy_from(&h_meas);
+            let h_o = DMatrix::from_fn(m, no, |_, _| rng.random_range(-1.0..1.0));
+            let r = DMatrix::identity(m, m) * 0.2;
+            let peer = [PeerTerm {
+                h: h_o.clone(),
+                cov: p_o.clone(),
+                weight: None,
+            }];
+            let run = |w: &CiWeights| {
+                let mut s = State::new(
+                    0.0,
+                    ImuState::default(),
+                    DMatrix::identity(15, 15),
+                    CameraCalibration::euroc_cam0(),
+                    &[
+                        (Var::Feature(0), feature_cov.clone()),
+                        (Var::Feature(1), feature_cov.clone()),
+                    ],
+                );
+                s.set_cov(p_i.clone()).unwrap();
+                let out =
+                    update(&mut s, &measured, &h_meas, &DVector::zeros(m), &r, &peer, w).unwrap();
+                (s, out)
+            };
+            // The block: orientation and position (rows 0-5), feature 0 (15-17).
+            let rows: Vec<usize> = (0..POSE_ROWS).chain(15..18).collect();
+            let block_det = |s: &State| {
+                s.cov()
+                    .select_rows(&rows)
+                    .select_columns(&rows)
+                    .determinant()
+            };
+            let (best, out) = run(&CiWeights::MinPoseFeaturesDeterminant);
+            for w in [0.1, 0.3, 0.5, 0.7, 0.9, 0.99] {
+                let (fixed, _) = run(&CiWeights::FixedOwn(w));
+                assert!(
+                    block_det(&best) <= block_det(&fixed) * (1.0 + 1e-6),
+                    "trial {trial}, ω {w}"
+                );
+            }
+            let c = Correlated {
+                p_i,
+                p_o,
+                p_io,
+                h_i: h_full,
+                h_o,
+                r,
+            };
             let min_eig = c.bound_gap(best.cov(), &c.ci_gain(&out));
             assert!(min_eig > -1e-9, "trial {trial}: min eigenvalue {min_eig}");
         }
