@@ -316,6 +316,60 @@ impl CooperationOptions {
     pub fn any(&self) -> bool {
         self.common_vio || self.common_slam || self.historical
     }
+
+    /// Range checks, each error naming its key. A CI weight of 0 divides a
+    /// covariance by zero and one of 1 or more leaves the other side none
+    /// (Eq. 5.14 needs weights in (0, 1)); a zero constraint sigma divides by
+    /// zero in every constraint update; no CI participant or no peer matched
+    /// per frame would silently turn the cooperation off.
+    pub fn validate(&self) -> Result<(), String> {
+        for (name, v) in [
+            ("ci_peer_weight", self.ci_peer_weight),
+            ("ci_own_weight", self.ci_own_weight),
+            ("constraint_peer_weight", self.constraint_peer_weight),
+        ] {
+            if !(v > 0.0 && v < 1.0) {
+                return Err(format!(
+                    "cooperation.{name} must be in (0, 1) (a CI weight), not {v}"
+                ));
+            }
+        }
+        for (name, v) in [
+            ("constraint_sigma_m", self.constraint_sigma_m),
+            ("epipolar_threshold_px", self.epipolar_threshold_px),
+            ("max_window_age_s", self.max_window_age_s),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!(
+                    "cooperation.{name} must be finite and positive, not {v}"
+                ));
+            }
+        }
+        if !(self.match_ratio > 0.0 && self.match_ratio <= 1.0) {
+            return Err(format!(
+                "cooperation.match_ratio must be in (0, 1] (best over second-best distance), not {}",
+                self.match_ratio
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.loop_min_score) {
+            return Err(format!(
+                "cooperation.loop_min_score must be in [0, 1] (an L1 score), not {}",
+                self.loop_min_score
+            ));
+        }
+        for (name, v) in [
+            ("max_ci_participants", self.max_ci_participants),
+            (
+                "max_peers_matched_per_frame",
+                self.max_peers_matched_per_frame,
+            ),
+        ] {
+            if v == 0 {
+                return Err(format!("cooperation.{name} must be at least 1"));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Everything that configures one estimator.
@@ -469,6 +523,7 @@ impl EstimatorOptions {
                 return Err(format!("{name} must be finite and at least 0, not {v}"));
             }
         }
+        self.cooperation.validate()?;
         self.triangulation.validate()
     }
 
@@ -550,6 +605,18 @@ mod tests {
         assert!(bad(|o| o.imu.gyro_noise_density = -1e-4).contains("gyro_noise_density"));
         assert!(bad(|o| o.calib_prior.intrinsics_px = 0.0).contains("intrinsics_px"));
         assert!(bad(|o| o.triangulation.min_depth_m = -1.0).contains("min_depth_m"));
+        assert!(bad(|o| o.cooperation.ci_peer_weight = 0.0).contains("ci_peer_weight"));
+        assert!(bad(|o| o.cooperation.ci_own_weight = 1.0).contains("ci_own_weight"));
+        assert!(bad(|o| o.cooperation.constraint_peer_weight = f64::NAN)
+            .contains("constraint_peer_weight"));
+        assert!(bad(|o| o.cooperation.constraint_sigma_m = 0.0).contains("constraint_sigma_m"));
+        assert!(bad(|o| o.cooperation.epipolar_threshold_px = -2.0).contains("epipolar"));
+        assert!(bad(|o| o.cooperation.max_window_age_s = f64::INFINITY).contains("window_age"));
+        assert!(bad(|o| o.cooperation.match_ratio = 0.0).contains("match_ratio"));
+        assert!(bad(|o| o.cooperation.loop_min_score = 1.5).contains("loop_min_score"));
+        assert!(bad(|o| o.cooperation.max_ci_participants = 0).contains("max_ci_participants"));
+        assert!(bad(|o| o.cooperation.max_peers_matched_per_frame = 0)
+            .contains("max_peers_matched_per_frame"));
         let noise_free_imu = EstimatorOptions {
             imu: ImuNoise {
                 gyro_noise_density: 0.0,

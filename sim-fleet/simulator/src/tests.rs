@@ -375,6 +375,13 @@ fn estimator_settings_that_cannot_run_are_named_at_load() {
     assert!(e.contains("estimator.slam_delay_s"), "{e}");
     let e = load("{ min_clones_to_update: 0 }").unwrap_err();
     assert!(e.contains("min_clones_to_update"), "{e}");
+    let e = load("{ cooperation: { ci_peer_weight: 0.0 } }").unwrap_err();
+    assert!(e.contains("estimator.cooperation.ci_peer_weight"), "{e}");
+    let e = load("{ cooperation: { constraint_sigma_m: 0.0 } }").unwrap_err();
+    assert!(
+        e.contains("estimator.cooperation.constraint_sigma_m"),
+        "{e}"
+    );
 }
 
 #[test]
