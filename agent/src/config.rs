@@ -6,7 +6,8 @@ use crate::frontend::FrontendOptions;
 use crate::runner::Variant;
 use crate::transport::{Iceoryx2Settings, TransportKind, TransportSettings, ZenohSettings};
 use common::estimator_options::{
-    CommonProjection, EstimatorOptions, FeatureRepresentation, MsckfJacobians, TriangulationLimits,
+    CiWeighting, CommonProjection, EstimatorOptions, FeatureRepresentation, MsckfJacobians,
+    TriangulationLimits,
 };
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -345,6 +346,13 @@ pub struct EstimatorSection {
     /// Projection of common VIO features: `two_stage` or `combined`.
     #[serde(default)]
     pub projection: Option<CommonProjection>,
+    /// How the CI weights are chosen (`min_pose_trace`, `fixed_peer`, ...).
+    #[serde(default)]
+    pub ci_weighting: Option<CiWeighting>,
+    /// Each peer window's weight with `fixed_peer`, in (0, 1): its covariance
+    /// is divided by it.
+    #[serde(default)]
+    pub ci_peer_weight: Option<f64>,
     /// Vocabulary file for historical loop closures (`vocab train` output);
     /// without it, a vocabulary for random binary descriptors (the simulator's)
     /// is built in memory.
@@ -415,6 +423,12 @@ impl EstimatorSection {
         if let Some(p) = self.projection {
             c.projection = p;
         }
+        if let Some(w) = self.ci_weighting {
+            c.ci_weighting = w;
+        }
+        if let Some(w) = self.ci_peer_weight {
+            c.ci_peer_weight = w;
+        }
     }
 }
 
@@ -465,6 +479,8 @@ impl Default for EstimatorSection {
             slam_constraint: None,
             historical: None,
             projection: None,
+            ci_weighting: None,
+            ci_peer_weight: None,
             vocabulary: None,
         }
     }
@@ -951,6 +967,38 @@ mod tests {
         .unwrap();
         let e = AgentConfig::load(&p).unwrap_err().to_string();
         assert!(e.contains("GLOBAL_FULL_INVERSE_DEPTH"), "{e}");
+    }
+
+    #[test]
+    fn ci_weighting_overrides_apply_and_bad_weights_are_reported() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.yaml");
+        let with =
+            |extra: &str| format!("{MINIMAL}estimator:\n  variant: dc-full-history\n{extra}");
+        std::fs::write(
+            &p,
+            with("  ci_weighting: fixed_peer\n  ci_peer_weight: 0.005\n"),
+        )
+        .unwrap();
+        let mut o = EstimatorOptions::default();
+        AgentConfig::load(&p).unwrap().estimator.apply(&mut o);
+        assert_eq!(o.cooperation.ci_weighting, CiWeighting::FixedPeer);
+        assert_eq!(o.cooperation.ci_peer_weight, 0.005);
+        std::fs::write(&p, with("  ci_weighting: min_pose_features_determinant\n")).unwrap();
+        let mut o = EstimatorOptions::default();
+        AgentConfig::load(&p).unwrap().estimator.apply(&mut o);
+        assert_eq!(
+            o.cooperation.ci_weighting,
+            CiWeighting::MinPoseFeaturesDeterminant
+        );
+        for w in ["0.0", "1.0", "-0.1", ".nan"] {
+            std::fs::write(&p, with(&format!("  ci_peer_weight: {w}\n"))).unwrap();
+            let e = AgentConfig::load(&p).unwrap_err().to_string();
+            assert!(e.contains("ci_peer_weight"), "{w}: {e}");
+        }
+        std::fs::write(&p, with("  ci_weighting: best\n")).unwrap();
+        let e = AgentConfig::load(&p).unwrap_err().to_string();
+        assert!(e.contains("best") && e.contains("min_pose_trace"), "{e}");
     }
 
     #[test]

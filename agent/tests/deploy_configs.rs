@@ -16,6 +16,8 @@ fn example_agent_configuration_loads() {
     let cfg = AgentConfig::load(&repo("deploy/config/robot1.yaml")).expect("robot1.yaml");
     assert_eq!(cfg.robot_id, 1);
     assert!(!cfg.clock.peers.contains(&1));
+    // The example robot takes from its peers everything the thesis' estimator can.
+    assert_eq!(cfg.estimator.variant, "dc-full-history");
 }
 
 #[test]
