@@ -143,7 +143,8 @@ pub enum CiWeighting {
     /// unit against another (a feature's cm² against the pose's mm²), so the
     /// features count as much as the pose. Over two minutes it beats
     /// `min_pose_trace` without history (dc-full-window 0.89x in position),
-    /// not with it, and over an hour with history it did worse (README).
+    /// not with it; over an hour it did worse with history and far worse
+    /// without (yaw drift, overconfident: README).
     MinPoseFeaturesDeterminant,
 }
 
