@@ -140,9 +140,6 @@ impl Pieces {
                 Some(-y.norm_squared() / (omega * omega))
             }
             CiWeights::MinDeterminant => {
-                let ln_det = |c: &Cholesky<f64, Dyn>| {
-                    2.0 * c.l_dirty().diagonal().iter().map(|d| d.ln()).sum::<f64>()
-                };
                 Some(-(self.n as f64) * omega.ln() + ln_det(&r_o.cholesky()?) - ln_det(&chol))
             }
             CiWeights::MinPoseFeaturesDeterminant => {
@@ -151,19 +148,16 @@ impl Pieces {
                 let (p_bb, w_t) = self.block.as_ref()?;
                 let z = chol.l_dirty().solve_lower_triangular(w_t)?;
                 let reduced = p_bb - z.tr_mul(&z) / omega;
-                let ln_det = 2.0
-                    * reduced
-                        .cholesky()?
-                        .l_dirty()
-                        .diagonal()
-                        .iter()
-                        .map(|d| d.ln())
-                        .sum::<f64>();
-                Some(-(p_bb.nrows() as f64) * omega.ln() + ln_det)
+                Some(-(p_bb.nrows() as f64) * omega.ln() + ln_det(&reduced.cholesky()?))
             }
             CiWeights::FixedPeer(_) | CiWeights::FixedOwn(_) => Some(0.0),
         }
     }
+}
+
+/// `ln det A` from the Cholesky factor of `A`.
+fn ln_det(c: &Cholesky<f64, Dyn>) -> f64 {
+    2.0 * c.l_dirty().diagonal().iter().map(|d| d.ln()).sum::<f64>()
 }
 
 /// Updates `state` with residual `res` (`m`), this robot's Jacobian `h` over
