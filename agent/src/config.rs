@@ -612,7 +612,8 @@ pub struct HistoryConfig {
     /// overall; see `history_retention`) or `oldest`.
     #[serde(default)]
     pub retention: crate::history_retention::Retention,
-    /// Recent (non-keyframe) track frames kept per peer, s.
+    /// Recent (non-keyframe) track frames kept per peer, s; frames the peer's
+    /// latest window still spans stay longer (a standstill stretches it).
     #[serde(default = "default_recent_s")]
     pub recent_tracks_s: f64,
     /// Distinct peers kept (first come, first served); messages from further

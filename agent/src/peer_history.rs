@@ -4,7 +4,8 @@
 //!
 //! Policy, per peer:
 //! * **latest**: the newest snapshot, and the track frames and new-track
-//!   descriptors of the last `recent_tracks_s` seconds (a ring: older ones drop);
+//!   descriptors of the last `recent_tracks_s` seconds (a ring: older ones drop;
+//!   frames the latest snapshot's window still spans stay, as after a standstill);
 //! * **history**: every keyframe window (non-overlapping windows, about 1 Hz), kept
 //!   with the track measurements made inside it (normalized coordinates only) and
 //!   the keyframe's descriptors; historical states are never updated;
@@ -403,16 +404,27 @@ impl PeerHistory {
         self.recent_bytes = 0;
     }
 
-    /// Adds a track frame; drops recent frames older than `recent_s`.
-    /// Beyond `recent_s`, the oldest frames also go while the ring holds more
-    /// than its share of the memory bound.
+    /// Adds a track frame; drops recent frames older than `recent_s`, unless
+    /// the latest snapshot still has a clone at or before them. Beyond that,
+    /// the oldest frames also go while the ring holds more than its share of
+    /// the memory bound.
     pub fn add_tracks(&mut self, frame: TrackFrame, limits: &HistoryLimits) {
         let newest = frame.t_s;
         self.recent_bytes += frame_bytes(&frame);
         self.recent.push_back(frame);
         let budget = recent_budget(limits.max_bytes);
+        // A standstill's frames get no clone (the zero-velocity update takes
+        // their place), so a window can span more than `recent_s`; its oldest
+        // frames must stay for the next keyframe window to be whole. Clones
+        // only get newer, so the latest snapshot's oldest one bounds them all.
+        let window_start = self
+            .latest
+            .as_ref()
+            .and_then(|s| s.clones.iter().map(|c| c.t_s).min_by(f64::total_cmp))
+            .unwrap_or(f64::INFINITY);
+        let keep_from = (newest - limits.recent_s).min(window_start);
         while let Some(f) = self.recent.front() {
-            if f.t_s >= newest - limits.recent_s && self.recent_bytes <= budget {
+            if f.t_s >= keep_from && self.recent_bytes <= budget {
                 break;
             }
             self.recent_bytes = self.recent_bytes.saturating_sub(frame_bytes(f));
@@ -743,6 +755,68 @@ mod tests {
         // Recent frames older than 2 s were dropped.
         assert!(h.recent.front().unwrap().t_s >= 0.0 - 1e-9);
         assert!(h.latest.is_some());
+    }
+
+    #[test]
+    fn a_window_stretched_by_a_standstill_is_kept_whole() {
+        // Frames every 0.1 s up to 3.5 s; the robot stood still from 0.5 to
+        // 2.9 s, so those frames got no clone and the window of 11 clones
+        // spans 3.5 s, more than the 2 s of recent frames kept otherwise.
+        let l = limits(usize::MAX);
+        let mut h = PeerHistory::default();
+        let mut clone_times: Vec<f64> = Vec::new();
+        for i in 0..=35 {
+            let t = 0.1 * i as f64;
+            h.add_tracks(tracks(t, 10), &l);
+            if !(5..30).contains(&i) {
+                clone_times.push(t);
+            }
+            let clones: Vec<CameraPose> = clone_times
+                .iter()
+                .map(|&t| CameraPose::new(t, &Matrix3::identity(), &Vector3::zeros()))
+                .collect();
+            let n = 6 * clones.len();
+            let keyframe = i == 35;
+            if keyframe {
+                h.add_descriptors(
+                    DescriptorBatch {
+                        frame_index: 35,
+                        t_s: t,
+                        keyframe: true,
+                        entries: vec![DescriptorEntry {
+                            id: 3,
+                            bits: [1; 4],
+                        }],
+                    },
+                    &l,
+                );
+            }
+            h.add_snapshot(
+                test_support::snapshot(t, keyframe, clones, &DMatrix::identity(n, n)),
+                &l,
+            );
+        }
+        assert_eq!(clone_times.len(), 11);
+        let kf = h.keyframes.values().next().unwrap();
+        assert_eq!(kf.frames().len(), 11);
+        assert!(kf.is_whole());
+        // Frames older than the window's oldest clone still go.
+        h.add_tracks(tracks(3.6, 10), &l);
+        h.add_snapshot(
+            test_support::snapshot(
+                3.6,
+                false,
+                clone_times[1..]
+                    .iter()
+                    .chain([3.6].iter())
+                    .map(|&t| CameraPose::new(t, &Matrix3::identity(), &Vector3::zeros()))
+                    .collect(),
+                &DMatrix::identity(66, 66),
+            ),
+            &l,
+        );
+        h.add_tracks(tracks(3.7, 10), &l);
+        assert!((h.recent.front().unwrap().t_s - 0.1).abs() < 1e-9);
     }
 
     #[test]
