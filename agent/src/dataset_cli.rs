@@ -4,8 +4,9 @@
 
 use crate::agent_log::AgentLog;
 use crate::config::EstimatorSection;
+use crate::dataset::sensor_yaml::ImuNoiseSpec;
 use crate::dataset::EurocDataset;
-use crate::dataset_run::{run_dataset, score};
+use crate::dataset_run::{run_stream, score, DatasetRun, DatasetScore, StreamSensors};
 use crate::estimator::static_init::StaticInitOptions;
 use crate::estimator::EstimatorOptions;
 use crate::frontend::FrontendOptions;
@@ -45,11 +46,11 @@ pub struct DatasetArgs {
 /// one, then the overrides of `estimator` (a file with the keys of an agent
 /// configuration's `estimator:` block).
 pub fn dataset_options(
-    ds: &EurocDataset,
+    imu_noise: Option<ImuNoiseSpec>,
     estimator: Option<&Path>,
 ) -> Result<(EstimatorOptions, Variant)> {
     let mut o = EstimatorOptions::default();
-    if let Some(n) = ds.imu_noise {
+    if let Some(n) = imu_noise {
         o.imu.gyro_noise_density = n.gyroscope_noise_density;
         o.imu.gyro_random_walk = n.gyroscope_random_walk;
         o.imu.accel_noise_density = n.accelerometer_noise_density;
@@ -77,16 +78,12 @@ pub fn dataset_options(
     Ok((o, variant))
 }
 
-/// Runs the command: writes `estimate.txt`, `covariance.txt`, `timing.csv`
-/// and, when the ground truth is known, `groundtruth.txt` as the sequence
-/// goes (a run killed keeps what it estimated), then `agent.mcap` and
-/// `summary.json`, and prints the frontend's, the start's and the
-/// estimate's figures.
+/// Runs the command ([`StreamRun::run`] over the sequence).
 pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
     let wall = Instant::now();
     let ds = EurocDataset::open(&args.euroc, args.groundtruth.as_deref())
         .with_context(|| format!("opening {}", args.euroc.display()))?;
-    let (opts, variant) = dataset_options(&ds, args.estimator.as_deref())?;
+    let (opts, variant) = dataset_options(ds.imu_noise, args.estimator.as_deref())?;
     tracing::info!(
         "{}: IMU noise {} {:?}",
         variant.name(),
@@ -97,54 +94,128 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
         },
         opts.imu
     );
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
-    if let Some(aside) = set_aside_unfinished(&args.out)
-        .with_context(|| format!("readying {}", args.out.display()))?
-    {
-        tracing::warn!(
-            "an earlier run here did not finish: its files are kept in {}",
-            aside.display()
-        );
-    }
-    let mut log = AgentLog::create(&args.out.join("agent.mcap"))?;
-    let mut files = RunFiles::create(&args.out, ds.groundtruth.is_some(), FLUSH_PERIOD)
-        .with_context(|| format!("writing {}", args.out.display()))?;
-    let every = args.mcap_image_every.max(1);
-    let mut k = 0usize;
-    let run = run_dataset(
-        &ds,
+    let sensors = StreamSensors {
+        calibration: &ds.calibration,
+        groundtruth: ds.groundtruth.as_deref(),
+    };
+    let run = StreamRun {
+        out: &args.out,
+        name: sequence_name(&ds.root),
+        sensors,
         opts,
-        FrontendOptions::default(),
-        &StaticInitOptions::default(),
-        |c, out| {
-            if k % every == 0 {
-                if let Some(img) = &c.image {
-                    let _ = log.image(c.frame.t, img);
-                    let _ = log.tracks(&out.frame, &out.new_ids);
-                }
-            }
-            k += 1;
-        },
-        |record| files.append(record),
-    )?;
-    if run.frontend.images == 0 {
-        if let Some(first) = run.skipped_images.first() {
-            bail!(
-                "none of the {} images could be used; the first: {first}",
-                run.skipped_images.len()
+        variant,
+        mcap_image_every: args.mcap_image_every,
+        wall,
+    };
+    run.run(ds.events())?;
+    Ok(())
+}
+
+/// One stream of real sensor data through the frontend and the estimator,
+/// with the outputs of every agent run: `agent dataset` and `agent live`.
+pub struct StreamRun<'a> {
+    /// Output folder.
+    pub out: &'a Path,
+    /// The run's name in `summary.json`.
+    pub name: String,
+    /// The camera and the ground truth, if known.
+    pub sensors: StreamSensors<'a>,
+    /// Estimator settings.
+    pub opts: EstimatorOptions,
+    /// Estimator variant (`indp` or `indp-slam`).
+    pub variant: Variant,
+    /// Log every this many images (with their tracks) to `agent.mcap`.
+    pub mcap_image_every: usize,
+    /// When the command started.
+    pub wall: Instant,
+}
+
+impl StreamRun<'_> {
+    /// Runs `events`: writes `estimate.txt`, `covariance.txt`, `timing.csv`
+    /// and, when the ground truth is known, `groundtruth.txt` as the stream
+    /// goes (a run killed keeps what it estimated), then `agent.mcap` and
+    /// `summary.json`, and prints the frontend's, the start's and the
+    /// estimate's figures.
+    pub fn run<E: std::fmt::Display>(
+        self,
+        events: impl Iterator<Item = Result<simulator::SimEvent, E>>,
+    ) -> Result<DatasetScore> {
+        let out = self.out;
+        std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+        if let Some(aside) =
+            set_aside_unfinished(out).with_context(|| format!("readying {}", out.display()))?
+        {
+            tracing::warn!(
+                "an earlier run here did not finish: its files are kept in {}",
+                aside.display()
             );
         }
-    }
-    let rec = &run.record;
-    files
-        .finish(rec)
-        .with_context(|| format!("writing {}", args.out.display()))?;
-    let truth: Vec<StampedPose> = rec.truth.iter().flatten().copied().collect();
-    log.run_poses(&rec.estimate, &rec.covariance, &truth)?;
-    log.finish()?;
+        let has_truth = self.sensors.groundtruth.is_some();
+        let mut log = AgentLog::create(&out.join("agent.mcap"))?;
+        let mut files = RunFiles::create(out, has_truth, FLUSH_PERIOD)
+            .with_context(|| format!("writing {}", out.display()))?;
+        let every = self.mcap_image_every.max(1);
+        let mut k = 0usize;
+        let run = run_stream(
+            &self.sensors,
+            events,
+            self.opts,
+            FrontendOptions::default(),
+            &StaticInitOptions::default(),
+            |c, fo| {
+                if k % every == 0 {
+                    if let Some(img) = &c.image {
+                        let _ = log.image(c.frame.t, img);
+                        let _ = log.tracks(&fo.frame, &fo.new_ids);
+                    }
+                }
+                k += 1;
+            },
+            |record| files.append(record),
+        )?;
+        if run.frontend.images == 0 {
+            if let Some(first) = run.skipped_images.first() {
+                bail!(
+                    "none of the {} images could be used; the first: {first}",
+                    run.skipped_images.len()
+                );
+            }
+        }
+        let rec = &run.record;
+        files
+            .finish(rec)
+            .with_context(|| format!("writing {}", out.display()))?;
+        let truth: Vec<StampedPose> = rec.truth.iter().flatten().copied().collect();
+        log.run_poses(&rec.estimate, &rec.covariance, &truth)?;
+        log.finish()?;
 
-    let s = score(&run, &ds);
+        let s = score(&run, self.sensors.groundtruth);
+        print_figures(&run, &s, truth.len());
+        let metrics = rec.metrics();
+        let sim_s =
+            rec.estimate.last().map_or(0.0, |p| p.t) - rec.estimate.first().map_or(0.0, |p| p.t);
+        let summary = RunSummary {
+            scenario: self.name.clone(),
+            variant: Some(self.variant.name().into()),
+            seed: 0,
+            transport: None,
+            wall_s: Some(self.wall.elapsed().as_secs_f64()),
+            sim_s: Some(sim_s),
+            mean: MetricSet::mean_of(std::slice::from_ref(&metrics)),
+            robots: vec![RobotSummary {
+                id: 0,
+                trajectory: self.name,
+                metrics,
+            }],
+        };
+        summary.write_json(out.join("summary.json"))?;
+        Ok(s)
+    }
+}
+
+/// Prints what the frontend, the start and the estimator did.
+fn print_figures(run: &DatasetRun, s: &DatasetScore, truth_rows: usize) {
+    let rec = &run.record;
     if let Some(first) = run.skipped_images.first() {
         println!(
             "{} images could not be used and were skipped (their frames are lost); the first: {first}",
@@ -183,31 +254,12 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
         f(metrics.nees_pos, 2),
         f(metrics.ate_posyaw_ori_deg, 3),
         f(metrics.ate_posyaw_pos_m, 3),
-        truth.len(),
+        truth_rows,
         rec.estimate.len()
     );
     for r in run.rejected.iter().take(5) {
         tracing::warn!("rejected: {r}");
     }
-    let name = sequence_name(&ds.root);
-    let sim_s =
-        rec.estimate.last().map_or(0.0, |p| p.t) - rec.estimate.first().map_or(0.0, |p| p.t);
-    let summary = RunSummary {
-        scenario: name.clone(),
-        variant: Some(variant.name().into()),
-        seed: 0,
-        transport: None,
-        wall_s: Some(wall.elapsed().as_secs_f64()),
-        sim_s: Some(sim_s),
-        mean: MetricSet::mean_of(std::slice::from_ref(&metrics)),
-        robots: vec![RobotSummary {
-            id: 0,
-            trajectory: name,
-            metrics,
-        }],
-    };
-    summary.write_json(args.out.join("summary.json"))?;
-    Ok(())
 }
 
 /// The sequence's name: the folder holding `mav0` (`V1_01_easy`).

@@ -8,6 +8,7 @@ use crate::estimator::static_init::{static_start_sigmas, StaticInitOptions, Stat
 use crate::estimator::{Estimator, EstimatorOptions, FrameRecord};
 use crate::frontend::{Frontend, FrontendError, FrontendOptions, FrontendOutput};
 use crate::run_files::{RunRecord, RunRow};
+use common::calibration::CameraCalibration;
 use common::metrics::PosePair;
 use common::summary::MetricSet;
 use common::trajectory::{interpolate_pose, StampedCovariance, StampedPose};
@@ -221,20 +222,56 @@ pub fn run_dataset(
     opts: EstimatorOptions,
     frontend: FrontendOptions,
     init: &StaticInitOptions,
+    on_frame: impl FnMut(&simulator::camera_sim::CameraEvent, &FrontendOutput),
+    on_estimate: impl FnMut(&DatasetRecord),
+) -> Result<DatasetRun, DatasetRunError> {
+    let sensors = StreamSensors {
+        calibration: &ds.calibration,
+        groundtruth: ds.groundtruth.as_deref(),
+    };
+    run_stream(
+        &sensors,
+        ds.events(),
+        opts,
+        frontend,
+        init,
+        on_frame,
+        on_estimate,
+    )
+}
+
+/// The camera of a sensor stream and the ground truth to score it against.
+#[derive(Clone, Copy, Debug)]
+pub struct StreamSensors<'a> {
+    /// The camera's calibration.
+    pub calibration: &'a CameraCalibration,
+    /// The ground truth (`R_ItoG`, `p_IinG` on the sensors' clock), if known.
+    pub groundtruth: Option<&'a [StampedPose]>,
+}
+
+/// [`run_dataset`] over any stream of IMU samples and images in time order
+/// (a recorded sequence, or live sensors): an event that failed to arrive
+/// whole (an image that cannot be read or decoded) loses its frame and is
+/// counted in [`DatasetRun::skipped_images`].
+pub fn run_stream<E: std::fmt::Display>(
+    sensors: &StreamSensors<'_>,
+    events: impl Iterator<Item = Result<SimEvent, E>>,
+    opts: EstimatorOptions,
+    frontend: FrontendOptions,
+    init: &StaticInitOptions,
     mut on_frame: impl FnMut(&simulator::camera_sim::CameraEvent, &FrontendOutput),
     mut on_estimate: impl FnMut(&DatasetRecord),
 ) -> Result<DatasetRun, DatasetRunError> {
-    let mut est = Estimator::new(opts, ds.calibration.clone());
-    let mut fe = Frontend::new(frontend, ds.calibration.camera.clone())?;
+    let mut est = Estimator::new(opts, sensors.calibration.clone());
+    let mut fe = Frontend::new(frontend, sensors.calibration.camera.clone())?;
     let mut run = DatasetRun {
-        record: DatasetRecord::new(ds.groundtruth.is_some()),
+        record: DatasetRecord::new(sensors.groundtruth.is_some()),
         ..DatasetRun::default()
     };
-    for ev in ds.events() {
-        // Only images are read as the sequence goes (the IMU and the truth
-        // were read whole when it opened): one missing or damaged image loses
-        // its frame, as a camera driver dropping one would, and the tracks
-        // bridge the gap.
+    for ev in events {
+        // Images are read as the stream goes: one missing or damaged image
+        // loses its frame, as a camera driver dropping one would, and the
+        // tracks bridge the gap.
         let ev = match ev {
             Ok(ev) => ev,
             Err(e) => {
@@ -276,9 +313,8 @@ pub fn run_dataset(
         for o in est.poll() {
             match o {
                 Ok(o) => {
-                    let truth = ds
+                    let truth = sensors
                         .groundtruth
-                        .as_deref()
                         .and_then(|gt| interpolate_pose(gt, o.t()));
                     run.record.push(o.pose(), o.covariance(), o.record, truth);
                     estimated = true;
@@ -322,10 +358,14 @@ pub fn tilt_error_deg(rot: &Matrix3<f64>, truth: &Matrix3<f64>) -> f64 {
     up.angle(&up_true).to_degrees()
 }
 
-/// Scores a run.
-pub fn score(run: &DatasetRun, ds: &EurocDataset) -> DatasetScore {
+/// Scores a run against `groundtruth` (`R_ItoG`, `p_IinG`), when known.
+pub fn score(run: &DatasetRun, groundtruth: Option<&[StampedPose]>) -> DatasetScore {
     let f = &run.frontend;
-    let tilt = |t: f64, rot: &Matrix3<f64>| ds.truth_at(t).map(|gt| tilt_error_deg(rot, &gt.rot));
+    let tilt = |t: f64, rot: &Matrix3<f64>| {
+        groundtruth
+            .and_then(|gt| interpolate_pose(gt, t))
+            .map(|gt| tilt_error_deg(rot, &gt.rot))
+    };
     DatasetScore {
         images: f.images,
         features_per_image: f.features as f64 / f.images.max(1) as f64,

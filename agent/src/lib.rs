@@ -30,11 +30,14 @@ pub mod hybrid;
 #[cfg(feature = "vision")]
 pub mod image_runner;
 pub mod inbox;
+#[cfg(feature = "vision")]
+pub mod live_cli;
 pub mod node;
 pub mod node_images;
 pub mod outbox;
 pub mod peer_events;
 pub mod peer_history;
+pub mod ros_input;
 pub mod run_files;
 pub mod runner;
 pub mod status_log;

@@ -37,6 +37,14 @@ enum Command {
     /// images through the frontend, IMU into the estimator, static start.
     #[cfg(feature = "vision")]
     Dataset(agent::dataset_cli::DatasetArgs),
+    /// Run on the robot's live IMU and camera, ROS 2 topics over Zenoh
+    /// (`zenoh-bridge-ros2dds`, `rmw_zenoh`): images through the frontend, IMU
+    /// into the estimator, static start; ends when the sensors stop.
+    #[cfg(feature = "vision")]
+    Live(agent::live_cli::LiveArgs),
+    /// Publish a sequence in the EuRoC ASL layout as ROS 2 IMU and image
+    /// topics over Zenoh, paced as recorded: live sensors for `agent live`.
+    PublishEuroc(PublishEurocArgs),
     /// Robustness probe: join a fleet as another robot and send it malformed
     /// payloads and a message of a foreign fleet (they must be dropped and
     /// counted, and the agents must keep running), and optionally flood it with
@@ -54,6 +62,26 @@ enum Command {
     /// size, and any damage. A folder shows each file in it, the ones set
     /// aside as unreadable too.
     Store(StoreArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct PublishEurocArgs {
+    /// The sequence folder (holding `mav0`, or `mav0` itself).
+    #[arg(long)]
+    euroc: PathBuf,
+    /// The session and the sensors' keys.
+    #[command(flatten)]
+    zenoh: agent::ros_input::ZenohArgs,
+    /// Playback speed (1: as recorded).
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    /// IMU published before the first image, s (a static start needs a
+    /// still window before it).
+    #[arg(long, default_value_t = 2.0)]
+    imu_lead_s: f64,
+    /// Wait this long for a subscriber to both keys, s.
+    #[arg(long, default_value_t = 30.0)]
+    wait_subscriber_s: f64,
 }
 
 #[derive(clap::Args, Debug)]
@@ -198,6 +226,9 @@ fn run_main() -> Result<()> {
         (Some(Command::Store(args)), _) => show_store(args),
         #[cfg(feature = "vision")]
         (Some(Command::Dataset(args)), _) => agent::dataset_cli::run_dataset_command(args),
+        #[cfg(feature = "vision")]
+        (Some(Command::Live(args)), _) => agent::live_cli::run_live_command(args, stop_flag()?),
+        (Some(Command::PublishEuroc(args)), _) => publish_euroc(args),
         (None, Some(config)) => run_agent(config, cli.progress),
         (None, None) => {
             println!("agent {} (see --help)", env!("CARGO_PKG_VERSION"));
@@ -329,16 +360,42 @@ fn show_store(args: &StoreArgs) -> Result<()> {
     Ok(())
 }
 
-/// One agent of a fleet: estimator, peers over the configured transport,
-/// outputs in the configured folder. SIGINT/SIGTERM stop it cleanly (a second
-/// signal exits at once).
-fn run_agent(config: &std::path::Path, progress: bool) -> Result<()> {
-    let cfg = AgentConfig::load(config)?;
+/// A flag SIGINT and SIGTERM set (a second signal exits at once).
+fn stop_flag() -> Result<Arc<AtomicBool>> {
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [SIGINT, SIGTERM] {
         signal_hook::flag::register_conditional_shutdown(sig, 1, Arc::clone(&stop))?;
         signal_hook::flag::register(sig, Arc::clone(&stop))?;
     }
+    Ok(stop)
+}
+
+fn publish_euroc(args: &PublishEurocArgs) -> Result<()> {
+    use agent::ros_input::{publish_sequence, PublishOptions};
+    let stop = stop_flag()?;
+    let ds = agent::dataset::EurocDataset::open(&args.euroc, None)
+        .with_context(|| format!("opening {}", args.euroc.display()))?;
+    let opts = PublishOptions {
+        speed: args.speed,
+        imu_lead_s: args.imu_lead_s,
+        wait_subscriber: std::time::Duration::try_from_secs_f64(args.wait_subscriber_s)
+            .with_context(|| format!("--wait-subscriber-s {}", args.wait_subscriber_s))?,
+    };
+    let keys = args.zenoh.keys();
+    let sent = publish_sequence(&ds, &args.zenoh.settings(), &keys, &opts, &stop)?;
+    println!(
+        "published {} IMU messages on {} and {} images on {} ({} images unreadable)",
+        sent.imu, keys.imu, sent.images, keys.image, sent.images_skipped
+    );
+    Ok(())
+}
+
+/// One agent of a fleet: estimator, peers over the configured transport,
+/// outputs in the configured folder. SIGINT/SIGTERM stop it cleanly (a second
+/// signal exits at once).
+fn run_agent(config: &std::path::Path, progress: bool) -> Result<()> {
+    let cfg = AgentConfig::load(config)?;
+    let stop = stop_flag()?;
     let setup = RobotSetup::load(&cfg)?;
     let settings = cfg.transport_settings();
     let transport = agent::transport::open(&settings, None)

@@ -38,7 +38,7 @@ fn run_with_defaults(dir: &std::path::Path) -> (EurocDataset, agent::dataset_run
 #[test]
 fn micro_sequence_is_tracked_through_all_images_and_the_static_start_gets_roll_and_pitch() {
     let (ds, run) = run_with_defaults(&data("euroc_v1_01_micro"));
-    let s = score(&run, &ds);
+    let s = score(&run, ds.groundtruth.as_deref());
     println!("{s:?}");
     assert_eq!(s.images, 95);
     assert!(s.min_features >= 150, "{s:?}");
@@ -145,7 +145,7 @@ fn the_dataset_takes_the_imu_noise_of_its_sensor_file_and_the_estimator_override
     )
     .unwrap();
     let ds = EurocDataset::open(&dir.path().join("seq"), None).expect("dataset");
-    let (o, v) = dataset_options(&ds, None).expect("options");
+    let (o, v) = dataset_options(ds.imu_noise, None).expect("options");
     assert_eq!(v.name(), "indp-slam");
     assert_eq!(
         (o.imu.gyro_noise_density, o.imu.accel_noise_density),
@@ -159,7 +159,7 @@ fn the_dataset_takes_the_imu_noise_of_its_sensor_file_and_the_estimator_override
         "variant: indp\nzupt_max_disparity_px: 0.5\nmax_clones: 8\n",
     )
     .unwrap();
-    let (o, v) = dataset_options(&ds, Some(&yaml)).expect("options");
+    let (o, v) = dataset_options(ds.imu_noise, Some(&yaml)).expect("options");
     assert_eq!(
         (v.name(), o.max_slam_features, o.max_clones),
         ("indp", 0, 8)
@@ -171,13 +171,20 @@ fn the_dataset_takes_the_imu_noise_of_its_sensor_file_and_the_estimator_override
     );
 
     std::fs::write(&yaml, "variant: dc-full-history\n").unwrap();
-    let e = dataset_options(&ds, Some(&yaml)).unwrap_err().to_string();
+    let e = dataset_options(ds.imu_noise, Some(&yaml))
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("needs peers"), "{e}");
     std::fs::write(&yaml, "max_clone: 8\n").unwrap();
-    let e = format!("{:#}", dataset_options(&ds, Some(&yaml)).unwrap_err());
+    let e = format!(
+        "{:#}",
+        dataset_options(ds.imu_noise, Some(&yaml)).unwrap_err()
+    );
     assert!(e.contains("max_clone"), "{e}");
     std::fs::write(&yaml, "zupt_max_disparity_px: -1\n").unwrap();
-    let e = dataset_options(&ds, Some(&yaml)).unwrap_err().to_string();
+    let e = dataset_options(ds.imu_noise, Some(&yaml))
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("zupt_max_disparity_px"), "{e}");
 }
 
@@ -240,7 +247,7 @@ fn images_that_cannot_be_used_are_skipped_with_the_reason() {
         "{:?}",
         run.skipped_images
     );
-    let s = score(&run, &ds);
+    let s = score(&run, ds.groundtruth.as_deref());
     assert_eq!(s.images, 92);
     let m = run.record.metrics();
     println!("{} estimates, {m:?}", s.estimates);

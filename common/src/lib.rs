@@ -32,6 +32,7 @@ pub mod loopback_ports;
 pub mod measurement;
 pub mod messages;
 pub mod metrics;
+pub mod ros_cdr;
 pub mod so3;
 pub mod summary;
 pub mod trajectory;

@@ -104,15 +104,32 @@ fn malformed(path: &Path, what: impl Into<String>) -> DatasetError {
     }
 }
 
-impl EurocDataset {
-    /// Opens the sequence at `dir` (the folder holding `mav0`, or `mav0` itself).
-    /// `groundtruth` overrides the sequence's own ground-truth file.
-    pub fn open(dir: &Path, groundtruth: Option<&Path>) -> Result<Self, DatasetError> {
-        let root = if dir.join("mav0").is_dir() {
-            dir.join("mav0")
-        } else {
-            dir.to_path_buf()
-        };
+/// The folder holding the sensor folders: `dir/mav0` when there is one, else `dir`.
+pub fn mav0_root(dir: &Path) -> PathBuf {
+    if dir.join("mav0").is_dir() {
+        dir.join("mav0")
+    } else {
+        dir.to_path_buf()
+    }
+}
+
+/// What the sensor files of the EuRoC (Kalibr) layout say: `cam0/sensor.yaml`
+/// and, when present, `imu0/sensor.yaml`. A sequence has them beside its data;
+/// a live robot keeps them in a folder of their own.
+#[derive(Clone, Debug)]
+pub struct SensorSetup {
+    /// cam0's calibration (`time_offset_s` 0: the clocks are synchronized).
+    pub calibration: CameraCalibration,
+    /// cam0's frame rate, Hz, if `sensor.yaml` gives it.
+    pub rate_hz: Option<f64>,
+    /// The IMU's noise, if `imu0/sensor.yaml` gives it.
+    pub imu_noise: Option<ImuNoiseSpec>,
+}
+
+impl SensorSetup {
+    /// Reads `root/cam0/sensor.yaml` and `root/imu0/sensor.yaml` (body to IMU
+    /// is the identity without it).
+    pub fn load(root: &Path) -> Result<Self, DatasetError> {
         let cam_yaml = root.join("cam0/sensor.yaml");
         let text = std::fs::read_to_string(&cam_yaml).map_err(io(&cam_yaml))?;
         let cam = parse_camera(&text).map_err(|w| malformed(&cam_yaml, w))?;
@@ -129,8 +146,27 @@ impl EurocDataset {
             .try_inverse()
             .ok_or_else(|| malformed(&imu_yaml, "T_BS is singular"))?;
         let (rot_c_to_i, p_c_in_i) = split(&(t_bi_inv * cam.t_bs));
+        Ok(Self {
+            calibration: CameraCalibration {
+                camera: cam.camera,
+                rot_c_to_i: common::so3::orthonormalize(&rot_c_to_i),
+                p_c_in_i,
+                time_offset_s: 0.0,
+            },
+            rate_hz: cam.rate_hz,
+            imu_noise,
+        })
+    }
+}
+
+impl EurocDataset {
+    /// Opens the sequence at `dir` (the folder holding `mav0`, or `mav0` itself).
+    /// `groundtruth` overrides the sequence's own ground-truth file.
+    pub fn open(dir: &Path, groundtruth: Option<&Path>) -> Result<Self, DatasetError> {
+        let root = mav0_root(dir);
+        let sensors = SensorSetup::load(&root)?;
         let images = read_image_list(&root.join("cam0"))?;
-        let rate_hz = cam.rate_hz.unwrap_or_else(|| rate_from(&images));
+        let rate_hz = sensors.rate_hz.unwrap_or_else(|| rate_from(&images));
         let imu = read_euroc_imu_csv(root.join("imu0/data.csv"))?;
         let gt_path = match groundtruth {
             Some(p) => Some(p.to_path_buf()),
@@ -142,17 +178,12 @@ impl EurocDataset {
         let groundtruth = gt_path.map(read_euroc_csv).transpose()?;
         Ok(Self {
             root,
-            calibration: CameraCalibration {
-                camera: cam.camera,
-                rot_c_to_i: common::so3::orthonormalize(&rot_c_to_i),
-                p_c_in_i,
-                time_offset_s: 0.0,
-            },
+            calibration: sensors.calibration,
             rate_hz,
             images,
             imu,
             groundtruth,
-            imu_noise,
+            imu_noise: sensors.imu_noise,
         })
     }
 

@@ -5,4 +5,4 @@
 pub mod euroc;
 pub mod sensor_yaml;
 
-pub use euroc::{DatasetError, EurocDataset, ImageStamp};
+pub use euroc::{mav0_root, DatasetError, EurocDataset, ImageStamp, SensorSetup};

@@ -1,0 +1,173 @@
+//! Live sensors: the EuRoC V1_01 micro sequence published as ROS 2 topics
+//! over Zenoh by one process (`agent publish-euroc`, CDR as
+//! `zenoh-bridge-ros2dds` carries it) and run live by another (`agent live`).
+//! Undecodable payloads on the sensors' keys are counted and the run goes on;
+//! the live run's estimates are the file replay's, bit for bit.
+
+#![allow(clippy::expect_used, clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+use zenoh::Wait;
+
+fn data(rel: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/data")
+        .join(rel)
+}
+
+fn agent() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_agent"))
+}
+
+fn succeeded(what: &str, out: &Output) -> String {
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{what} failed:\n{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
+/// Waits for `child` at most `limit`, killing it past that.
+fn wait_for(mut child: std::process::Child, limit: Duration) -> Output {
+    let start = Instant::now();
+    while child.try_wait().expect("wait").is_none() {
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            panic!("the process did not end within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    child.wait_with_output().expect("output")
+}
+
+/// Sends payloads that are not the topics' messages on both keys, once the
+/// live agent subscribes to them.
+fn send_garbage(port: u16, imu_key: &str, image_key: &str) {
+    let mut config = zenoh::Config::default();
+    config
+        .insert_json5("connect/endpoints", &format!("[\"tcp/127.0.0.1:{port}\"]"))
+        .expect("connect");
+    config
+        .insert_json5("scouting/multicast/enabled", "false")
+        .expect("scouting");
+    let session = zenoh::open(config).wait().expect("session");
+    for key in [imu_key, image_key] {
+        let publisher = session
+            .declare_publisher(key.to_owned())
+            .wait()
+            .expect("publisher");
+        let start = Instant::now();
+        while !publisher
+            .matching_status()
+            .wait()
+            .expect("status")
+            .matching()
+        {
+            assert!(
+                start.elapsed() < Duration::from_secs(30),
+                "no subscriber on {key}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        // An XCDR2 header, then a truncated little-endian message.
+        publisher
+            .put(vec![0x00, 0x07, 0, 0, 1, 2])
+            .wait()
+            .expect("put");
+        publisher
+            .put(vec![0x00, 0x01, 0, 0, 1, 2, 3])
+            .wait()
+            .expect("put");
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    session.close().wait().expect("close");
+}
+
+#[test]
+fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
+    let micro = data("euroc_v1_01_micro");
+    let gt = data("trajectories/V1_01_easy.csv");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (live_out, file_out) = (dir.path().join("live"), dir.path().join("file"));
+    let port = common::loopback_ports::free_loopback_ports(1).expect("port")[0];
+    let (imu_key, image_key) = ("robot7/imu0", "robot7/cam0/image_raw");
+    let listen = format!("tcp/127.0.0.1:{port}");
+    let live = agent()
+        .arg("live")
+        .arg("--sensors")
+        .arg(&micro)
+        .arg("--groundtruth")
+        .arg(&gt)
+        .args([
+            "--listen",
+            &listen,
+            "--imu-key",
+            imu_key,
+            "--image-key",
+            image_key,
+        ])
+        .args(["--idle-timeout-s", "3", "--wait-s", "60"])
+        .arg("--out")
+        .arg(&live_out)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("agent live");
+    send_garbage(port, imu_key, image_key);
+    let publish = agent()
+        .arg("publish-euroc")
+        .arg("--euroc")
+        .arg(&micro)
+        .args(["--listen", "tcp/127.0.0.1:0", "--connect", &listen])
+        .args([
+            "--imu-key",
+            imu_key,
+            "--image-key",
+            image_key,
+            "--speed",
+            "2",
+        ])
+        .output()
+        .expect("agent publish-euroc");
+    let published = succeeded("publish-euroc", &publish);
+    assert!(
+        published.contains("published 941 IMU messages") && published.contains("and 95 images"),
+        "{published}"
+    );
+    let live = succeeded("agent live", &wait_for(live, Duration::from_secs(120)));
+    println!("{live}");
+    assert!(
+        live.contains(
+            "sensors: IMU 941 received, 2 undecodable, 0 dropped; images 95 received, 2 undecodable, 0 dropped"
+        ),
+        "{live}"
+    );
+    let tilt: f64 = live
+        .split("tilt error vs ground truth ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|v| v.parse().ok())
+        .expect("the static start succeeded");
+    assert!(tilt < 1.0, "tilt error at the start {tilt} deg");
+
+    let file = agent()
+        .arg("dataset")
+        .arg("--euroc")
+        .arg(&micro)
+        .arg("--groundtruth")
+        .arg(&gt)
+        .arg("--out")
+        .arg(&file_out)
+        .output()
+        .expect("agent dataset");
+    succeeded("agent dataset", &file);
+    let read = |d: &Path, f: &str| std::fs::read(d.join(f)).expect("output");
+    for f in ["estimate.txt", "covariance.txt", "groundtruth.txt"] {
+        assert_eq!(read(&live_out, f), read(&file_out, f), "{f} differs");
+    }
+    assert!(read(&live_out, "estimate.txt").len() > 1000);
+}
