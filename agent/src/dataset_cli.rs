@@ -6,7 +6,9 @@ use crate::agent_log::AgentLog;
 use crate::config::EstimatorSection;
 use crate::dataset::sensor_yaml::ImuNoiseSpec;
 use crate::dataset::EurocDataset;
-use crate::dataset_run::{run_stream, score, DatasetRun, DatasetScore, StreamSensors};
+use crate::dataset_run::{
+    run_stream, score, DatasetRecord, DatasetRun, DatasetScore, StreamSensors,
+};
 use crate::estimator::static_init::StaticInitOptions;
 use crate::estimator::EstimatorOptions;
 use crate::frontend::FrontendOptions;
@@ -107,7 +109,7 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
         mcap_image_every: args.mcap_image_every,
         wall,
     };
-    run.run(ds.events())?;
+    run.run(ds.events(), |_| {})?;
     Ok(())
 }
 
@@ -135,10 +137,12 @@ impl StreamRun<'_> {
     /// and, when the ground truth is known, `groundtruth.txt` as the stream
     /// goes (a run killed keeps what it estimated), then `agent.mcap` and
     /// `summary.json`, and prints the frontend's, the start's and the
-    /// estimate's figures.
+    /// estimate's figures. `on_estimate` sees the record after each new
+    /// estimate (to publish it).
     pub fn run<E: std::fmt::Display>(
         self,
         events: impl Iterator<Item = Result<simulator::SimEvent, E>>,
+        mut on_estimate: impl FnMut(&DatasetRecord),
     ) -> Result<DatasetScore> {
         let out = self.out;
         std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
@@ -171,7 +175,10 @@ impl StreamRun<'_> {
                 }
                 k += 1;
             },
-            |record| files.append(record),
+            |record| {
+                files.append(record);
+                on_estimate(record);
+            },
         )?;
         if run.frontend.images == 0 {
             if let Some(first) = run.skipped_images.first() {

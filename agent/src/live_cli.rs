@@ -47,7 +47,19 @@ pub struct LiveArgs {
     /// End after this long in any case, s.
     #[arg(long)]
     pub max_duration_s: Option<f64>,
+    /// Where the estimated pose goes, after every frame
+    /// (`geometry_msgs/msg/PoseWithCovarianceStamped`; `none`: nowhere).
+    #[arg(long, default_value = "vio/pose")]
+    pub pose_key: String,
+    /// The frame id of the published poses: the world the static start
+    /// defines (gravity along -z, origin and yaw at the start).
+    #[arg(long, default_value = "vio_world")]
+    pub world_frame: String,
 }
+
+/// Latencies kept for the figures (8 MiB): a long run must not grow them
+/// without bound.
+const MAX_LATENCIES: usize = 1 << 20;
 
 fn seconds(name: &str, s: f64) -> Result<Duration> {
     Duration::try_from_secs_f64(s)
@@ -78,6 +90,13 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
     let keys = args.zenoh.keys();
     let live = LiveSensors::open(&args.zenoh.settings(), &keys).context("opening the sensors")?;
     let counts = live.counts();
+    let mut poses = match args.pose_key.as_str() {
+        "none" => None,
+        key => Some(
+            live.pose_publisher(key, &args.world_frame)
+                .with_context(|| format!("publishing poses on {key}"))?,
+        ),
+    };
     tracing::info!(
         "{}: listening for {} (IMU) and {} (camera)",
         variant.name(),
@@ -97,9 +116,39 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
         wall,
     };
     let mut events = live.events(stop, limits);
-    let result = run.run(&mut events);
+    let arrivals = events.arrivals();
+    let mut latencies_ms: Vec<f64> = Vec::new();
+    let result = run.run(&mut events, |record| {
+        let (Some(pose), Some(cov)) = (record.estimate.last(), record.covariance.last()) else {
+            return;
+        };
+        if let Some(p) = poses.as_mut() {
+            p.publish(pose, cov);
+        }
+        // The estimate at an image's time: how long after the image arrived.
+        if let Ok(mut a) = arrivals.lock() {
+            while a.front().is_some_and(|(t, _)| *t < pose.t - 1e-6) {
+                a.pop_front();
+            }
+            if let Some((_, at)) = a.front().filter(|(t, _)| (*t - pose.t).abs() <= 1e-6) {
+                if latencies_ms.len() < MAX_LATENCIES {
+                    latencies_ms.push(at.elapsed().as_secs_f64() * 1e3);
+                }
+                a.pop_front();
+            }
+        }
+    });
     events.close(Duration::from_secs(5));
     println!("sensors: {}", counts.line());
+    if let Some(p) = &poses {
+        println!(
+            "poses: {} published on {} ({} refused); {}",
+            p.sent,
+            args.pose_key,
+            p.failed,
+            latency_line(&mut latencies_ms)
+        );
+    }
     if counts.nothing_received() {
         bail!(
             "no sensor message decoded on {} or {} within {} s",
@@ -109,4 +158,18 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
         );
     }
     result.map(|_| ())
+}
+
+/// Mean and 95th percentile of the latencies, for the console.
+fn latency_line(ms: &mut [f64]) -> String {
+    if ms.is_empty() {
+        return "no estimate matched an image's arrival".into();
+    }
+    ms.sort_by(f64::total_cmp);
+    let mean = ms.iter().sum::<f64>() / ms.len() as f64;
+    let p95 = ms[((ms.len() - 1) as f64 * 0.95).round() as usize];
+    format!(
+        "an estimate {mean:.1} ms (p95 {p95:.1}) after its image arrived, over {} images",
+        ms.len()
+    )
 }

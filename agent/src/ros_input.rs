@@ -18,6 +18,7 @@ use crate::transport::settings::ZenohSettings;
 use common::image::GrayImage;
 use common::measurement::{FeatureFrame, ImuSample};
 use common::ros_cdr::{self, Header};
+use common::trajectory::{StampedCovariance, StampedPose};
 use nalgebra::{Matrix3, Vector3};
 use simulator::camera_sim::{CameraEvent, TruthState};
 use simulator::imu::Biases;
@@ -25,7 +26,7 @@ use simulator::SimEvent;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use thiserror::Error;
 use zenoh::qos::CongestionControl;
@@ -242,6 +243,25 @@ impl LiveSensors {
         })
     }
 
+    /// A publisher of the estimated pose on `key`
+    /// (`geometry_msgs/msg/PoseWithCovarianceStamped`, in the frame
+    /// `frame_id`). It drops what a slow subscriber cannot take: the
+    /// estimator never waits for the network.
+    pub fn pose_publisher(&self, key: &str, frame_id: &str) -> Result<PosePublisher, LiveError> {
+        let publisher = self
+            .session
+            .declare_publisher(key.to_owned())
+            .congestion_control(CongestionControl::Drop)
+            .wait()
+            .map_err(zenoh_error)?;
+        Ok(PosePublisher {
+            publisher,
+            frame_id: frame_id.to_owned(),
+            sent: 0,
+            failed: 0,
+        })
+    }
+
     /// What has arrived so far.
     pub fn counts(&self) -> Arc<LiveCounts> {
         Arc::clone(&self.counts)
@@ -257,6 +277,7 @@ impl LiveSensors {
             stop,
             limits,
             started: Instant::now(),
+            arrivals: Arc::new(Mutex::new(VecDeque::new())),
             last_arrival: None,
             newest_imu_t: f64::NEG_INFINITY,
             held: VecDeque::new(),
@@ -299,6 +320,7 @@ pub struct LiveEvents {
     stop: Arc<AtomicBool>,
     limits: LiveLimits,
     started: Instant,
+    arrivals: ImageArrivals,
     last_arrival: Option<Instant>,
     newest_imu_t: f64,
     /// Images whose time the IMU has not reached, oldest first.
@@ -307,7 +329,19 @@ pub struct LiveEvents {
     ended: bool,
 }
 
+/// When each recent image arrived, by its stamp (s), oldest first.
+pub type ImageArrivals = Arc<Mutex<VecDeque<(f64, Instant)>>>;
+
+/// Image arrivals remembered for [`LiveEvents::arrivals`].
+const MAX_ARRIVALS: usize = 256;
+
 impl LiveEvents {
+    /// When the recent images arrived: an estimate at an image's time was
+    /// made that long after its image came off the network.
+    pub fn arrivals(&self) -> ImageArrivals {
+        Arc::clone(&self.arrivals)
+    }
+
     /// Closes the session (on a helper thread, given up after `timeout`).
     pub fn close(self, timeout: Duration) {
         let session = self.sensors.session.clone();
@@ -340,6 +374,12 @@ impl LiveEvents {
             }
             Arrival::Image(t, img) => {
                 self.sensors.queued_images.fetch_sub(1, Ordering::AcqRel);
+                if let Ok(mut a) = self.arrivals.lock() {
+                    if a.len() == MAX_ARRIVALS {
+                        a.pop_front();
+                    }
+                    a.push_back((t, Instant::now()));
+                }
                 if t <= self.newest_imu_t {
                     self.ready.push_back(camera_event(t, img));
                     return;
@@ -423,6 +463,33 @@ fn camera_event(t: f64, image: GrayImage) -> SimEvent {
         outlier: Vec::new(),
         image: Some(Arc::new(image)),
     }))
+}
+
+/// Publishes a robot's estimated pose ([`LiveSensors::pose_publisher`]).
+pub struct PosePublisher {
+    publisher: zenoh::pubsub::Publisher<'static>,
+    frame_id: String,
+    /// Poses published.
+    pub sent: u64,
+    /// Poses the session refused (logged once).
+    pub failed: u64,
+}
+
+impl PosePublisher {
+    /// Publishes `pose` with its covariance.
+    pub fn publish(&mut self, pose: &StampedPose, cov: &StampedCovariance) {
+        let covariance = ros_cdr::ros_pose_covariance(pose, cov);
+        let payload = ros_cdr::encode_pose(&Header::at(pose.t, &self.frame_id), pose, &covariance);
+        match self.publisher.put(payload).wait() {
+            Ok(()) => self.sent += 1,
+            Err(e) => {
+                if self.failed == 0 {
+                    tracing::warn!("pose not published: {e}");
+                }
+                self.failed += 1;
+            }
+        }
+    }
 }
 
 /// How a sequence is published.

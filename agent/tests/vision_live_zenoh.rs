@@ -44,9 +44,8 @@ fn wait_for(mut child: std::process::Child, limit: Duration) -> Output {
     child.wait_with_output().expect("output")
 }
 
-/// Sends payloads that are not the topics' messages on both keys, once the
-/// live agent subscribes to them.
-fn send_garbage(port: u16, imu_key: &str, image_key: &str) {
+/// A session of the test's own, connected to the live agent.
+fn session_to(port: u16) -> zenoh::Session {
     let mut config = zenoh::Config::default();
     config
         .insert_json5("connect/endpoints", &format!("[\"tcp/127.0.0.1:{port}\"]"))
@@ -54,7 +53,13 @@ fn send_garbage(port: u16, imu_key: &str, image_key: &str) {
     config
         .insert_json5("scouting/multicast/enabled", "false")
         .expect("scouting");
-    let session = zenoh::open(config).wait().expect("session");
+    zenoh::open(config).wait().expect("session")
+}
+
+/// Sends payloads that are not the topics' messages on both keys, once the
+/// live agent subscribes to them.
+fn send_garbage(port: u16, imu_key: &str, image_key: &str) {
+    let session = session_to(port);
     for key in [imu_key, image_key] {
         let publisher = session
             .declare_publisher(key.to_owned())
@@ -111,6 +116,7 @@ fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
             image_key,
         ])
         .args(["--idle-timeout-s", "3", "--wait-s", "60"])
+        .args(["--pose-key", "robot7/vio/pose"])
         .arg("--out")
         .arg(&live_out)
         .stdout(Stdio::piped())
@@ -118,6 +124,12 @@ fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
         .spawn()
         .expect("agent live");
     send_garbage(port, imu_key, image_key);
+    let listener = session_to(port);
+    let poses = listener
+        .declare_subscriber("robot7/vio/pose")
+        .with(zenoh::handlers::FifoChannel::new(10_000))
+        .wait()
+        .expect("subscriber");
     let publish = agent()
         .arg("publish-euroc")
         .arg("--euroc")
@@ -153,6 +165,27 @@ fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
         .and_then(|v| v.parse().ok())
         .expect("the static start succeeded");
     assert!(tilt < 1.0, "tilt error at the start {tilt} deg");
+    // Every estimate went out as a pose, and the last is the last estimate.
+    let received: Vec<_> = poses
+        .drain()
+        .map(|s| common::ros_cdr::decode_pose(&s.payload().to_bytes()).expect("a pose"))
+        .collect();
+    let estimates = common::trajectory::read_tum(live_out.join("estimate.txt")).expect("estimates");
+    assert!(
+        live.contains(&format!("poses: {} published", estimates.len())),
+        "{live}"
+    );
+    assert_eq!(received.len(), estimates.len());
+    let (last, sent) = (
+        estimates.last().expect("one"),
+        received.last().expect("one"),
+    );
+    assert_eq!(sent.header.frame_id, "vio_world");
+    assert!((sent.pose.t - last.t).abs() < 1e-6);
+    assert!((sent.pose.pos - last.pos).norm() < 1e-6);
+    assert!((sent.pose.rot - last.rot).norm() < 1e-6);
+    assert!(sent.covariance[0] > 0.0 && sent.covariance[35] > 0.0);
+    listener.close().wait().expect("close");
 
     let file = agent()
         .arg("dataset")

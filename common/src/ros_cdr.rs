@@ -15,7 +15,8 @@
 
 use crate::image::{GrayImage, MAX_IMAGE_SIDE};
 use crate::measurement::ImuSample;
-use nalgebra::Vector3;
+use crate::trajectory::{StampedCovariance, StampedPose};
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use thiserror::Error;
 
 /// Why a payload is not the message it was taken for.
@@ -397,6 +398,83 @@ pub fn encode_mono8(header: &Header, image: &GrayImage) -> Vec<u8> {
     w.buf
 }
 
+/// `geometry_msgs/PoseWithCovarianceStamped`: where the robot is and how
+/// sure it is, as ROS 2 localization nodes publish it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RosPose {
+    /// Stamp and the world's frame id.
+    pub header: Header,
+    /// The pose: `R_ItoG`, `p_IinG`.
+    pub pose: StampedPose,
+    /// Covariance of (x, y, z, rotation about the world's x, y, z), row-major.
+    pub covariance: [f64; 36],
+}
+
+/// The 6x6 covariance ROS puts beside a pose: position, then rotation about
+/// the fixed (world) axes. Ours perturbs the rotation in the body frame
+/// (`R = R̂ Exp(δθ)`), so the world's rotation error is `R̂ δθ`; position and
+/// orientation are marginals, so their cross terms are left zero.
+pub fn ros_pose_covariance(pose: &StampedPose, cov: &StampedCovariance) -> [f64; 36] {
+    let ori_world = pose.rot * cov.ori * pose.rot.transpose();
+    let mut out = [0.0; 36];
+    for r in 0..3 {
+        for c in 0..3 {
+            out[6 * r + c] = cov.pos[(r, c)];
+            out[6 * (r + 3) + c + 3] = ori_world[(r, c)];
+        }
+    }
+    out
+}
+
+/// Encodes a `geometry_msgs/msg/PoseWithCovarianceStamped`.
+pub fn encode_pose(header: &Header, pose: &StampedPose, covariance: &[f64; 36]) -> Vec<u8> {
+    let mut w = Writer::new();
+    w.header(header);
+    for v in pose.pos.iter() {
+        w.f64(*v);
+    }
+    let q = UnitQuaternion::from_matrix(&pose.rot);
+    for v in [q.i, q.j, q.k, q.w] {
+        w.f64(v);
+    }
+    for v in covariance {
+        w.f64(*v);
+    }
+    w.buf
+}
+
+/// Decodes a `geometry_msgs/msg/PoseWithCovarianceStamped`.
+pub fn decode_pose(payload: &[u8]) -> Result<RosPose, CdrError> {
+    let mut r = Reader::new(payload)?;
+    let header = r.header()?;
+    let pos = r.vector3("pose.position")?;
+    let (x, y, z, w) = (
+        r.f64("pose.orientation")?,
+        r.f64("pose.orientation")?,
+        r.f64("pose.orientation")?,
+        r.f64("pose.orientation")?,
+    );
+    let q = Quaternion::new(w, x, y, z);
+    if (q.norm() - 1.0).abs() > 1e-6 {
+        return Err(CdrError::NotFinite("a unit pose.orientation"));
+    }
+    let mut covariance = [0.0; 36];
+    for v in &mut covariance {
+        *v = r.f64("pose.covariance")?;
+    }
+    Ok(RosPose {
+        pose: StampedPose {
+            t: header.t_s(),
+            rot: UnitQuaternion::from_quaternion(q)
+                .to_rotation_matrix()
+                .into_inner(),
+            pos,
+        },
+        header,
+        covariance,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -498,6 +576,33 @@ mod tests {
             decode_imu(&encode_imu(&h, &sample())),
             Err(CdrError::BadStamp { .. })
         ));
+    }
+
+    /// The pose round-trips, and the rotation's covariance is turned into
+    /// the world's axes: a body-frame yaw uncertainty of a robot pitched by
+    /// 90 degrees is an uncertainty about the world's x axis.
+    #[test]
+    fn a_pose_round_trips_with_its_covariance_in_world_axes() {
+        let rot = nalgebra::Rotation3::from_euler_angles(0.0, std::f64::consts::FRAC_PI_2, 0.0)
+            .into_inner();
+        let pose = StampedPose {
+            t: 100.25,
+            rot,
+            pos: Vector3::new(1.0, -2.0, 0.5),
+        };
+        let cov = StampedCovariance {
+            t: 100.25,
+            ori: nalgebra::Matrix3::from_diagonal(&Vector3::new(0.0, 0.0, 4e-4)),
+            pos: nalgebra::Matrix3::from_diagonal(&Vector3::new(1e-2, 2e-2, 3e-2)),
+        };
+        let c = ros_pose_covariance(&pose, &cov);
+        assert_eq!([c[0], c[7], c[14]], [1e-2, 2e-2, 3e-2]);
+        // Body z after a 90-degree pitch is the world's -x: variance on rx.
+        assert!((c[21] - 4e-4).abs() < 1e-12 && c[28].abs() < 1e-12 && c[35].abs() < 1e-12);
+        let m = decode_pose(&encode_pose(&Header::at(pose.t, "world"), &pose, &c)).expect("pose");
+        assert_eq!(m.header.frame_id, "world");
+        assert!((m.pose.rot - rot).norm() < 1e-12 && m.pose.pos == pose.pos);
+        assert_eq!(m.covariance, c);
     }
 
     #[test]
