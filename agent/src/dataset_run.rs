@@ -38,10 +38,10 @@ pub struct DatasetRun {
     /// The estimates, with the ground truth at their times when it is known.
     pub record: DatasetRecord,
     /// Inputs the estimator rejected, with the reason.
-    pub rejected: Vec<String>,
+    pub rejected: crate::runner::Rejections,
     /// Images that could not be read (missing, damaged) or are not the
     /// camera's size, with the reason: their frames are lost, the run goes on.
-    pub skipped_images: Vec<String>,
+    pub skipped_images: crate::runner::Rejections,
 }
 
 /// Skipped images logged one by one; the rest are only counted.

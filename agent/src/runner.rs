@@ -148,12 +148,63 @@ pub struct RobotRun {
     /// Per-frame records (timing, feature counts).
     pub frames: Vec<FrameRecord>,
     /// Inputs and frames the estimator rejected, with the reason.
-    pub rejected: Vec<String>,
+    pub rejected: Rejections,
     /// Cooperation counters at the end (cooperative variants only).
     pub cooperation: Option<crate::cooperation::CooperationStats>,
     /// CPU time of the run, s, simulating the sensors included (`None` where
     /// the platform has no thread clock). See [`MetricSet::cpu_s`].
     pub cpu_s: Option<f64>,
+}
+
+/// Inputs the estimator rejected: all counted, the first
+/// [`Rejections::KEPT`] reasons kept. A sensor that sends bad data for hours
+/// must not grow the run's memory.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Rejections {
+    count: usize,
+    kept: Vec<String>,
+}
+
+impl Rejections {
+    /// Reasons kept, at most.
+    pub const KEPT: usize = 100;
+
+    /// Counts one rejection and keeps its reason while there is room.
+    pub fn push(&mut self, why: String) {
+        self.count += 1;
+        if self.kept.len() < Self::KEPT {
+            self.kept.push(why);
+        }
+    }
+
+    /// Rejections counted.
+    pub fn len(&self) -> usize {
+        self.count
+    }
+
+    /// Nothing was rejected.
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    /// The reasons kept, first first.
+    pub fn iter(&self) -> std::slice::Iter<'_, String> {
+        self.kept.iter()
+    }
+
+    /// The first reason.
+    pub fn first(&self) -> Option<&String> {
+        self.kept.first()
+    }
+}
+
+impl std::ops::Index<usize> for Rejections {
+    type Output = String;
+
+    /// The `i`-th reason kept (panics past [`Rejections::KEPT`] or the count).
+    fn index(&self, i: usize) -> &String {
+        &self.kept[i]
+    }
 }
 
 /// The calling thread's CPU time since `start`, s (`None` without a clock).
@@ -423,5 +474,18 @@ mod tests {
         assert!((m.ate_ori_deg.unwrap() - 2.0).abs() < 1e-9);
         assert!(m.ate_posyaw_pos_m.unwrap() < 1e-9, "{m:?}");
         assert!(m.ate_posyaw_ori_deg.unwrap() < 1e-6, "{m:?}");
+    }
+
+    #[test]
+    fn rejections_are_all_counted_and_the_first_hundred_kept() {
+        let mut r = Rejections::default();
+        assert!(r.is_empty() && r.first().is_none());
+        for k in 0..250 {
+            r.push(format!("sample {k}"));
+        }
+        assert_eq!(r.len(), 250);
+        assert_eq!(r.iter().count(), Rejections::KEPT);
+        assert_eq!(r[0], "sample 0");
+        assert_eq!(r.iter().last().map(String::as_str), Some("sample 99"));
     }
 }

@@ -103,7 +103,7 @@ fn checked_metrics(run: &RobotRun, label: &str) -> MetricSet {
     assert!(
         run.rejected.is_empty(),
         "{label}: rejected inputs: {:?}",
-        &run.rejected[..run.rejected.len().min(5)]
+        run.rejected.iter().take(5).collect::<Vec<_>>()
     );
     for e in &run.estimate {
         assert!(

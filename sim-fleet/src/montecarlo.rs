@@ -243,7 +243,7 @@ impl Study<'_> {
                 robot,
                 "{} inputs rejected, the first: {}",
                 run.rejected.len(),
-                run.rejected[0]
+                run.rejected.first().map_or("", String::as_str)
             );
         }
         let dir = self
