@@ -61,6 +61,10 @@ pub struct LiveArgs {
 /// without bound.
 const MAX_LATENCIES: usize = 1 << 20;
 
+/// An estimate this close to an image's stamp is that image's, s: the
+/// camera-IMU time offset the filter estimates is far below a frame period.
+const SAME_IMAGE_S: f64 = 0.005;
+
 fn seconds(name: &str, s: f64) -> Result<Duration> {
     Duration::try_from_secs_f64(s)
         .with_context(|| format!("--{name} {s}: not a duration in seconds"))
@@ -125,16 +129,21 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
         if let Some(p) = poses.as_mut() {
             p.publish(pose, cov);
         }
-        // The estimate at an image's time: how long after the image arrived.
+        // The estimate of an image: how long after the image arrived. Its
+        // time is the image's plus the estimated camera-IMU offset.
         if let Ok(mut a) = arrivals.lock() {
-            while a.front().is_some_and(|(t, _)| *t < pose.t - 1e-6) {
-                a.pop_front();
-            }
-            if let Some((_, at)) = a.front().filter(|(t, _)| (*t - pose.t).abs() <= 1e-6) {
-                if latencies_ms.len() < MAX_LATENCIES {
-                    latencies_ms.push(at.elapsed().as_secs_f64() * 1e3);
+            let mut image_arrived = None;
+            while let Some(&(t, at)) = a.front() {
+                if t > pose.t + SAME_IMAGE_S {
+                    break;
                 }
                 a.pop_front();
+                if (t - pose.t).abs() <= SAME_IMAGE_S {
+                    image_arrived = Some(at);
+                }
+            }
+            if let Some(at) = image_arrived.filter(|_| latencies_ms.len() < MAX_LATENCIES) {
+                latencies_ms.push(at.elapsed().as_secs_f64() * 1e3);
             }
         }
     });

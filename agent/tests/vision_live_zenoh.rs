@@ -204,3 +204,88 @@ fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
     }
     assert!(read(&live_out, "estimate.txt").len() > 1000);
 }
+
+/// A moving robot: 20 s of V1_01 rendered (`simulator::euroc_export`, as
+/// `sim-fleet export-euroc` writes it), from its still start through its first
+/// turns, live at four times real time. The live run is the file replay, bit
+/// for bit, and it is on the truth.
+#[test]
+fn a_rendered_flight_runs_live_on_the_truth_as_it_runs_from_files() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let seq = dir.path().join("v1_01_rendered");
+    let scenario_path =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sim-fleet/scenarios/v1_01_easy.yaml");
+    let mut scenario = simulator::Scenario::load(&scenario_path).expect("scenario");
+    scenario.render.enabled = true;
+    let fleet = simulator::Fleet::build(&scenario, 1).expect("fleet");
+    let t_end = fleet.truths[0].start_time() + 20.0;
+    let n = simulator::euroc_export::export_euroc(&fleet, 0, t_end, &seq, "test").expect("export");
+    assert_eq!(n.images, 201);
+    let gt = seq.join("mav0/state_groundtruth_estimate0/data.csv");
+    let (live_out, file_out) = (dir.path().join("live"), dir.path().join("file"));
+    let port = common::loopback_ports::free_loopback_ports(1).expect("port")[0];
+    let listen = format!("tcp/127.0.0.1:{port}");
+    let live = agent()
+        .arg("live")
+        .arg("--sensors")
+        .arg(&seq)
+        .arg("--groundtruth")
+        .arg(&gt)
+        .args([
+            "--listen",
+            &listen,
+            "--idle-timeout-s",
+            "3",
+            "--pose-key",
+            "none",
+        ])
+        .arg("--out")
+        .arg(&live_out)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("agent live");
+    let publish = agent()
+        .arg("publish-euroc")
+        .arg("--euroc")
+        .arg(&seq)
+        .args([
+            "--listen",
+            "tcp/127.0.0.1:0",
+            "--connect",
+            &listen,
+            "--speed",
+            "4",
+        ])
+        .output()
+        .expect("agent publish-euroc");
+    succeeded("publish-euroc", &publish);
+    let live = succeeded("agent live", &wait_for(live, Duration::from_secs(120)));
+    println!("{live}");
+    assert!(
+        live.contains("images 201 received, 0 undecodable, 0 dropped"),
+        "{live}"
+    );
+    let file = agent()
+        .arg("dataset")
+        .arg("--euroc")
+        .arg(&seq)
+        .arg("--out")
+        .arg(&file_out)
+        .output()
+        .expect("agent dataset");
+    succeeded("agent dataset", &file);
+    let read = |d: &Path, f: &str| std::fs::read(d.join(f)).expect("output");
+    for f in ["estimate.txt", "covariance.txt", "groundtruth.txt"] {
+        assert_eq!(read(&live_out, f), read(&file_out, f), "{f} differs");
+    }
+    let summary: serde_json::Value =
+        serde_json::from_slice(&read(&live_out, "summary.json")).expect("summary");
+    let m = &summary["robots"][0];
+    let get = |k: &str| m[k].as_f64().unwrap_or(f64::NAN);
+    println!("{m}");
+    assert!(get("ate_ori_deg") < 0.5, "{m}");
+    assert!(get("ate_pos_m") < 0.05, "{m}");
+    assert!(get("nees_ori") < 6.0 && get("nees_pos") < 6.0, "{m}");
+    assert!(live.contains("tilt error vs ground truth 0."), "{live}");
+}

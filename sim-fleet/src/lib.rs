@@ -5,6 +5,7 @@
 pub mod compare;
 pub mod convert;
 pub mod eval;
+pub mod export;
 pub mod fleet_run;
 pub mod montecarlo;
 pub mod paired;

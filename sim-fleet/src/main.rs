@@ -5,6 +5,7 @@ use clap::{Parser, Subcommand};
 use sim_fleet::compare::{run_compare, CompareArgs};
 use sim_fleet::convert::{run_convert, ConvertArgs};
 use sim_fleet::eval::{run_eval, EvalArgs};
+use sim_fleet::export::{run_export, ExportArgs};
 use sim_fleet::fleet_run::{run_fleet, RunArgs};
 use sim_fleet::montecarlo::{run_montecarlo, MontecarloArgs};
 use sim_fleet::paired::{run_paired, PairedArgs};
@@ -40,6 +41,10 @@ enum Command {
     /// Convert a sequence in the EuRoC ASL layout (EuRoC MAV, TUM-VI) to an
     /// MCAP file: IMU, images and ground truth, on the fleet clock.
     ConvertEuroc(ConvertArgs),
+    /// Write one robot of a scenario as a sequence in the EuRoC ASL layout, with
+    /// rendered images, its IMU and its ground truth: a moving sequence with a
+    /// known truth for `agent dataset`, `agent publish-euroc` and other VIO systems.
+    ExportEuroc(ExportArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -70,5 +75,6 @@ fn run_main() -> Result<()> {
         Command::Run(args) => run_fleet(&args),
         Command::Compare(args) => run_compare(&args),
         Command::ConvertEuroc(args) => run_convert(&args),
+        Command::ExportEuroc(args) => run_export(&args),
     }
 }

@@ -9,6 +9,7 @@
 
 pub mod bspline;
 pub mod camera_sim;
+pub mod euroc_export;
 pub mod fleet;
 pub mod imu;
 pub mod mcap_io;
