@@ -84,6 +84,9 @@ const MAX_QUEUED_IMAGES: usize = 16;
 /// Images held until the IMU reaches their time, at most: an IMU that stops
 /// must not make the agent keep every image.
 const MAX_HELD_IMAGES: usize = 32;
+/// A gap between the camera's and the IMU's stamps beyond this, s, is
+/// warned about: the two are not on one clock.
+const CLOCK_GAP_S: f64 = 1.0;
 /// Undecodable payloads logged one by one per topic; the rest are counted.
 const BAD_LOGGED: u64 = 5;
 
@@ -130,6 +133,9 @@ pub struct LiveCounts {
     pub images_bad: AtomicU64,
     /// Images dropped (the loop was behind, or the IMU never reached them).
     pub images_dropped: AtomicU64,
+    /// The largest gap between an image's stamp and the newest IMU sample's
+    /// when the image arrived, ms.
+    pub clock_gap_ms: AtomicU64,
 }
 
 impl LiveCounts {
@@ -137,13 +143,15 @@ impl LiveCounts {
     pub fn line(&self) -> String {
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
         format!(
-            "IMU {} received, {} undecodable, {} dropped; images {} received, {} undecodable, {} dropped",
+            "IMU {} received, {} undecodable, {} dropped; images {} received, {} undecodable, {} dropped; \
+             image stamps at most {} ms from the IMU's on arrival",
             g(&self.imu),
             g(&self.imu_bad),
             g(&self.imu_dropped),
             g(&self.images),
             g(&self.images_bad),
-            g(&self.images_dropped)
+            g(&self.images_dropped),
+            g(&self.clock_gap_ms)
         )
     }
 
@@ -283,6 +291,7 @@ impl LiveSensors {
             held: VecDeque::new(),
             ready: VecDeque::new(),
             ended: false,
+            clock_warned: false,
         }
     }
 }
@@ -327,6 +336,8 @@ pub struct LiveEvents {
     held: VecDeque<(f64, GrayImage)>,
     ready: VecDeque<SimEvent>,
     ended: bool,
+    /// The stamps' gap has been warned about.
+    clock_warned: bool,
 }
 
 /// When each recent image arrived, by its stamp (s), oldest first.
@@ -380,6 +391,7 @@ impl LiveEvents {
                     }
                     a.push_back((t, Instant::now()));
                 }
+                self.check_clocks(t);
                 if t <= self.newest_imu_t {
                     self.ready.push_back(camera_event(t, img));
                     return;
@@ -394,6 +406,32 @@ impl LiveEvents {
                         .fetch_add(1, Ordering::Relaxed);
                 }
             }
+        }
+    }
+
+    /// Notes how far an image's stamp is from the newest IMU sample's when
+    /// it arrives (a few milliseconds when the two share a clock), and says
+    /// once, loudly, when it is more than [`CLOCK_GAP_S`]: images far ahead
+    /// of the IMU wait for it until they are dropped, images far behind are
+    /// older than the filter, and either way nothing is estimated.
+    fn check_clocks(&mut self, t: f64) {
+        if !self.newest_imu_t.is_finite() {
+            return;
+        }
+        let gap = t - self.newest_imu_t;
+        let gap_ms = (gap.abs() * 1e3).min(u64::MAX as f64) as u64;
+        self.sensors
+            .counts
+            .clock_gap_ms
+            .fetch_max(gap_ms, Ordering::Relaxed);
+        if gap.abs() > CLOCK_GAP_S && !self.clock_warned {
+            self.clock_warned = true;
+            tracing::warn!(
+                "an image stamped {t:.3} s arrived {:.3} s {} the newest IMU sample: \
+                 are the camera and the IMU stamped on one clock?",
+                gap.abs(),
+                if gap > 0.0 { "ahead of" } else { "behind" }
+            );
         }
     }
 
@@ -686,6 +724,13 @@ mod tests {
         }
         assert_eq!(ev.held.len(), MAX_HELD_IMAGES);
         assert_eq!(ev.sensors.counts.images_dropped.load(Ordering::Relaxed), 5);
+        // Those images ran up to 36.88 s ahead of the IMU's 0.12 s: noted and
+        // warned about.
+        assert!(ev.clock_warned);
+        assert_eq!(
+            ev.sensors.counts.clock_gap_ms.load(Ordering::Relaxed),
+            36_880
+        );
         // The run ends (limits of zero): the held images come last, in order.
         ev.ready.clear();
         let rest: Vec<f64> = ev
