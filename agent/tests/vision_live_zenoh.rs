@@ -7,7 +7,7 @@
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 use zenoh::Wait;
 
@@ -32,7 +32,7 @@ fn succeeded(what: &str, out: &Output) -> String {
 }
 
 /// Waits for `child` at most `limit`, killing it past that.
-fn wait_for(mut child: std::process::Child, limit: Duration) -> Output {
+fn wait_for(mut child: Child, limit: Duration) -> Output {
     let start = Instant::now();
     while child.try_wait().expect("wait").is_none() {
         if start.elapsed() > limit {
@@ -92,6 +92,47 @@ fn send_garbage(port: u16, imu_key: &str, image_key: &str) {
     session.close().wait().expect("close");
 }
 
+/// Runs `agent dataset` on `seq` into `file_out` and checks that the live run
+/// in `live_out` wrote the same estimates, covariances and ground truth.
+fn assert_live_is_the_replay(seq: &Path, gt: &Path, live_out: &Path, file_out: &Path) {
+    let file = agent()
+        .arg("dataset")
+        .arg("--euroc")
+        .arg(seq)
+        .arg("--groundtruth")
+        .arg(gt)
+        .arg("--out")
+        .arg(file_out)
+        .output()
+        .expect("agent dataset");
+    succeeded("agent dataset", &file);
+    for f in ["estimate.txt", "covariance.txt", "groundtruth.txt"] {
+        assert_eq!(read(live_out, f), read(file_out, f), "{f} differs");
+    }
+}
+
+fn read(dir: &Path, file: &str) -> Vec<u8> {
+    std::fs::read(dir.join(file)).expect("output")
+}
+
+/// Starts `agent live` on `sensors`, listening on `listen`, with `extra` arguments.
+fn spawn_live(sensors: &Path, gt: &Path, listen: &str, out: &Path, extra: &[&str]) -> Child {
+    agent()
+        .arg("live")
+        .arg("--sensors")
+        .arg(sensors)
+        .arg("--groundtruth")
+        .arg(gt)
+        .args(["--listen", listen, "--idle-timeout-s", "3"])
+        .args(extra)
+        .arg("--out")
+        .arg(out)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("agent live")
+}
+
 #[test]
 fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
     let micro = data("euroc_v1_01_micro");
@@ -101,28 +142,15 @@ fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
     let port = common::loopback_ports::free_loopback_ports(1).expect("port")[0];
     let (imu_key, image_key) = ("robot7/imu0", "robot7/cam0/image_raw");
     let listen = format!("tcp/127.0.0.1:{port}");
-    let live = agent()
-        .arg("live")
-        .arg("--sensors")
-        .arg(&micro)
-        .arg("--groundtruth")
-        .arg(&gt)
-        .args([
-            "--listen",
-            &listen,
-            "--imu-key",
-            imu_key,
-            "--image-key",
-            image_key,
-        ])
-        .args(["--idle-timeout-s", "3", "--wait-s", "60"])
-        .args(["--pose-key", "robot7/vio/pose"])
-        .arg("--out")
-        .arg(&live_out)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("agent live");
+    let keys = ["--imu-key", imu_key, "--image-key", image_key];
+    let pose = ["--pose-key", "robot7/vio/pose"];
+    let live = spawn_live(
+        &micro,
+        &gt,
+        &listen,
+        &live_out,
+        &[&keys[..], &pose].concat(),
+    );
     send_garbage(port, imu_key, image_key);
     let listener = session_to(port);
     let poses = listener
@@ -187,21 +215,7 @@ fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
     assert!(sent.covariance[0] > 0.0 && sent.covariance[35] > 0.0);
     listener.close().wait().expect("close");
 
-    let file = agent()
-        .arg("dataset")
-        .arg("--euroc")
-        .arg(&micro)
-        .arg("--groundtruth")
-        .arg(&gt)
-        .arg("--out")
-        .arg(&file_out)
-        .output()
-        .expect("agent dataset");
-    succeeded("agent dataset", &file);
-    let read = |d: &Path, f: &str| std::fs::read(d.join(f)).expect("output");
-    for f in ["estimate.txt", "covariance.txt", "groundtruth.txt"] {
-        assert_eq!(read(&live_out, f), read(&file_out, f), "{f} differs");
-    }
+    assert_live_is_the_replay(&micro, &gt, &live_out, &file_out);
     assert!(read(&live_out, "estimate.txt").len() > 1000);
 }
 
@@ -225,26 +239,7 @@ fn a_rendered_flight_runs_live_on_the_truth_as_it_runs_from_files() {
     let (live_out, file_out) = (dir.path().join("live"), dir.path().join("file"));
     let port = common::loopback_ports::free_loopback_ports(1).expect("port")[0];
     let listen = format!("tcp/127.0.0.1:{port}");
-    let live = agent()
-        .arg("live")
-        .arg("--sensors")
-        .arg(&seq)
-        .arg("--groundtruth")
-        .arg(&gt)
-        .args([
-            "--listen",
-            &listen,
-            "--idle-timeout-s",
-            "3",
-            "--pose-key",
-            "none",
-        ])
-        .arg("--out")
-        .arg(&live_out)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("agent live");
+    let live = spawn_live(&seq, &gt, &listen, &live_out, &["--pose-key", "none"]);
     let publish = agent()
         .arg("publish-euroc")
         .arg("--euroc")
@@ -266,19 +261,7 @@ fn a_rendered_flight_runs_live_on_the_truth_as_it_runs_from_files() {
         live.contains("images 201 received, 0 undecodable, 0 dropped"),
         "{live}"
     );
-    let file = agent()
-        .arg("dataset")
-        .arg("--euroc")
-        .arg(&seq)
-        .arg("--out")
-        .arg(&file_out)
-        .output()
-        .expect("agent dataset");
-    succeeded("agent dataset", &file);
-    let read = |d: &Path, f: &str| std::fs::read(d.join(f)).expect("output");
-    for f in ["estimate.txt", "covariance.txt", "groundtruth.txt"] {
-        assert_eq!(read(&live_out, f), read(&file_out, f), "{f} differs");
-    }
+    assert_live_is_the_replay(&seq, &gt, &live_out, &file_out);
     let summary: serde_json::Value =
         serde_json::from_slice(&read(&live_out, "summary.json")).expect("summary");
     let m = &summary["robots"][0];
