@@ -41,6 +41,9 @@ pub enum CdrError {
     /// A reading is NaN or infinite.
     #[error("{0} is not finite")]
     NotFinite(&'static str),
+    /// A quaternion is not of unit norm.
+    #[error("{0} is not a unit quaternion")]
+    NotUnit(&'static str),
     /// The stamp is negative or its nanoseconds exceed a second.
     #[error("stamp {sec} s {nanosec} ns is not a time")]
     BadStamp {
@@ -89,11 +92,13 @@ impl Header {
         f64::from(self.sec) + f64::from(self.nanosec) * 1e-9
     }
 
-    /// The header of time `t_s` (seconds, rounded to the nanosecond).
+    /// The header of time `t_s` (seconds, rounded to the nanosecond). A time
+    /// outside ROS's `int32` seconds is held at its bounds instead of wrapping.
     pub fn at(t_s: f64, frame_id: &str) -> Self {
         let ns = (t_s * 1e9).round() as i64;
+        let sec = ns.div_euclid(1_000_000_000);
         Self {
-            sec: ns.div_euclid(1_000_000_000) as i32,
+            sec: sec.clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32,
             nanosec: ns.rem_euclid(1_000_000_000) as u32,
             frame_id: frame_id.to_owned(),
         }
@@ -456,7 +461,7 @@ pub fn decode_pose(payload: &[u8]) -> Result<RosPose, CdrError> {
     );
     let q = Quaternion::new(w, x, y, z);
     if (q.norm() - 1.0).abs() > 1e-6 {
-        return Err(CdrError::NotFinite("a unit pose.orientation"));
+        return Err(CdrError::NotUnit("pose.orientation"));
     }
     let mut covariance = [0.0; 36];
     for v in &mut covariance {
@@ -603,6 +608,25 @@ mod tests {
         assert_eq!(m.header.frame_id, "world");
         assert!((m.pose.rot - rot).norm() < 1e-12 && m.pose.pos == pose.pos);
         assert_eq!(m.covariance, c);
+    }
+
+    #[test]
+    fn stamps_beyond_int32_seconds_are_held_and_a_non_unit_orientation_is_named() {
+        assert_eq!(Header::at(1e12, "").sec, i32::MAX);
+        assert_eq!(Header::at(-1e12, "").sec, i32::MIN);
+        let pose = StampedPose {
+            t: 1.0,
+            rot: nalgebra::Matrix3::identity(),
+            pos: Vector3::zeros(),
+        };
+        let mut b = encode_pose(&Header::at(1.0, "world"), &pose, &[0.0; 36]);
+        // The quaternion's w (the fourth double after the position) set to 2.
+        let w_at = b.len() - 36 * 8 - 8;
+        b[w_at..w_at + 8].copy_from_slice(&2f64.to_le_bytes());
+        assert_eq!(
+            decode_pose(&b).unwrap_err(),
+            CdrError::NotUnit("pose.orientation")
+        );
     }
 
     #[test]
