@@ -835,6 +835,82 @@ impl Node {
         None
     }
 
+    /// Waits for the expected peers (their presence means their subscribers
+    /// exist), at most `clock.start_timeout_s`: the ones still missing are
+    /// not waited for.
+    fn wait_for_peers(&mut self, cfg: &AgentConfig, stop: &AtomicBool) {
+        let deadline = Instant::now() + Duration::from_secs_f64(cfg.clock.start_timeout_s);
+        loop {
+            let alive = self.report.peers.alive();
+            let missing: Vec<u32> = cfg
+                .clock
+                .peers
+                .iter()
+                .filter(|p| !alive.contains(p))
+                .copied()
+                .collect();
+            if missing.is_empty() || Instant::now() >= deadline || Self::stopping(stop) {
+                if !missing.is_empty() {
+                    tracing::warn!(?missing, "starting without these peers");
+                    for p in missing {
+                        self.lockstep.release(p);
+                    }
+                }
+                break;
+            }
+            self.pump(Duration::from_millis(20));
+        }
+        let now = self.wall_s();
+        for p in &cfg.clock.peers {
+            self.lockstep.heard(*p, now);
+        }
+    }
+
+    /// Takes the estimator's new estimates, one per queued frame: the
+    /// frame's tracks go out with, when due, a window snapshot, and the
+    /// estimate is logged and recorded (with `truth` at its time, when it
+    /// is known). Returns the estimates recorded.
+    fn take_estimates(
+        &mut self,
+        est: &mut Estimator,
+        queued: &mut VecDeque<(u64, FeatureFrame)>,
+        truth: Option<&simulator::truth::RobotTruth>,
+        mut run_files: Option<&mut RunFiles>,
+    ) -> usize {
+        let mut recorded = 0;
+        for out in est.poll_with(&self.report.histories) {
+            let Some((index, frame)) = queued.pop_front() else {
+                break;
+            };
+            let mut envs = self.outbox.tracks(index, &frame, est.calibration());
+            match out {
+                Ok(o) => {
+                    let oldest = est
+                        .state()
+                        .and_then(|s| s.clones.values().next().map(|c| c.t_cam));
+                    if let Some(plan) = self.outbox.snapshot_due(index, frame.t, oldest) {
+                        if let Some(w) = est.camera_window(plan.landmarks) {
+                            envs.extend(self.outbox.snapshot(index, &frame, plan, &w));
+                        }
+                    }
+                    log_estimate(self, &o, truth, est);
+                    let before = self.report.run.estimate.len();
+                    match truth {
+                        Some(truth) => record(&mut self.report.run, truth, o),
+                        None => self.report.run.record_without_truth(o),
+                    }
+                    recorded += self.report.run.estimate.len() - before;
+                    if let Some(f) = run_files.as_deref_mut() {
+                        f.append(&self.report.run);
+                    }
+                }
+                Err(e) => self.report.run.rejected.push(e.to_string()),
+            }
+            self.publish(envs);
+        }
+        recorded
+    }
+
     /// Receives what is already there, up to [`MAX_DRAIN`] messages.
     fn drain(&mut self) {
         for _ in 0..MAX_DRAIN {
@@ -935,6 +1011,125 @@ impl Node {
     }
 }
 
+/// What a run is, for its report and its history store.
+struct RunHeader {
+    scenario: String,
+    seed: u64,
+    variant: Variant,
+    robot_name: String,
+    /// The mission the stored histories belong to (a store of another is
+    /// set aside).
+    mission: String,
+    /// A truth is known (simulation): `groundtruth.txt` is written.
+    with_truth: bool,
+}
+
+impl Node {
+    /// The agent's moving parts for `cfg`, an earlier unfinished run set
+    /// aside, the stored histories restored, the vocabulary given to `est`
+    /// when it uses historical features; and the run's text files, written
+    /// as it goes (`None` if they cannot be: the outputs are then written at
+    /// the end).
+    fn open(
+        cfg: &AgentConfig,
+        header: &RunHeader,
+        transport: Box<dyn Transport>,
+        est: &mut Estimator,
+    ) -> Result<(Node, Option<RunFiles>), NodeError> {
+        if est.options().cooperation.historical {
+            let voc = match &cfg.estimator.vocabulary {
+                Some(path) => Some(std::sync::Arc::new(vocabulary::Vocabulary::load(path)?)),
+                None => crate::cooperation::builtin_vocabulary(),
+            };
+            est.set_vocabulary(voc);
+        }
+        // A run of this robot that never finished (it lost power) is kept aside.
+        match crate::run_files::set_aside_unfinished(&cfg.output_dir) {
+            Ok(Some(aside)) => tracing::warn!(
+                "an earlier run here did not finish: its files are kept in {}",
+                aside.display()
+            ),
+            Ok(None) => {}
+            Err(e) => tracing::warn!("readying {}: {e}", cfg.output_dir.display()),
+        }
+        let log = if cfg.mcap_log {
+            std::fs::create_dir_all(&cfg.output_dir).ok();
+            match crate::agent_log::AgentLog::create(&cfg.output_dir.join("agent.mcap")) {
+                Ok(l) => Some(l),
+                Err(e) => {
+                    tracing::warn!("no MCAP log: {e}");
+                    None
+                }
+            }
+        } else {
+            None
+        };
+        // The text outputs as the run goes: a robot killed hard keeps its poses.
+        let run_files = match RunFiles::create(&cfg.output_dir, header.with_truth, FLUSH_PERIOD) {
+            Ok(f) => Some(f),
+            Err(e) => {
+                tracing::warn!(
+                    "cannot write {} as the run goes ({e}): the outputs are written at the end",
+                    cfg.output_dir.display()
+                );
+                None
+            }
+        };
+        let mut node = Node {
+            transport,
+            inbox: Inbox::new(&cfg.fleet_id, cfg.robot_id, cfg.history.max_peers),
+            outbox: Outbox::new(&cfg.fleet_id, cfg.robot_id, cfg.publish.clone()),
+            lockstep: Lockstep::new(&cfg.clock.peers, 0.0),
+            pending: Vec::new(),
+            pending_bytes: BTreeMap::new(),
+            rates: PeerRates::new(cfg.history.max_peer_mib_per_s * 1024.0 * 1024.0),
+            limits: HistoryLimits {
+                max_bytes: (cfg.history.max_mib_per_peer * 1024.0 * 1024.0) as usize,
+                recent_s: cfg.history.recent_tracks_s,
+                retention: cfg.history.retention,
+            },
+            report: NodeReport {
+                scenario: header.scenario.clone(),
+                seed: header.seed,
+                variant: header.variant.name().to_string(),
+                robot_name: header.robot_name.clone(),
+                ..NodeReport::default()
+            },
+            started: Instant::now(),
+            fleet_t: None,
+            log,
+            path_logged_at: None,
+            peer_poses: BTreeMap::new(),
+            catch_up: None,
+            unanswerable: Vec::new(),
+            store: None,
+            faults: cfg.faults.for_run(header.seed),
+            robot_id: cfg.robot_id,
+            lockstep_mode: cfg.clock.mode == ClockMode::Lockstep,
+            peer_clock_s: f64::NEG_INFINITY,
+        };
+        if cfg.history.catch_up {
+            node.catch_up = Some((
+                CatchUp::new(cfg.robot_id, cfg.history.catch_up_retry_s),
+                Replayer::new(
+                    cfg.robot_id,
+                    node.limits,
+                    cfg.history.replay_kib_per_s * 1024.0,
+                ),
+            ));
+        }
+        if let Some(dir) = &cfg.history.store_dir {
+            node.restore(
+                dir,
+                (&cfg.fleet_id, &header.mission),
+                cfg.history.store_period_s,
+                cfg.history.max_peers,
+            )?;
+        }
+        Ok((node, run_files))
+    }
+}
+
 fn wall_ns() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -973,129 +1168,21 @@ pub fn run_node(
         .ok_or(simulator::SimError::NoSuchRobot(robot))?;
     let mut opts = options_for(spec, fleet, setup.variant);
     cfg.estimator.apply(&mut opts);
-    let historical = opts.cooperation.historical;
     let mut est = Estimator::new(opts, fleet.initial_calibration(robot));
-    if historical {
-        let voc = match &cfg.estimator.vocabulary {
-            Some(path) => Some(std::sync::Arc::new(vocabulary::Vocabulary::load(path)?)),
-            None => crate::cooperation::builtin_vocabulary(),
-        };
-        est.set_vocabulary(voc);
-    }
-    // A run of this robot that never finished (it lost power) is kept aside.
-    match crate::run_files::set_aside_unfinished(&cfg.output_dir) {
-        Ok(Some(aside)) => tracing::warn!(
-            "an earlier run here did not finish: its files are kept in {}",
-            aside.display()
-        ),
-        Ok(None) => {}
-        Err(e) => tracing::warn!("readying {}: {e}", cfg.output_dir.display()),
-    }
-    let log = if cfg.mcap_log {
-        std::fs::create_dir_all(&cfg.output_dir).ok();
-        match crate::agent_log::AgentLog::create(&cfg.output_dir.join("agent.mcap")) {
-            Ok(l) => Some(l),
-            Err(e) => {
-                tracing::warn!("no MCAP log: {e}");
-                None
-            }
-        }
-    } else {
-        None
-    };
-    // The text outputs as the run goes: a robot killed hard keeps its poses.
-    let mut run_files = match RunFiles::create(&cfg.output_dir, true, FLUSH_PERIOD) {
-        Ok(f) => Some(f),
-        Err(e) => {
-            tracing::warn!(
-                "cannot write {} as the run goes ({e}): the outputs are written at the end",
-                cfg.output_dir.display()
-            );
-            None
-        }
-    };
-    let mut node = Node {
-        transport,
-        inbox: Inbox::new(&cfg.fleet_id, cfg.robot_id, cfg.history.max_peers),
-        outbox: Outbox::new(&cfg.fleet_id, cfg.robot_id, cfg.publish.clone()),
-        lockstep: Lockstep::new(&cfg.clock.peers, 0.0),
-        pending: Vec::new(),
-        pending_bytes: BTreeMap::new(),
-        rates: PeerRates::new(cfg.history.max_peer_mib_per_s * 1024.0 * 1024.0),
-        limits: HistoryLimits {
-            max_bytes: (cfg.history.max_mib_per_peer * 1024.0 * 1024.0) as usize,
-            recent_s: cfg.history.recent_tracks_s,
-            retention: cfg.history.retention,
-        },
-        report: NodeReport {
-            scenario: fleet.scenario.name.clone(),
-            seed: fleet.seed,
-            variant: setup.variant.name().to_string(),
-            robot_name: fleet.scenario.robot_name(robot),
-            ..NodeReport::default()
-        },
-        started: Instant::now(),
-        fleet_t: None,
-        log,
-        path_logged_at: None,
-        peer_poses: BTreeMap::new(),
-        catch_up: None,
-        unanswerable: Vec::new(),
-        store: None,
-        faults: cfg.faults.for_run(fleet.seed),
-        robot_id: cfg.robot_id,
-        lockstep_mode: cfg.clock.mode == ClockMode::Lockstep,
-        peer_clock_s: f64::NEG_INFINITY,
-    };
-    if cfg.history.catch_up {
-        node.catch_up = Some((
-            CatchUp::new(cfg.robot_id, cfg.history.catch_up_retry_s),
-            Replayer::new(
-                cfg.robot_id,
-                node.limits,
-                cfg.history.replay_kib_per_s * 1024.0,
-            ),
-        ));
-    }
-    if let Some(dir) = &cfg.history.store_dir {
+    let header = RunHeader {
+        scenario: fleet.scenario.name.clone(),
+        seed: fleet.seed,
+        variant: setup.variant,
+        robot_name: fleet.scenario.robot_name(robot),
         // The fleet's mission: every robot runs the same scenario and seed.
-        let mission = format!("{}, seed {}", fleet.scenario.name, fleet.seed);
-        node.restore(
-            dir,
-            (&cfg.fleet_id, &mission),
-            cfg.history.store_period_s,
-            cfg.history.max_peers,
-        )?;
-    }
+        mission: format!("{}, seed {}", fleet.scenario.name, fleet.seed),
+        with_truth: true,
+    };
+    let (mut node, mut run_files) = Node::open(cfg, &header, transport, &mut est)?;
     let mut images: Option<ImageFrames> = None;
     let mut status = StatusLog::new(cfg.status_period_s);
 
-    // Wait for the expected peers (their presence means their subscribers exist).
-    let deadline = Instant::now() + Duration::from_secs_f64(cfg.clock.start_timeout_s);
-    loop {
-        let alive = node.report.peers.alive();
-        let missing: Vec<u32> = cfg
-            .clock
-            .peers
-            .iter()
-            .filter(|p| !alive.contains(p))
-            .copied()
-            .collect();
-        if missing.is_empty() || Instant::now() >= deadline || Node::stopping(stop) {
-            if !missing.is_empty() {
-                tracing::warn!(?missing, "starting without these peers");
-                for p in missing {
-                    node.lockstep.release(p);
-                }
-            }
-            break;
-        }
-        node.pump(Duration::from_millis(20));
-    }
-    let now = node.wall_s();
-    for p in &cfg.clock.peers {
-        node.lockstep.heard(*p, now);
-    }
+    node.wait_for_peers(cfg, stop);
 
     let grid = setup.grid;
     let pacer = Pacer::new(grid.end_of(0), cfg.clock.realtime_rate);
@@ -1202,31 +1289,7 @@ pub fn run_node(
                     }
                 }
             }
-            for out in est.poll_with(&node.report.histories) {
-                let Some((index, frame)) = queued.pop_front() else {
-                    break;
-                };
-                let mut envs = node.outbox.tracks(index, &frame, est.calibration());
-                match out {
-                    Ok(o) => {
-                        let oldest = est
-                            .state()
-                            .and_then(|s| s.clones.values().next().map(|c| c.t_cam));
-                        if let Some(plan) = node.outbox.snapshot_due(index, frame.t, oldest) {
-                            if let Some(w) = est.camera_window(plan.landmarks) {
-                                envs.extend(node.outbox.snapshot(index, &frame, plan, &w));
-                            }
-                        }
-                        log_estimate(&mut node, &o, truth, &est);
-                        record(&mut node.report.run, truth, o);
-                        if let Some(f) = run_files.as_mut() {
-                            f.append(&node.report.run);
-                        }
-                    }
-                    Err(e) => node.report.run.rejected.push(e.to_string()),
-                }
-                node.publish(envs);
-            }
+            node.take_estimates(&mut est, &mut queued, Some(truth), run_files.as_mut());
         }
 
         // 4. Tick done: history catch-up first, so that a peer that has our
@@ -1283,105 +1346,141 @@ pub fn run_node(
         }
     }
 
-    // The end: say so, then keep listening while peers still run, and settle
-    // once none does.
     let t_last = node.fleet_t.unwrap_or(grid.t0_s);
-    let hb = node.outbox.heartbeat(
-        t_last,
-        AgentState::Finished,
-        node.report.run.frames.len() as u64,
-        tick.checked_sub(1),
-        node.newest_window_end_s(),
-    );
-    node.publish(vec![hb]);
-    let linger_start = Instant::now();
-    let linger_until = linger_start + Duration::from_secs_f64(cfg.clock.linger_timeout_s);
-    // Fleet seconds per wall second from here on. In lockstep nothing paces
-    // the clock once the data have ended, and the catch-up timers (a request
-    // is sent again after `history.catch_up_retry_s` of fleet time) would
-    // otherwise wait seconds of wall time for a reply that takes
-    // milliseconds: on a lossy link, settling timed out in 18 of 60 runs.
-    let rate = match cfg.clock.mode {
-        ClockMode::Realtime => cfg.clock.realtime_rate,
-        ClockMode::Lockstep => LOCKSTEP_LINGER_RATE,
-    };
-    let mut settling: Option<Settling> = None;
-    while !Node::stopping(stop) && Instant::now() < linger_until {
-        let alive = node.report.peers.alive();
-        let running = alive
-            .iter()
-            .any(|p| !node.report.peers.peers.get(p).is_some_and(|s| s.finished));
-        if !running {
-            // Every peer's data have ended: settle before leaving.
-            let timeout = Duration::from_secs_f64(cfg.clock.settle_timeout_s);
-            let s = match settling.as_mut() {
-                Some(s) => s,
-                None => settling.insert(node.start_settling(&alive, timeout)),
-            };
-            if node.settle(s, &alive, t_last, tick.checked_sub(1)) {
-                break;
-            }
-        }
-        node.pump(Duration::from_millis(20));
-        // Peers still running may ask for our windows (after an outage): our
-        // data are done, not our archive.
-        node.deliver(f64::INFINITY);
-        let own = t_last + linger_start.elapsed().as_secs_f64() * rate;
-        node.catch_up(own.max(node.peer_clock_s));
-    }
-    node.drain();
-    node.deliver(f64::INFINITY);
-    node.store_histories(f64::INFINITY, true);
-    if Node::stopping(stop) {
-        node.report.interrupted = node.report.interrupted || tick < setup.ticks_total;
-    }
     // Our own span: the ticks past our data end (lockstep) only kept time.
     let own_end = grid.end_of(setup.ticks_total.saturating_sub(1));
-    node.report.fleet_s = t_last.min(own_end) - grid.t0_s;
-    node.report.run.cooperation = est.cooperation().map(|c| c.stats);
-    node.report.keyframe_db_bytes = est
-        .cooperation()
-        .map(|c| c.keyframe_db_bytes())
-        .unwrap_or_default();
-    if let Some((asking, replayer)) = node.catch_up.as_ref() {
-        let (a, r) = (&asking.stats, &replayer.stats);
-        node.report.catch_up = Some(CatchUpStats {
-            requests_answered: r.requests_answered,
-            windows_replayed: r.windows_replayed,
-            parts_replayed: r.parts_replayed,
-            replay_bytes: r.replay_bytes,
-            ..a.clone()
-        });
-        node.report.own_archive_bytes = replayer.archive().bytes();
-        node.report.own_archive_windows = replayer.archive().keyframes.len();
-        node.report.own_archive_whole_windows = replayer
-            .archive()
-            .keyframes
-            .values()
-            .filter(|kf| kf.is_whole())
-            .count();
-    }
-    if let Some(f) = run_files {
-        match f.finish(&node.report.run) {
-            Ok(()) => node.report.run_files_in = Some(cfg.output_dir.clone()),
-            Err(e) => tracing::warn!("{}: {e}", cfg.output_dir.display()),
+    let end = RunEnd {
+        t_last,
+        last_tick: tick.checked_sub(1),
+        data_unfinished: tick < setup.ticks_total,
+        fleet_s: t_last.min(own_end) - grid.t0_s,
+    };
+    Ok(node.finish(cfg, &est, run_files, stop, &end, cpu_start.as_ref()))
+}
+
+/// How the main loop of a run ended.
+struct RunEnd {
+    /// The fleet time reached, s.
+    t_last: f64,
+    /// The last tick done, if any.
+    last_tick: Option<u64>,
+    /// Our data had not all been processed.
+    data_unfinished: bool,
+    /// Fleet time our own data covered, s.
+    fleet_s: f64,
+}
+
+impl Node {
+    /// The end of a run: says so (a `Finished` heartbeat), keeps listening
+    /// while peers still run, settles once none does, and completes the
+    /// report.
+    fn finish(
+        mut self,
+        cfg: &AgentConfig,
+        est: &Estimator,
+        run_files: Option<RunFiles>,
+        stop: &AtomicBool,
+        end: &RunEnd,
+        cpu_start: Option<&cpu_time::ThreadTime>,
+    ) -> NodeReport {
+        // The end: say so, then keep listening while peers still run, and settle
+        // once none does.
+        let t_last = end.t_last;
+        let hb = self.outbox.heartbeat(
+            t_last,
+            AgentState::Finished,
+            self.report.run.frames.len() as u64,
+            end.last_tick,
+            self.newest_window_end_s(),
+        );
+        self.publish(vec![hb]);
+        let linger_start = Instant::now();
+        let linger_until = linger_start + Duration::from_secs_f64(cfg.clock.linger_timeout_s);
+        // Fleet seconds per wall second from here on. In lockstep nothing paces
+        // the clock once the data have ended, and the catch-up timers (a request
+        // is sent again after `history.catch_up_retry_s` of fleet time) would
+        // otherwise wait seconds of wall time for a reply that takes
+        // milliseconds: on a lossy link, settling timed out in 18 of 60 runs.
+        let rate = match cfg.clock.mode {
+            ClockMode::Realtime => cfg.clock.realtime_rate,
+            ClockMode::Lockstep => LOCKSTEP_LINGER_RATE,
+        };
+        let mut settling: Option<Settling> = None;
+        while !Self::stopping(stop) && Instant::now() < linger_until {
+            let alive = self.report.peers.alive();
+            let running = alive
+                .iter()
+                .any(|p| !self.report.peers.peers.get(p).is_some_and(|s| s.finished));
+            if !running {
+                // Every peer's data have ended: settle before leaving.
+                let timeout = Duration::from_secs_f64(cfg.clock.settle_timeout_s);
+                let s = match settling.as_mut() {
+                    Some(s) => s,
+                    None => settling.insert(self.start_settling(&alive, timeout)),
+                };
+                if self.settle(s, &alive, t_last, end.last_tick) {
+                    break;
+                }
+            }
+            self.pump(Duration::from_millis(20));
+            // Peers still running may ask for our windows (after an outage): our
+            // data are done, not our archive.
+            self.deliver(f64::INFINITY);
+            let own = t_last + linger_start.elapsed().as_secs_f64() * rate;
+            self.catch_up(own.max(self.peer_clock_s));
         }
-    }
-    node.report.wall_s = node.wall_s();
-    node.report.cpu_s = crate::runner::thread_cpu_s(cpu_start.as_ref());
-    if let Some(mut log) = node.log.take() {
-        // The whole paths once more, so the log ends with them.
-        if let Some(last) = node.report.run.estimate.last() {
-            log_paths(&mut log, &node.report.run, last.t);
+        self.drain();
+        self.deliver(f64::INFINITY);
+        self.store_histories(f64::INFINITY, true);
+        if Self::stopping(stop) {
+            self.report.interrupted = self.report.interrupted || end.data_unfinished;
         }
-        if let Err(e) = log.finish() {
-            tracing::warn!("MCAP log: {e}");
+        self.report.fleet_s = end.fleet_s;
+        self.report.run.cooperation = est.cooperation().map(|c| c.stats);
+        self.report.keyframe_db_bytes = est
+            .cooperation()
+            .map(|c| c.keyframe_db_bytes())
+            .unwrap_or_default();
+        if let Some((asking, replayer)) = self.catch_up.as_ref() {
+            let (a, r) = (&asking.stats, &replayer.stats);
+            self.report.catch_up = Some(CatchUpStats {
+                requests_answered: r.requests_answered,
+                windows_replayed: r.windows_replayed,
+                parts_replayed: r.parts_replayed,
+                replay_bytes: r.replay_bytes,
+                ..a.clone()
+            });
+            self.report.own_archive_bytes = replayer.archive().bytes();
+            self.report.own_archive_windows = replayer.archive().keyframes.len();
+            self.report.own_archive_whole_windows = replayer
+                .archive()
+                .keyframes
+                .values()
+                .filter(|kf| kf.is_whole())
+                .count();
         }
+        if let Some(f) = run_files {
+            match f.finish(&self.report.run) {
+                Ok(()) => self.report.run_files_in = Some(cfg.output_dir.clone()),
+                Err(e) => tracing::warn!("{}: {e}", cfg.output_dir.display()),
+            }
+        }
+        self.report.wall_s = self.wall_s();
+        self.report.cpu_s = crate::runner::thread_cpu_s(cpu_start);
+        if let Some(mut log) = self.log.take() {
+            // The whole paths once more, so the log ends with them.
+            if let Some(last) = self.report.run.estimate.last() {
+                log_paths(&mut log, &self.report.run, last.t);
+            }
+            if let Err(e) = log.finish() {
+                tracing::warn!("MCAP log: {e}");
+            }
+        }
+        if let Err(e) = self.transport.close(Duration::from_secs(2)) {
+            tracing::warn!("closing the transport: {e}");
+        }
+        self.report
     }
-    if let Err(e) = node.transport.close(Duration::from_secs(2)) {
-        tracing::warn!("closing the transport: {e}");
-    }
-    Ok(node.report)
 }
 
 /// Frames between two logged scenes, and the fewest between two logged paths.
@@ -1410,7 +1509,7 @@ fn log_paths(log: &mut crate::agent_log::AgentLog, run: &RobotRun, t: f64) {
 fn log_estimate(
     node: &mut Node,
     o: &FrameOutput,
-    truth: &simulator::truth::RobotTruth,
+    truth: Option<&simulator::truth::RobotTruth>,
     est: &Estimator,
 ) {
     let Some(log) = node.log.as_mut() else {
@@ -1418,7 +1517,7 @@ fn log_estimate(
     };
     let _ = log.pose("/estimate", "world", o.t(), &o.rot, &o.pos);
     let _ = log.covariance(o.t(), &o.cov_ori, &o.cov_pos);
-    if let Some(gt) = truth.spline.pose(o.t()) {
+    if let Some(gt) = truth.and_then(|truth| truth.spline.pose(o.t())) {
         let _ = log.pose("/groundtruth", "world", o.t(), &gt.rot, &gt.trans);
     }
     let run = &node.report.run;

@@ -56,21 +56,23 @@ pub trait RunRecord {
 
 impl RunRecord for RobotRun {
     fn has_truth(&self) -> bool {
-        true
+        !self.without_truth
     }
 
-    /// Rows complete in all four records (they grow together).
+    /// Rows complete in all the records (they grow together).
     fn rows(&self) -> usize {
-        self.estimate
-            .len()
-            .min(self.truth.len())
+        let rows = (self.estimate.len())
             .min(self.covariance.len())
-            .min(self.frames.len())
+            .min(self.frames.len());
+        match self.without_truth {
+            true => rows,
+            false => rows.min(self.truth.len()),
+        }
     }
 
     fn row(&self, i: usize) -> RunRow<'_> {
         RunRow {
-            truth: Some(&self.truth[i]),
+            truth: self.truth.get(i).filter(|_| !self.without_truth),
             estimate: &self.estimate[i],
             covariance: &self.covariance[i],
             frame: &self.frames[i],

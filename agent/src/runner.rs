@@ -143,8 +143,13 @@ pub struct RobotRun {
     pub estimate: Vec<StampedPose>,
     /// Its 3x3 orientation and position covariances.
     pub covariance: Vec<StampedCovariance>,
-    /// The truth at the estimate times.
+    /// The truth at the estimate times (empty when
+    /// [`RobotRun::without_truth`]).
     pub truth: Vec<StampedPose>,
+    /// The run has no truth (live sensors): every estimate is recorded, and
+    /// accuracy is for `sim-fleet eval` against a ground truth recorded
+    /// apart. With a truth, an estimate outside its span is not recorded.
+    pub without_truth: bool,
     /// Per-frame records (timing, feature counts).
     pub frames: Vec<FrameRecord>,
     /// Inputs and frames the estimator rejected, with the reason.
@@ -348,6 +353,14 @@ pub fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: Frame
 }
 
 impl RobotRun {
+    /// Records an estimate of a run [`RobotRun::without_truth`].
+    pub fn record_without_truth(&mut self, o: FrameOutput) {
+        debug_assert!(self.without_truth && self.truth.is_empty());
+        self.estimate.push(o.pose());
+        self.covariance.push(o.covariance());
+        self.frames.push(o.record);
+    }
+
     /// Accuracy, consistency and cost of the run (ATE without alignment).
     pub fn metrics(&self) -> MetricSet {
         let pairs: Vec<PosePair> = self
