@@ -238,9 +238,12 @@ pub struct TransportSection {
 pub struct InputConfig {
     /// `simulator`: the agent simulates its own robot of `scenario` (as a real
     /// robot reads its own sensors); `mcap`: replays `mcap` (a file written by
-    /// `sim-fleet simulate`), with sensor and estimator settings from `scenario`.
+    /// `sim-fleet simulate`), with sensor and estimator settings from `scenario`;
+    /// `live`: the robot's own IMU and camera over Zenoh (`live`).
     pub source: InputSource,
     /// Scenario file (YAML); relative paths are relative to the config file.
+    /// Needed by `simulator` and `mcap`, not read by `live`.
+    #[serde(default)]
     pub scenario: PathBuf,
     /// Robot index in the scenario (default: `robot_id`).
     #[serde(default)]
@@ -251,6 +254,135 @@ pub struct InputConfig {
     /// MCAP file to replay (source `mcap`).
     #[serde(default)]
     pub mcap: Option<PathBuf>,
+    /// Live sensors (source `live`).
+    #[serde(default)]
+    pub live: Option<LiveInputConfig>,
+}
+
+/// A robot's own IMU and camera, live: ROS 2 `sensor_msgs/msg/Imu` and
+/// `sensor_msgs/msg/Image` in CDR over Zenoh (what `zenoh-bridge-ros2dds`
+/// and `rmw_zenoh` carry), on a Zenoh session of their own (the robot's
+/// router, say), apart from the fleet's transport.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LiveInputConfig {
+    /// The calibration: a folder with `cam0/sensor.yaml` and
+    /// `imu0/sensor.yaml` (EuRoC / Kalibr layout; `mav0` inside it is
+    /// found); relative to the config file. The IMU's noise densities come
+    /// from `imu0/sensor.yaml` when it gives them.
+    pub calibration: PathBuf,
+    /// The sensors' Zenoh session (default: the built-in `loopback`,
+    /// scouting for a local router or publisher).
+    #[serde(default)]
+    pub zenoh: ZenohSettings,
+    /// The IMU's key: the topic without its leading `/` for
+    /// `zenoh-bridge-ros2dds`, `<domain>/<topic>/**` for `rmw_zenoh`.
+    #[serde(default = "default_imu_key")]
+    pub imu_key: String,
+    /// The camera's key (mono8, mono16, rgb8, bgr8, rgba8 or bgra8 images).
+    #[serde(default = "default_image_key")]
+    pub image_key: String,
+    /// Where the estimated pose goes after every frame
+    /// (`geometry_msgs/msg/PoseWithCovarianceStamped`, in the fleet's frame);
+    /// none when unset.
+    #[serde(default)]
+    pub pose_key: Option<String>,
+    /// The frame id of the published poses.
+    #[serde(default = "default_world_frame")]
+    pub world_frame: String,
+    /// Where the robot stands at its start, in the fleet's frame.
+    pub start: StartPose,
+    /// Wait this long for the first sensor message, s.
+    #[serde(default = "default_live_wait_s")]
+    pub wait_s: f64,
+    /// End when no sensor message arrived for this long, s.
+    #[serde(default = "default_live_idle_s")]
+    pub idle_timeout_s: f64,
+    /// End after this long in any case, s (unset: until the sensors stop or
+    /// the agent is stopped).
+    #[serde(default)]
+    pub max_duration_s: Option<f64>,
+}
+
+/// The pose of a robot's IMU at its static start, in the fleet's frame
+/// (gravity along -z): the static initializer measures roll and pitch; the
+/// heading and the position are what the fleet's frame makes them, known
+/// to `sigma_*` (a robot set down on a marked spot, or surveyed).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StartPose {
+    /// The IMU's position, m.
+    pub position_m: [f64; 3],
+    /// The heading of the IMU's axis `heading_axis`: its angle, projected on
+    /// the horizontal plane, from the fleet's `x` towards its `y`, deg.
+    pub yaw_deg: f64,
+    /// The IMU axis `yaw_deg` is the heading of: `x`, `y` or `z`, each
+    /// optionally with a leading `-` (default `x`). Take one far from the
+    /// vertical: a tilt error turns an axis at elevation `e` by about
+    /// `tilt / cos(e)` in heading (EuRoC's IMU has `x` up: use `y` there).
+    #[serde(default = "default_heading_axis")]
+    pub heading_axis: String,
+    /// Standard deviation of the start's orientation, deg (each axis).
+    #[serde(default = "default_start_sigma_ori_deg")]
+    pub sigma_ori_deg: f64,
+    /// Standard deviation of the start's position, m (each axis).
+    #[serde(default = "default_start_sigma_pos_m")]
+    pub sigma_pos_m: f64,
+}
+
+fn default_heading_axis() -> String {
+    "x".into()
+}
+
+impl StartPose {
+    /// The unit vector of `heading_axis` in the IMU's frame.
+    pub fn heading_axis_i(&self) -> Result<nalgebra::Vector3<f64>, String> {
+        let (sign, axis) = match self.heading_axis.strip_prefix('-') {
+            Some(a) => (-1.0, a),
+            None => (1.0, self.heading_axis.as_str()),
+        };
+        let unit = match axis {
+            "x" => nalgebra::Vector3::x(),
+            "y" => nalgebra::Vector3::y(),
+            "z" => nalgebra::Vector3::z(),
+            _ => {
+                return Err(format!(
+                    "input.live.start.heading_axis must be x, y or z, optionally with a \
+                     leading - (got `{}`)",
+                    self.heading_axis
+                ))
+            }
+        };
+        Ok(unit * sign)
+    }
+}
+
+fn default_imu_key() -> String {
+    "imu0".into()
+}
+
+fn default_image_key() -> String {
+    "cam0/image_raw".into()
+}
+
+fn default_world_frame() -> String {
+    "fleet_world".into()
+}
+
+fn default_live_wait_s() -> f64 {
+    60.0
+}
+
+fn default_live_idle_s() -> f64 {
+    5.0
+}
+
+fn default_start_sigma_ori_deg() -> f64 {
+    1.0
+}
+
+fn default_start_sigma_pos_m() -> f64 {
+    0.05
 }
 
 /// Where sensor data come from.
@@ -261,6 +393,8 @@ pub enum InputSource {
     Simulator,
     /// A recorded MCAP file.
     Mcap,
+    /// The robot's own sensors, live over Zenoh.
+    Live,
 }
 
 /// Estimator variant and OpenVINS-named overrides of the scenario's settings.
@@ -712,7 +846,12 @@ impl AgentConfig {
                 source,
             })?;
         let base = path.parent().unwrap_or(Path::new("."));
-        cfg.input.scenario = base.join(&cfg.input.scenario);
+        if !cfg.input.scenario.as_os_str().is_empty() {
+            cfg.input.scenario = base.join(&cfg.input.scenario);
+        }
+        if let Some(live) = cfg.input.live.as_mut() {
+            live.calibration = base.join(&live.calibration);
+        }
         cfg.input.mcap = cfg.input.mcap.map(|m| base.join(m));
         cfg.output_dir = base.join(&cfg.output_dir);
         cfg.history.store_dir = cfg.history.store_dir.map(|d| base.join(d));
@@ -753,6 +892,7 @@ impl AgentConfig {
         if self.input.source == InputSource::Mcap && self.input.mcap.is_none() {
             return Err("input.source is mcap but input.mcap is not set".into());
         }
+        self.validate_input()?;
         if !(self.status_period_s.is_finite() && self.status_period_s >= 0.0) {
             return Err(format!(
                 "status_period_s must be a number of seconds >= 0, 0 for none (got {})",
@@ -837,6 +977,71 @@ impl AgentConfig {
     pub fn robot_index(&self) -> usize {
         self.input.robot_index.unwrap_or(self.robot_id as usize)
     }
+
+    /// The input's keys agree with its source.
+    fn validate_input(&self) -> Result<(), String> {
+        let input = &self.input;
+        match (input.source, &input.live) {
+            (InputSource::Live, None) => {
+                return Err("input.source is live but input.live is not set".into())
+            }
+            (InputSource::Live, Some(live)) => {
+                if self.clock.mode == ClockMode::Lockstep {
+                    return Err(
+                        "input.source live runs on the sensors' clock: set clock.mode to \
+                                realtime (lockstep is for simulated and replayed fleets)"
+                            .into(),
+                    );
+                }
+                live.validate()?;
+            }
+            (_, Some(_)) => {
+                return Err("input.live is only read with input.source live".into());
+            }
+            (_, None) if input.scenario.as_os_str().is_empty() => {
+                return Err("input.scenario is not set".into());
+            }
+            (_, None) => {}
+        }
+        Ok(())
+    }
+}
+
+impl LiveInputConfig {
+    /// Range checks.
+    pub fn validate(&self) -> Result<(), String> {
+        let s = &self.start;
+        s.heading_axis_i()?;
+        if !s.position_m.iter().all(|v| v.is_finite()) || !s.yaw_deg.is_finite() {
+            return Err(format!(
+                "input.live.start: position_m and yaw_deg must be finite (got {:?}, {})",
+                s.position_m, s.yaw_deg
+            ));
+        }
+        for (name, v) in [
+            ("input.live.start.sigma_ori_deg", s.sigma_ori_deg),
+            ("input.live.start.sigma_pos_m", s.sigma_pos_m),
+            ("input.live.wait_s", self.wait_s),
+            ("input.live.idle_timeout_s", self.idle_timeout_s),
+            (
+                "input.live.max_duration_s",
+                self.max_duration_s.unwrap_or(1.0),
+            ),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v < 1e9) {
+                return Err(format!("{name} must be a number > 0 (got {v})"));
+            }
+        }
+        for (name, key) in [
+            ("input.live.imu_key", &self.imu_key),
+            ("input.live.image_key", &self.image_key),
+        ] {
+            if key.is_empty() {
+                return Err(format!("{name} is empty"));
+            }
+        }
+        Ok(())
+    }
 }
 
 #[cfg(test)]
@@ -906,6 +1111,52 @@ mod tests {
         assert_eq!(c.publish.snapshot_every_frames, 6);
         assert_eq!(c.input.scenario, dir.path().join("s.yaml"));
         assert_eq!(c.robot_index(), 1);
+    }
+
+    /// A live robot: no scenario, the calibration relative to the file, the
+    /// start pose with its default σ; a live input needs real time, and a
+    /// `live` block anywhere else is refused rather than ignored.
+    #[test]
+    fn a_live_input_reads_its_block_and_refuses_what_cannot_work() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.yaml");
+        let live = "robot_id: 2\noutput_dir: out\nclock:\n  mode: realtime\n\
+                    input:\n  source: live\n  live:\n    calibration: cal\n    \
+                    start: {position_m: [1.0, 2.0, 0.5], yaw_deg: 30.0}\n";
+        std::fs::write(&p, live).unwrap();
+        let c = AgentConfig::load(&p).unwrap();
+        let l = c.input.live.as_ref().unwrap();
+        assert_eq!(l.calibration, dir.path().join("cal"));
+        assert_eq!(l.imu_key, "imu0");
+        assert_eq!(l.image_key, "cam0/image_raw");
+        assert_eq!(l.pose_key, None);
+        assert_eq!(l.start.position_m, [1.0, 2.0, 0.5]);
+        assert_eq!((l.start.sigma_ori_deg, l.start.sigma_pos_m), (1.0, 0.05));
+        assert!(c.input.scenario.as_os_str().is_empty());
+        let refused = |text: &str| {
+            std::fs::write(&p, text).unwrap();
+            AgentConfig::load(&p).unwrap_err().to_string()
+        };
+        let e = refused(&live.replace("realtime", "lockstep"));
+        assert!(e.contains("clock.mode to realtime"), "{e}");
+        assert_eq!(l.start.heading_axis_i(), Ok(nalgebra::Vector3::x()));
+        let e = refused(&live.replace("yaw_deg: 30.0", "yaw_deg: 30.0, heading_axis: w"));
+        assert!(e.contains("heading_axis must be x, y or z"), "{e}");
+        let e = refused(&live.replace("yaw_deg: 30.0", "yaw_deg: .nan"));
+        assert!(e.contains("must be finite"), "{e}");
+        let e = refused(&live.replace("yaw_deg: 30.0", "yaw_deg: 30.0, sigma_pos_m: 0"));
+        assert!(
+            e.contains("input.live.start.sigma_pos_m must be a number > 0"),
+            "{e}"
+        );
+        let e = refused(
+            "robot_id: 2\noutput_dir: out\nclock: {mode: realtime}\ninput: {source: live}\n",
+        );
+        assert!(e.contains("input.live is not set"), "{e}");
+        let e = refused(&live.replace("source: live", "source: simulator\n  scenario: s.yaml"));
+        assert!(e.contains("only read with input.source live"), "{e}");
+        let e = refused("robot_id: 1\noutput_dir: out\ninput:\n  source: simulator\n");
+        assert!(e.contains("input.scenario is not set"), "{e}");
     }
 
     #[test]

@@ -1,8 +1,8 @@
 //! `agent`: runs one robot of the fleet.
 use agent::agent_log::AgentLog;
 use agent::agent_output::{metrics_of, write_outputs};
-use agent::config::AgentConfig;
-use agent::node::{run_node, RobotSetup};
+use agent::config::{AgentConfig, InputSource};
+use agent::node::{run_live_node, run_node, LiveSetup, RobotSetup};
 use agent::runner::{options_for, run_robot, write_run_outputs, Variant};
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -390,13 +390,28 @@ fn publish_euroc(args: &PublishEurocArgs) -> Result<()> {
     Ok(())
 }
 
+/// Where an agent's data come from.
+enum Input {
+    /// A simulated robot, or a recording of one.
+    Recorded(Box<RobotSetup>),
+    /// The robot's own sensors.
+    Live(Box<LiveSetup>),
+}
+
 /// One agent of a fleet: estimator, peers over the configured transport,
 /// outputs in the configured folder. SIGINT/SIGTERM stop it cleanly (a second
 /// signal exits at once).
 fn run_agent(config: &std::path::Path, progress: bool) -> Result<()> {
     let cfg = AgentConfig::load(config)?;
     let stop = stop_flag()?;
-    let setup = RobotSetup::load(&cfg)?;
+    // The robot's input first: a bad scenario or calibration fails before
+    // the agent shows itself to its peers.
+    let input = match cfg.input.source {
+        InputSource::Live => Input::Live(Box::new(LiveSetup::load(&cfg)?)),
+        InputSource::Simulator | InputSource::Mcap => {
+            Input::Recorded(Box::new(RobotSetup::load(&cfg)?))
+        }
+    };
     let settings = cfg.transport_settings();
     let transport = agent::transport::open(&settings, None)
         .with_context(|| format!("robot {}: opening the transport", cfg.robot_id))?;
@@ -405,20 +420,27 @@ fn run_agent(config: &std::path::Path, progress: bool) -> Result<()> {
         robot = cfg.robot_id,
         fleet = %cfg.fleet_id,
         transport = name,
-        ticks = setup.ticks_total,
+        source = ?cfg.input.source,
         "agent starting"
     );
     // This process is one agent: its CPU time (the transport's threads too) is
     // the agent's cost, rather than the node thread's alone.
     let cpu_start = cpu_time::ProcessTime::try_now().ok();
-    let mut report = run_node(&cfg, &setup, transport, &stop, |p| {
+    let show = |p: agent::node::Progress| {
         if progress {
             println!(
                 "progress {} {} {} {:.3}",
                 p.tick, p.ticks_total, p.frames, p.lag_s
             );
         }
-    })?;
+    };
+    let mut report = match &input {
+        Input::Recorded(setup) => run_node(&cfg, setup, transport, &stop, show)?,
+        Input::Live(setup) => run_live_node(&cfg, setup, transport, &stop, show)?,
+    };
+    if let Some(line) = &report.sensors {
+        println!("sensors: {line}");
+    }
     if let Some(d) = cpu_start.and_then(|t| t.try_elapsed().ok()) {
         report.cpu_s = Some(d.as_secs_f64());
     }

@@ -37,6 +37,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use thiserror::Error;
 
+mod live;
+pub use live::{run_live_node, LiveSetup};
+
 /// Why an agent could not run.
 #[derive(Debug, Error)]
 pub enum NodeError {
@@ -64,6 +67,12 @@ pub enum NodeError {
     /// The history store (`history.store_dir`) could not be opened.
     #[error("history store: {0}")]
     Store(#[from] crate::history_store::StoreError),
+    /// Live sensors could not be read (`input.source: live`).
+    #[error("live sensors: {0}")]
+    Live(#[from] crate::ros_input::LiveError),
+    /// The live sensors' calibration could not be read.
+    #[error("calibration: {0}")]
+    Calibration(#[from] crate::dataset::DatasetError),
 }
 
 /// Progress of a run, for the launcher's display.
@@ -147,6 +156,8 @@ pub struct NodeReport {
     pub store: Option<StoreStats>,
     /// How the end of the run settled (`None`: it was stopped first).
     pub settle: Option<SettleStats>,
+    /// Live sensors: what arrived, was undecodable or dropped, per sensor.
+    pub sensors: Option<String>,
 }
 
 /// How the end of a run settled: once every peer's data had ended, the agent
@@ -1093,6 +1104,10 @@ impl Node {
                 seed: header.seed,
                 variant: header.variant.name().to_string(),
                 robot_name: header.robot_name.clone(),
+                run: RobotRun {
+                    without_truth: !header.with_truth,
+                    ..RobotRun::default()
+                },
                 ..NodeReport::default()
             },
             started: Instant::now(),

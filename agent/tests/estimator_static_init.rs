@@ -41,3 +41,41 @@ fn static_initialization_on_real_euroc_imu_recovers_roll_and_pitch_within_one_de
     );
     assert!(tilt_deg < 1.0, "tilt error {tilt_deg} deg");
 }
+
+/// Placed in the motion capture's frame with the true heading and position
+/// (as a fleet places a robot it set down on a surveyed spot), the whole
+/// orientation is right to the tilt error, and the position is the given one.
+#[test]
+fn a_static_start_placed_with_the_true_heading_and_position_is_the_true_pose() {
+    let imu = read_euroc_imu_csv(data("euroc_v1_01_micro/mav0/imu0/data.csv")).expect("imu");
+    let gt = read_euroc_csv(data("trajectories/V1_01_easy.csv")).expect("gt");
+    let mut est = Estimator::new(EstimatorOptions::default(), CameraCalibration::euroc_cam0());
+    let t_end = 1403715273.262 + 4.5;
+    for s in imu.iter().filter(|s| s.t <= t_end) {
+        est.feed_imu(*s).expect("valid sample");
+    }
+    let truth = interpolate_pose(&gt, t_end).expect("gt covers the time");
+    // The heading of the IMU's y axis in the truth's frame: EuRoC's IMU has
+    // x up (its heading would turn by the tilt error / cos(67 deg)), y level.
+    let yaw = truth.rot[(1, 1)].atan2(truth.rot[(0, 1)]);
+    let res = est
+        .initialize_static_at(
+            &StaticInitOptions::default(),
+            &static_start_sigmas(),
+            &Vector3::y(),
+            yaw,
+            truth.pos,
+        )
+        .expect("standing still");
+    let state = est.state().expect("initialized");
+    let truth = interpolate_pose(&gt, res.t).expect("gt covers the time");
+    let err = nalgebra::Rotation3::from_matrix_unchecked(truth.rot.transpose() * state.imu.rot)
+        .angle()
+        .to_degrees();
+    println!(
+        "whole orientation error {err:.3} deg at yaw {:.1} deg",
+        yaw.to_degrees()
+    );
+    assert!(err < 1.0, "orientation error {err} deg");
+    assert!((state.imu.pos - truth.pos).norm() < 1e-3);
+}

@@ -322,6 +322,7 @@ pub fn agent_configs(
                     robot_index: Some(i),
                     seed: args.seed,
                     mcap: None,
+                    live: None,
                 },
                 estimator: EstimatorSection {
                     variant: args.variant.clone(),

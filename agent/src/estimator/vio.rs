@@ -192,12 +192,53 @@ impl Estimator {
         init: &StaticInitOptions,
         sigmas: &InitialState,
     ) -> Result<StaticInitResult, StaticInitError> {
+        self.initialize_static_placed(init, sigmas, None)
+    }
+
+    /// [`Self::initialize_static`] with the start placed in a frame that is
+    /// not the start's own (a fleet's): there, the IMU's axis `axis_i` (a
+    /// unit vector in the IMU's frame) has the heading `yaw_rad` (projected
+    /// on the horizontal plane, from the frame's `x` towards its `y`), and
+    /// the IMU is at `pos`. Take an axis far from the vertical: a tilt error
+    /// turns an axis at elevation `e` by about `tilt / cos(e)` in heading.
+    /// The result's `rot_i_to_g` stays in the initializer's convention.
+    pub fn initialize_static_at(
+        &mut self,
+        init: &StaticInitOptions,
+        sigmas: &InitialState,
+        axis_i: &Vector3<f64>,
+        yaw_rad: f64,
+        pos: Vector3<f64>,
+    ) -> Result<StaticInitResult, StaticInitError> {
+        self.initialize_static_placed(init, sigmas, Some((axis_i, yaw_rad, pos)))
+    }
+
+    fn initialize_static_placed(
+        &mut self,
+        init: &StaticInitOptions,
+        sigmas: &InitialState,
+        place: Option<(&Vector3<f64>, f64, Vector3<f64>)>,
+    ) -> Result<StaticInitResult, StaticInitError> {
         let samples = self.imu.make_contiguous();
         let res = static_initialize(samples, init)?;
+        let (rot, pos) = match place {
+            // Turning the orientation about the vertical by the difference
+            // of headings gives the axis the heading asked for.
+            Some((axis_i, yaw, pos)) => {
+                let r = &res.rot_i_to_g;
+                let a = r * axis_i;
+                let turn = yaw - a.y.atan2(a.x);
+                (
+                    nalgebra::Rotation3::from_axis_angle(&Vector3::z_axis(), turn).into_inner() * r,
+                    pos,
+                )
+            }
+            None => (res.rot_i_to_g, Vector3::zeros()),
+        };
         self.initialize(&InitialState {
             t: res.t,
-            rot: res.rot_i_to_g,
-            pos: Vector3::zeros(),
+            rot,
+            pos,
             vel: res.velocity,
             bias_gyro: res.bias_gyro,
             bias_accel: res.bias_accel,

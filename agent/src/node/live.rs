@@ -1,0 +1,343 @@
+//! A fleet agent on its robot's own sensors, live (`input.source: live`):
+//! the loop of [`run_node`](super::run_node) driven by the IMU samples and
+//! images as they arrive over Zenoh ([`crate::ros_input`]) instead of a tick
+//! grid. The fleet clock is the sensors' clock (the robots' clocks kept
+//! together, by PTP or chrony); the estimator starts with the static
+//! initializer, placed at the configured start pose in the fleet's frame, so
+//! that what peers send and what it estimates share one frame.
+//!
+//! [`run_live_node`] is the whole loop, one sensor event at a time:
+//!
+//! 1. take the peers' messages that arrived into their histories;
+//! 2. feed the event to the estimator (an image through the frontend first;
+//!    until the static start succeeds, its tracks only go to the peers);
+//! 3. take the new estimates: publish each frame's tracks and, when due, a
+//!    window snapshot; record the estimate and publish it as a ROS pose;
+//! 4. history catch-up, the history store and the heartbeat on their periods.
+
+use super::{event_time, Node, NodeError, NodeReport, Progress, RunEnd, RunHeader};
+use crate::config::{AgentConfig, LiveInputConfig};
+use crate::dataset::{mav0_root, SensorSetup};
+use crate::estimator::static_init::{static_start_sigmas, StaticInitOptions};
+use crate::estimator::{Estimator, InitialState};
+use crate::node_images::ImageFrames;
+use crate::ros_input::{LiveError, LiveLimits, LiveSensors, SensorKeys};
+use crate::runner::Variant;
+use crate::status_log::StatusLog;
+use common::calibration::CameraCalibration;
+use common::estimator_options::EstimatorOptions;
+use common::messages::AgentState;
+use nalgebra::Vector3;
+use simulator::SimEvent;
+use std::collections::VecDeque;
+use std::sync::atomic::AtomicBool;
+use std::sync::mpsc::{sync_channel, RecvTimeoutError};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Sensor events between the reading thread and the loop: a few seconds of
+/// a 200 Hz IMU. When the loop falls behind, the reader waits and the
+/// sensors' own bounded queues drop (and count) what does not fit.
+const EVENT_QUEUE: usize = 1024;
+
+/// Longest wait for a sensor event before the loop looks at its peers, ms.
+const POLL_MS: u64 = 5;
+
+/// The robot this agent is, on live sensors: its calibration and its
+/// estimator's settings.
+#[derive(Clone, Debug)]
+pub struct LiveSetup {
+    /// The camera's (and the IMU's) calibration.
+    pub calibration: CameraCalibration,
+    /// The estimator's settings: the defaults, the IMU noise of the
+    /// calibration, the variant, then the configuration's `estimator:` keys.
+    pub opts: EstimatorOptions,
+    /// Estimator variant.
+    pub variant: Variant,
+    /// The `input.live` block.
+    pub live: LiveInputConfig,
+}
+
+impl LiveSetup {
+    /// Reads the calibration `cfg.input.live` names and sets the estimator up.
+    pub fn load(cfg: &AgentConfig) -> Result<Self, NodeError> {
+        let live = cfg
+            .input
+            .live
+            .clone()
+            .ok_or_else(|| LiveError::Setting("input.live is not set".into()))?;
+        let sensors = SensorSetup::load(&mav0_root(&live.calibration))?;
+        let variant: Variant = cfg.estimator.variant.parse()?;
+        if variant.centralized() {
+            return Err(LiveError::Setting(format!(
+                "variant `{}` runs in one process over the whole fleet, not in an agent",
+                variant.name()
+            ))
+            .into());
+        }
+        let mut opts = EstimatorOptions::default();
+        if let Some(n) = sensors.imu_noise {
+            opts.imu.gyro_noise_density = n.gyroscope_noise_density;
+            opts.imu.gyro_random_walk = n.gyroscope_random_walk;
+            opts.imu.accel_noise_density = n.accelerometer_noise_density;
+            opts.imu.accel_random_walk = n.accelerometer_random_walk;
+        }
+        variant.apply(&mut opts);
+        cfg.estimator.apply(&mut opts);
+        opts.validate()
+            .map_err(|e| LiveError::Setting(format!("estimator settings: {e}")))?;
+        Ok(Self {
+            calibration: sensors.calibration,
+            opts,
+            variant,
+            live,
+        })
+    }
+
+    /// The prior of the placed static start: the static initializer's,
+    /// with the start pose's standard deviations.
+    fn start_sigmas(&self) -> InitialState {
+        InitialState {
+            sigma_ori_rad: self.live.start.sigma_ori_deg.to_radians(),
+            sigma_pos_m: self.live.start.sigma_pos_m,
+            ..static_start_sigmas()
+        }
+    }
+}
+
+/// Runs the agent on live sensors until they stop (`input.live.idle_timeout_s`),
+/// the time is up (`max_duration_s`) or `stop` is set, then lingers while peers
+/// still run, as [`run_node`](super::run_node) does. Outputs are returned, not
+/// written ([`crate::agent_output`]); the run's text files are written as it
+/// goes.
+pub fn run_live_node(
+    cfg: &AgentConfig,
+    setup: &LiveSetup,
+    transport: Box<dyn crate::transport::Transport>,
+    stop: &Arc<AtomicBool>,
+    mut progress: impl FnMut(Progress),
+) -> Result<NodeReport, NodeError> {
+    let cpu_start = cpu_time::ThreadTime::try_now().ok();
+    let live = &setup.live;
+    let mut est = Estimator::new(setup.opts.clone(), setup.calibration.clone());
+    let header = RunHeader {
+        scenario: "live".into(),
+        seed: cfg.input.seed.unwrap_or(0),
+        variant: setup.variant,
+        robot_name: format!("robot{}", cfg.robot_id),
+        mission: format!("live, fleet {}", cfg.fleet_id),
+        with_truth: false,
+    };
+    let keys = SensorKeys {
+        imu: live.imu_key.clone(),
+        image: live.image_key.clone(),
+    };
+    // The sensors first: a bad sensor setting must not leave a half-run.
+    let sensors = LiveSensors::open(&live.zenoh, &keys)?;
+    let counts = sensors.counts();
+    let mut poses = match &live.pose_key {
+        Some(key) => Some(sensors.pose_publisher(key, &live.world_frame)?),
+        None => None,
+    };
+    let (mut node, mut run_files) = Node::open(cfg, &header, transport, &mut est)?;
+    tracing::info!(
+        robot = cfg.robot_id,
+        "{}: listening for {} (IMU) and {} (camera)",
+        setup.variant.name(),
+        keys.imu,
+        keys.image
+    );
+    node.wait_for_peers(cfg, stop);
+
+    let limits = LiveLimits {
+        wait_first: Duration::from_secs_f64(live.wait_s),
+        idle: Duration::from_secs_f64(live.idle_timeout_s),
+        max_duration: live.max_duration_s.map(Duration::from_secs_f64),
+    };
+    let mut events = sensors.events(Arc::clone(stop), limits);
+    let (tx, rx) = sync_channel(EVENT_QUEUE);
+    // The sensors' iterator blocks; the loop must also hear its peers.
+    let reader = std::thread::Builder::new()
+        .name(format!("robot{}-sensors", cfg.robot_id))
+        .spawn(move || {
+            for ev in events.by_ref() {
+                if tx.send(ev).is_err() {
+                    break;
+                }
+            }
+            events
+        })
+        .map_err(|e| LiveError::Setting(format!("starting the sensor reader: {e}")))?;
+
+    let start = &live.start;
+    let start_pos = Vector3::from(start.position_m);
+    let start_yaw = start.yaw_deg.to_radians();
+    let heading_axis = start.heading_axis_i().map_err(LiveError::Setting)?;
+    let sigmas = setup.start_sigmas();
+    let init = StaticInitOptions::default();
+    let mut images: Option<ImageFrames> = None;
+    let mut status = StatusLog::new(cfg.status_period_s);
+    let mut queued = VecDeque::new();
+    let mut frames_seen = 0u64;
+    let mut initialized = false;
+    let mut t_first: Option<f64> = None;
+    let mut last_heartbeat = Instant::now();
+    loop {
+        if Node::stopping(stop) {
+            node.report.interrupted = true;
+            break;
+        }
+        let ev = match rx.recv_timeout(Duration::from_millis(POLL_MS)) {
+            Ok(ev) => Some(ev),
+            Err(RecvTimeoutError::Timeout) => None,
+            Err(RecvTimeoutError::Disconnected) => break,
+        };
+        // 1. What the peers sent: on the sensors' clock there is no barrier.
+        node.drain();
+        node.deliver(f64::INFINITY);
+        // 2. The event.
+        match ev {
+            Some(Ok(ev)) => {
+                let t = event_time(&ev);
+                t_first.get_or_insert(t);
+                node.fleet_t = Some(node.fleet_t.map_or(t, |f| f.max(t)));
+                match ev {
+                    SimEvent::Imu(s) => {
+                        if let Err(e) = est.feed_imu(s) {
+                            node.report.run.rejected.push(e.to_string());
+                        }
+                    }
+                    SimEvent::Camera(mut c) => {
+                        let imgs = match images.as_mut() {
+                            Some(i) => i,
+                            None => images.insert(
+                                ImageFrames::new(
+                                    &cfg.images.frontend,
+                                    setup.calibration.camera.clone(),
+                                    cfg.images.mcap_every,
+                                )
+                                .map_err(NodeError::Images)?,
+                            ),
+                        };
+                        // A damaged image loses its frame, not the run.
+                        if let Err(e) = imgs.apply(&mut c, node.log.as_mut()) {
+                            node.report
+                                .run
+                                .rejected
+                                .push(format!("image at t={:.6} s: {e}", c.frame.t));
+                        } else {
+                            let index = frames_seen;
+                            frames_seen += 1;
+                            if !initialized {
+                                // Only the IMU up to this image counts.
+                                if let Ok(res) = est.initialize_static_at(
+                                    &init,
+                                    &sigmas,
+                                    &heading_axis,
+                                    start_yaw,
+                                    start_pos,
+                                ) {
+                                    initialized = true;
+                                    tracing::info!(
+                                        robot = cfg.robot_id,
+                                        t = res.t,
+                                        "static start, placed at {:?} m, IMU {} heading {} deg",
+                                        start.position_m,
+                                        start.heading_axis,
+                                        start.yaw_deg
+                                    );
+                                }
+                                let env = node.outbox.tracks(index, &c.frame, est.calibration());
+                                node.publish(env);
+                            } else {
+                                match est.feed_frame(c.frame.clone()) {
+                                    Ok(()) => queued.push_back((index, c.frame)),
+                                    Err(e) => node.report.run.rejected.push(e.to_string()),
+                                }
+                            }
+                        }
+                    }
+                }
+                // 3. The new estimates.
+                let n = node.take_estimates(&mut est, &mut queued, None, run_files.as_mut());
+                if n > 0 {
+                    let run = &node.report.run;
+                    if let (Some(p), Some(pose), Some(cov)) =
+                        (poses.as_mut(), run.estimate.last(), run.covariance.last())
+                    {
+                        p.publish(pose, cov);
+                    }
+                }
+            }
+            Some(Err(why)) => node.report.run.rejected.push(why),
+            None => {}
+        }
+        // 4. Housekeeping on the fleet clock.
+        let Some(now_s) = node.fleet_t else {
+            continue;
+        };
+        node.catch_up(now_s);
+        node.store_histories(now_s, false);
+        if last_heartbeat.elapsed().as_secs_f64() >= cfg.publish.heartbeat_period_s {
+            last_heartbeat = Instant::now();
+            let hb = node.outbox.heartbeat(
+                now_s,
+                AgentState::Running,
+                node.report.run.frames.len() as u64,
+                frames_seen.checked_sub(1),
+                node.newest_window_end_s(),
+            );
+            node.publish(vec![hb]);
+            progress(Progress {
+                tick: frames_seen,
+                ticks_total: 0,
+                frames: node.report.run.frames.len() as u64,
+                lag_s: 0.0,
+            });
+        }
+        node.report.ticks = frames_seen;
+        if let Some(s) = status.as_mut() {
+            let frames = &node.report.run.frames;
+            if let Some(line) = s.due(
+                node.wall_s(),
+                || node.counters(0.0),
+                |k| frames.get(k).map_or(0.0, |f| f.timing.cpu_ms),
+                &node.report.latencies_ms,
+            ) {
+                tracing::info!(robot = cfg.robot_id, "status: {line}");
+            }
+        }
+    }
+    drop(rx);
+    match reader.join() {
+        Ok(events) => events.close(Duration::from_secs(5)),
+        Err(_) => tracing::warn!("the sensor reader panicked"),
+    }
+    let sensors_line = counts.line();
+    tracing::info!(robot = cfg.robot_id, "sensors: {sensors_line}");
+    if let Some(p) = &poses {
+        tracing::info!(
+            robot = cfg.robot_id,
+            "poses: {} published ({} refused)",
+            p.sent,
+            p.failed
+        );
+    }
+    let t_last = node.fleet_t.unwrap_or(0.0);
+    let end = RunEnd {
+        t_last,
+        last_tick: frames_seen.checked_sub(1),
+        data_unfinished: false,
+        fleet_s: t_first.map_or(0.0, |t0| t_last - t0),
+    };
+    let mut report = node.finish(cfg, &est, run_files, stop, &end, cpu_start.as_ref());
+    if counts.nothing_received() {
+        return Err(LiveError::Setting(format!(
+            "no sensor message decoded on {} or {} within {} s",
+            keys.imu, keys.image, live.wait_s
+        ))
+        .into());
+    }
+    report.sensors = Some(sensors_line);
+    Ok(report)
+}
