@@ -7,7 +7,7 @@
 use crate::dataset::{mav0_root, SensorSetup};
 use crate::dataset_cli::{dataset_options, StreamRun};
 use crate::dataset_run::StreamSensors;
-use crate::ros_input::{LiveLimits, LiveSensors, ZenohArgs};
+use crate::ros_input::{EstimateLatency, LiveLimits, LiveSensors, ZenohArgs};
 use anyhow::{bail, Context, Result};
 use common::trajectory::read_euroc_csv;
 use std::path::PathBuf;
@@ -56,14 +56,6 @@ pub struct LiveArgs {
     #[arg(long, default_value = "vio_world")]
     pub world_frame: String,
 }
-
-/// Latencies kept for the figures (8 MiB): a long run must not grow them
-/// without bound.
-const MAX_LATENCIES: usize = 1 << 20;
-
-/// An estimate this close to an image's stamp is that image's, s: the
-/// camera-IMU time offset the filter estimates is far below a frame period.
-const SAME_IMAGE_S: f64 = 0.005;
 
 fn seconds(name: &str, s: f64) -> Result<Duration> {
     Duration::try_from_secs_f64(s)
@@ -120,8 +112,7 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
         wall,
     };
     let mut events = live.events(stop, limits);
-    let arrivals = events.arrivals();
-    let mut latencies_ms: Vec<f64> = Vec::new();
+    let mut latency = EstimateLatency::new(events.arrivals());
     let result = run.run(&mut events, |record| {
         let (Some(pose), Some(cov)) = (record.estimate.last(), record.covariance.last()) else {
             return;
@@ -129,23 +120,7 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
         if let Some(p) = poses.as_mut() {
             p.publish(pose, cov);
         }
-        // The estimate of an image: how long after the image arrived. Its
-        // time is the image's plus the estimated camera-IMU offset.
-        if let Ok(mut a) = arrivals.lock() {
-            let mut image_arrived = None;
-            while let Some(&(t, at)) = a.front() {
-                if t > pose.t + SAME_IMAGE_S {
-                    break;
-                }
-                a.pop_front();
-                if (t - pose.t).abs() <= SAME_IMAGE_S {
-                    image_arrived = Some(at);
-                }
-            }
-            if let Some(at) = image_arrived.filter(|_| latencies_ms.len() < MAX_LATENCIES) {
-                latencies_ms.push(at.elapsed().as_secs_f64() * 1e3);
-            }
-        }
+        latency.estimated(pose.t);
     });
     events.close(Duration::from_secs(5));
     println!("sensors: {}", counts.line());
@@ -155,7 +130,7 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
             p.sent,
             args.pose_key,
             p.failed,
-            latency_line(&mut latencies_ms)
+            latency.line()
         );
     }
     if counts.nothing_received() {
@@ -167,18 +142,4 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
         );
     }
     result.map(|_| ())
-}
-
-/// Mean and 95th percentile of the latencies, for the console.
-fn latency_line(ms: &mut [f64]) -> String {
-    if ms.is_empty() {
-        return "no estimate matched an image's arrival".into();
-    }
-    ms.sort_by(f64::total_cmp);
-    let mean = ms.iter().sum::<f64>() / ms.len() as f64;
-    let p95 = ms[((ms.len() - 1) as f64 * 0.95).round() as usize];
-    format!(
-        "an estimate {mean:.1} ms (p95 {p95:.1}) after its image arrived, over {} images",
-        ms.len()
-    )
 }

@@ -503,6 +503,68 @@ fn camera_event(t: f64, image: GrayImage) -> SimEvent {
     }))
 }
 
+/// Latencies kept for the figures (8 MiB): a long run must not grow them
+/// without bound.
+const MAX_LATENCIES: usize = 1 << 20;
+
+/// An estimate this close to an image's stamp is that image's, s: the
+/// camera-IMU time offset the filter estimates is far below a frame period.
+const SAME_IMAGE_S: f64 = 0.005;
+
+/// How long after its image came off the network each estimate was made.
+#[derive(Debug)]
+pub struct EstimateLatency {
+    arrivals: ImageArrivals,
+    ms: Vec<f64>,
+}
+
+impl EstimateLatency {
+    /// Latencies against the image arrivals of [`LiveEvents::arrivals`].
+    pub fn new(arrivals: ImageArrivals) -> Self {
+        Self {
+            arrivals,
+            ms: Vec::new(),
+        }
+    }
+
+    /// An estimate at `t_s` (the image's time plus the estimated camera-IMU
+    /// offset) was just made: its image's latency is kept, and the arrivals
+    /// before it are forgotten.
+    pub fn estimated(&mut self, t_s: f64) {
+        let Ok(mut a) = self.arrivals.lock() else {
+            return;
+        };
+        let mut image_arrived = None;
+        while let Some(&(t, at)) = a.front() {
+            if t > t_s + SAME_IMAGE_S {
+                break;
+            }
+            a.pop_front();
+            if (t - t_s).abs() <= SAME_IMAGE_S {
+                image_arrived = Some(at);
+            }
+        }
+        if let Some(at) = image_arrived.filter(|_| self.ms.len() < MAX_LATENCIES) {
+            self.ms.push(at.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+
+    /// Mean and 95th percentile, for the console.
+    pub fn line(&self) -> String {
+        if self.ms.is_empty() {
+            return "no estimate matched an image's arrival".into();
+        }
+        let mut ms = self.ms.clone();
+        ms.sort_by(f64::total_cmp);
+        let mean = ms.iter().sum::<f64>() / ms.len() as f64;
+        let p95 = ms[((ms.len() - 1) as f64 * 0.95).round() as usize];
+        format!(
+            "an estimate {mean:.1} ms (p95 {p95:.1}) after its image arrived, over {} images",
+            ms.len()
+        )
+    }
+}
+
 /// Publishes a robot's estimated pose ([`LiveSensors::pose_publisher`]).
 pub struct PosePublisher {
     publisher: zenoh::pubsub::Publisher<'static>,

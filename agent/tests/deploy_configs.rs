@@ -20,6 +20,23 @@ fn example_agent_configuration_loads() {
     assert_eq!(cfg.estimator.variant, "dc-full-history");
 }
 
+/// The live robot's example: its own sensors, placed in the fleet's frame,
+/// on the sensors' clock.
+#[test]
+fn example_live_configuration_loads() {
+    use agent::config::{ClockMode, InputSource};
+    let cfg = AgentConfig::load(&repo("deploy/config/robot1-live.yaml")).expect("robot1-live.yaml");
+    assert_eq!(cfg.input.source, InputSource::Live);
+    assert_eq!(cfg.clock.mode, ClockMode::Realtime);
+    let live = cfg.input.live.expect("the live block");
+    assert!(live.calibration.ends_with("deploy/config/kalibr"));
+    assert_eq!(live.zenoh.connect, ["tcp/127.0.0.1:7447"]);
+    assert_eq!(
+        live.start.heading_axis_i().expect("axis"),
+        nalgebra::Vector3::x()
+    );
+}
+
 #[test]
 fn zenoh_router_setup_files_load() {
     for f in [

@@ -234,3 +234,53 @@ fn two_agents_on_live_sensors_share_the_fleet_frame_and_cooperate() {
     );
     listener.close().wait().expect("close");
 }
+
+/// A live agent whose calibration is missing stops at once and names it;
+/// one whose sensors never speak stops after `wait_s` and says on which keys
+/// it listened.
+#[test]
+fn a_live_agent_without_calibration_or_sensors_stops_with_the_reason() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let ports: [u16; 4] = common::loopback_ports::free_loopback_ports(4)
+        .expect("ports")
+        .try_into()
+        .expect("four");
+    let start = StampedPose {
+        t: 0.0,
+        rot: nalgebra::Matrix3::identity(),
+        pos: nalgebra::Vector3::zeros(),
+    };
+    let run = |calibration: &Path, extra: &str| {
+        let cfg = dir.path().join("robot0.yaml");
+        let text = config(0, calibration, &dir.path().join("out"), &ports, &start)
+            .replace(
+                "idle_timeout_s: 3",
+                &format!("idle_timeout_s: 3\n    {extra}"),
+            )
+            .replace("peers: [1]", "peers: []");
+        std::fs::write(&cfg, text).expect("config");
+        let child = agent()
+            .arg("--config")
+            .arg(&cfg)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("agent");
+        let out = wait_for(child, Duration::from_secs(60));
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let missing = dir.path().join("no-such-calibration");
+    let err = run(&missing, "");
+    assert!(
+        err.contains("calibration") && err.contains("no-such-calibration"),
+        "{err}"
+    );
+    // A real calibration, and nobody publishing.
+    let seq = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/euroc_v1_01_micro");
+    let err = run(&seq, "wait_s: 1");
+    assert!(
+        err.contains("no sensor message decoded on robot0/imu0 or robot0/cam0/image_raw"),
+        "{err}"
+    );
+}

@@ -21,11 +21,12 @@ use crate::dataset::{mav0_root, SensorSetup};
 use crate::estimator::static_init::{static_start_sigmas, StaticInitOptions};
 use crate::estimator::{Estimator, InitialState};
 use crate::node_images::ImageFrames;
-use crate::ros_input::{LiveError, LiveLimits, LiveSensors, SensorKeys};
+use crate::ros_input::{EstimateLatency, LiveError, LiveLimits, LiveSensors, SensorKeys};
 use crate::runner::Variant;
 use crate::status_log::StatusLog;
 use common::calibration::CameraCalibration;
 use common::estimator_options::EstimatorOptions;
+use common::measurement::FeatureFrame;
 use common::messages::AgentState;
 use nalgebra::Vector3;
 use simulator::SimEvent;
@@ -39,6 +40,9 @@ use std::time::{Duration, Instant};
 /// a 200 Hz IMU. When the loop falls behind, the reader waits and the
 /// sensors' own bounded queues drop (and count) what does not fit.
 const EVENT_QUEUE: usize = 1024;
+
+/// Wall time between two notes that the static start is still waiting.
+const START_NOTE_PERIOD: Duration = Duration::from_secs(5);
 
 /// Longest wait for a sensor event before the loop looks at its peers, ms.
 const POLL_MS: u64 = 5;
@@ -105,6 +109,109 @@ impl LiveSetup {
     }
 }
 
+/// Where and how the static start puts the robot in the fleet's frame.
+struct Placement {
+    init: StaticInitOptions,
+    sigmas: InitialState,
+    /// The IMU axis whose heading is given (unit, IMU frame).
+    axis_i: Vector3<f64>,
+    yaw_rad: f64,
+    pos: Vector3<f64>,
+}
+
+/// The robot's own side of the loop: its filter and frontend, and the
+/// frames waiting for their estimates.
+struct Robot<'a> {
+    cfg: &'a AgentConfig,
+    setup: &'a LiveSetup,
+    est: Estimator,
+    images: Option<ImageFrames>,
+    queued: VecDeque<(u64, FeatureFrame)>,
+    frames_seen: u64,
+    /// The start still to make (`None` once the filter runs).
+    start: Option<Placement>,
+    /// When the wait for a static start was last noted.
+    waiting_noted: Instant,
+}
+
+impl Robot<'_> {
+    /// One sensor event into the filter: an IMU sample, or an image through
+    /// the frontend. A sample the filter refuses (NaN, time going back) and
+    /// an image the frontend cannot take lose themselves, not the run.
+    fn event(&mut self, node: &mut Node, ev: SimEvent) -> Result<(), NodeError> {
+        match ev {
+            SimEvent::Imu(s) => {
+                if let Err(e) = self.est.feed_imu(s) {
+                    node.report.run.rejected.push(e.to_string());
+                }
+            }
+            SimEvent::Camera(mut c) => {
+                let images = match self.images.as_mut() {
+                    Some(i) => i,
+                    None => self.images.insert(
+                        ImageFrames::new(
+                            &self.cfg.images.frontend,
+                            self.setup.calibration.camera.clone(),
+                            self.cfg.images.mcap_every,
+                        )
+                        .map_err(NodeError::Images)?,
+                    ),
+                };
+                if let Err(e) = images.apply(&mut c, node.log.as_mut()) {
+                    let why = format!("image at t={:.6} s: {e}", c.frame.t);
+                    node.report.run.rejected.push(why);
+                    return Ok(());
+                }
+                let index = self.frames_seen;
+                self.frames_seen += 1;
+                if self.start.is_some() {
+                    // Before the start the tracks only go to the peers.
+                    self.try_start();
+                    let env = node.outbox.tracks(index, &c.frame, self.est.calibration());
+                    node.publish(env);
+                } else {
+                    match self.est.feed_frame(c.frame.clone()) {
+                        Ok(()) => self.queued.push_back((index, c.frame)),
+                        Err(e) => node.report.run.rejected.push(e.to_string()),
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Starts the filter if the IMU up to this image stood still, placed in
+    /// the fleet's frame; says every few seconds why it cannot yet (a robot
+    /// that never stands still never starts).
+    fn try_start(&mut self) {
+        let Some(p) = self.start.as_ref() else {
+            return;
+        };
+        match (self.est).initialize_static_at(&p.init, &p.sigmas, &p.axis_i, p.yaw_rad, p.pos) {
+            Ok(res) => {
+                let s = &self.setup.live.start;
+                tracing::info!(
+                    robot = self.cfg.robot_id,
+                    t = res.t,
+                    "static start, placed at {:?} m, IMU {} heading {} deg",
+                    s.position_m,
+                    s.heading_axis,
+                    s.yaw_deg
+                );
+                self.start = None;
+            }
+            Err(e) if self.waiting_noted.elapsed() >= START_NOTE_PERIOD => {
+                self.waiting_noted = Instant::now();
+                tracing::warn!(
+                    robot = self.cfg.robot_id,
+                    "no static start yet (keep the robot still): {e}"
+                );
+            }
+            Err(_) => {}
+        }
+    }
+}
+
 /// Runs the agent on live sensors until they stop (`input.live.idle_timeout_s`),
 /// the time is up (`max_duration_s`) or `stop` is set, then lingers while peers
 /// still run, as [`run_node`](super::run_node) does. Outputs are returned, not
@@ -119,7 +226,23 @@ pub fn run_live_node(
 ) -> Result<NodeReport, NodeError> {
     let cpu_start = cpu_time::ThreadTime::try_now().ok();
     let live = &setup.live;
-    let mut est = Estimator::new(setup.opts.clone(), setup.calibration.clone());
+    let start = &live.start;
+    let mut robot = Robot {
+        cfg,
+        setup,
+        est: Estimator::new(setup.opts.clone(), setup.calibration.clone()),
+        images: None,
+        queued: VecDeque::new(),
+        frames_seen: 0,
+        start: Some(Placement {
+            init: StaticInitOptions::default(),
+            sigmas: setup.start_sigmas(),
+            axis_i: start.heading_axis_i().map_err(LiveError::Setting)?,
+            yaw_rad: start.yaw_deg.to_radians(),
+            pos: Vector3::from(start.position_m),
+        }),
+        waiting_noted: Instant::now(),
+    };
     let header = RunHeader {
         scenario: "live".into(),
         seed: cfg.input.seed.unwrap_or(0),
@@ -139,7 +262,7 @@ pub fn run_live_node(
         Some(key) => Some(sensors.pose_publisher(key, &live.world_frame)?),
         None => None,
     };
-    let (mut node, mut run_files) = Node::open(cfg, &header, transport, &mut est)?;
+    let (mut node, mut run_files) = Node::open(cfg, &header, transport, &mut robot.est)?;
     tracing::info!(
         robot = cfg.robot_id,
         "{}: listening for {} (IMU) and {} (camera)",
@@ -155,6 +278,7 @@ pub fn run_live_node(
         max_duration: live.max_duration_s.map(Duration::from_secs_f64),
     };
     let mut events = sensors.events(Arc::clone(stop), limits);
+    let mut latency = EstimateLatency::new(events.arrivals());
     let (tx, rx) = sync_channel(EVENT_QUEUE);
     // The sensors' iterator blocks; the loop must also hear its peers.
     let reader = std::thread::Builder::new()
@@ -169,17 +293,7 @@ pub fn run_live_node(
         })
         .map_err(|e| LiveError::Setting(format!("starting the sensor reader: {e}")))?;
 
-    let start = &live.start;
-    let start_pos = Vector3::from(start.position_m);
-    let start_yaw = start.yaw_deg.to_radians();
-    let heading_axis = start.heading_axis_i().map_err(LiveError::Setting)?;
-    let sigmas = setup.start_sigmas();
-    let init = StaticInitOptions::default();
-    let mut images: Option<ImageFrames> = None;
     let mut status = StatusLog::new(cfg.status_period_s);
-    let mut queued = VecDeque::new();
-    let mut frames_seen = 0u64;
-    let mut initialized = false;
     let mut t_first: Option<f64> = None;
     let mut last_heartbeat = Instant::now();
     loop {
@@ -195,78 +309,28 @@ pub fn run_live_node(
         // 1. What the peers sent: on the sensors' clock there is no barrier.
         node.drain();
         node.deliver(f64::INFINITY);
-        // 2. The event.
         match ev {
             Some(Ok(ev)) => {
                 let t = event_time(&ev);
                 t_first.get_or_insert(t);
                 node.fleet_t = Some(node.fleet_t.map_or(t, |f| f.max(t)));
-                match ev {
-                    SimEvent::Imu(s) => {
-                        if let Err(e) = est.feed_imu(s) {
-                            node.report.run.rejected.push(e.to_string());
-                        }
-                    }
-                    SimEvent::Camera(mut c) => {
-                        let imgs = match images.as_mut() {
-                            Some(i) => i,
-                            None => images.insert(
-                                ImageFrames::new(
-                                    &cfg.images.frontend,
-                                    setup.calibration.camera.clone(),
-                                    cfg.images.mcap_every,
-                                )
-                                .map_err(NodeError::Images)?,
-                            ),
-                        };
-                        // A damaged image loses its frame, not the run.
-                        if let Err(e) = imgs.apply(&mut c, node.log.as_mut()) {
-                            node.report
-                                .run
-                                .rejected
-                                .push(format!("image at t={:.6} s: {e}", c.frame.t));
-                        } else {
-                            let index = frames_seen;
-                            frames_seen += 1;
-                            if !initialized {
-                                // Only the IMU up to this image counts.
-                                if let Ok(res) = est.initialize_static_at(
-                                    &init,
-                                    &sigmas,
-                                    &heading_axis,
-                                    start_yaw,
-                                    start_pos,
-                                ) {
-                                    initialized = true;
-                                    tracing::info!(
-                                        robot = cfg.robot_id,
-                                        t = res.t,
-                                        "static start, placed at {:?} m, IMU {} heading {} deg",
-                                        start.position_m,
-                                        start.heading_axis,
-                                        start.yaw_deg
-                                    );
-                                }
-                                let env = node.outbox.tracks(index, &c.frame, est.calibration());
-                                node.publish(env);
-                            } else {
-                                match est.feed_frame(c.frame.clone()) {
-                                    Ok(()) => queued.push_back((index, c.frame)),
-                                    Err(e) => node.report.run.rejected.push(e.to_string()),
-                                }
-                            }
-                        }
-                    }
-                }
-                // 3. The new estimates.
-                let n = node.take_estimates(&mut est, &mut queued, None, run_files.as_mut());
-                if n > 0 {
-                    let run = &node.report.run;
-                    if let (Some(p), Some(pose), Some(cov)) =
-                        (poses.as_mut(), run.estimate.last(), run.covariance.last())
-                    {
+                // 2. The event.
+                robot.event(&mut node, ev)?;
+                // 3. The new estimates, out as ROS poses too.
+                let n = node.take_estimates(
+                    &mut robot.est,
+                    &mut robot.queued,
+                    None,
+                    run_files.as_mut(),
+                );
+                let run = &node.report.run;
+                if let (true, Some(pose), Some(cov)) =
+                    (n > 0, run.estimate.last(), run.covariance.last())
+                {
+                    if let Some(p) = poses.as_mut() {
                         p.publish(pose, cov);
                     }
+                    latency.estimated(pose.t);
                 }
             }
             Some(Err(why)) => node.report.run.rejected.push(why),
@@ -278,24 +342,24 @@ pub fn run_live_node(
         };
         node.catch_up(now_s);
         node.store_histories(now_s, false);
+        node.report.ticks = robot.frames_seen;
         if last_heartbeat.elapsed().as_secs_f64() >= cfg.publish.heartbeat_period_s {
             last_heartbeat = Instant::now();
             let hb = node.outbox.heartbeat(
                 now_s,
                 AgentState::Running,
                 node.report.run.frames.len() as u64,
-                frames_seen.checked_sub(1),
+                robot.frames_seen.checked_sub(1),
                 node.newest_window_end_s(),
             );
             node.publish(vec![hb]);
             progress(Progress {
-                tick: frames_seen,
+                tick: robot.frames_seen,
                 ticks_total: 0,
                 frames: node.report.run.frames.len() as u64,
                 lag_s: 0.0,
             });
         }
-        node.report.ticks = frames_seen;
         if let Some(s) = status.as_mut() {
             let frames = &node.report.run.frames;
             if let Some(line) = s.due(
@@ -313,7 +377,7 @@ pub fn run_live_node(
         Ok(events) => events.close(Duration::from_secs(5)),
         Err(_) => tracing::warn!("the sensor reader panicked"),
     }
-    let sensors_line = counts.line();
+    let sensors_line = format!("{}; {}", counts.line(), latency.line());
     tracing::info!(robot = cfg.robot_id, "sensors: {sensors_line}");
     if let Some(p) = &poses {
         tracing::info!(
@@ -323,14 +387,20 @@ pub fn run_live_node(
             p.failed
         );
     }
+    if robot.start.is_some() && !counts.nothing_received() {
+        tracing::warn!(
+            robot = cfg.robot_id,
+            "the robot never stood still long enough to start: no estimate"
+        );
+    }
     let t_last = node.fleet_t.unwrap_or(0.0);
     let end = RunEnd {
         t_last,
-        last_tick: frames_seen.checked_sub(1),
+        last_tick: robot.frames_seen.checked_sub(1),
         data_unfinished: false,
         fleet_s: t_first.map_or(0.0, |t0| t_last - t0),
     };
-    let mut report = node.finish(cfg, &est, run_files, stop, &end, cpu_start.as_ref());
+    let mut report = node.finish(cfg, &robot.est, run_files, stop, &end, cpu_start.as_ref());
     if counts.nothing_received() {
         return Err(LiveError::Setting(format!(
             "no sensor message decoded on {} or {} within {} s",
