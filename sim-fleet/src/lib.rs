@@ -7,6 +7,7 @@ pub mod convert;
 pub mod eval;
 pub mod export;
 pub mod fleet_run;
+pub mod live_run;
 pub mod montecarlo;
 pub mod paired;
 pub mod plots;

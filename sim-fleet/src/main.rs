@@ -7,6 +7,7 @@ use sim_fleet::convert::{run_convert, ConvertArgs};
 use sim_fleet::eval::{run_eval, EvalArgs};
 use sim_fleet::export::{run_export, ExportArgs};
 use sim_fleet::fleet_run::{run_fleet, RunArgs};
+use sim_fleet::live_run::{run_live, LiveRunArgs};
 use sim_fleet::montecarlo::{run_montecarlo, MontecarloArgs};
 use sim_fleet::paired::{run_paired, PairedArgs};
 use sim_fleet::simulate::{run_simulate, SimulateArgs};
@@ -45,6 +46,10 @@ enum Command {
     /// rendered images, its IMU and its ground truth: a moving sequence with a
     /// known truth for `agent dataset`, `agent publish-euroc` and other VIO systems.
     ExportEuroc(ExportArgs),
+    /// A fleet on live sensors, on this machine: each robot rendered as a
+    /// EuRoC sequence, published over Zenoh as ROS 2 topics and run by an
+    /// agent with `input.source: live`; scored against the truth.
+    LiveRun(LiveRunArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -76,5 +81,6 @@ fn run_main() -> Result<()> {
         Command::Compare(args) => run_compare(&args),
         Command::ConvertEuroc(args) => run_convert(&args),
         Command::ExportEuroc(args) => run_export(&args),
+        Command::LiveRun(args) => run_live(&args),
     }
 }

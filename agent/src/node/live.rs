@@ -255,14 +255,20 @@ pub fn run_live_node(
         imu: live.imu_key.clone(),
         image: live.image_key.clone(),
     };
-    // The sensors first: a bad sensor setting must not leave a half-run.
+    // A bad sensor setting must stop the agent before it starts...
+    crate::transport::zenoh::load_config(&live.zenoh)
+        .map_err(|e| LiveError::Zenoh(format!("input.live.zenoh: {e}")))?;
+    let (mut node, mut run_files) = Node::open(cfg, &header, transport, &mut robot.est)?;
+    node.wait_for_peers(cfg, stop);
+    // ...but the sensors are heard only once the peers are: samples queued
+    // while waiting for them would be stale, and the queues' bounds would drop
+    // them as if the agent were behind.
     let sensors = LiveSensors::open(&live.zenoh, &keys)?;
     let counts = sensors.counts();
     let mut poses = match &live.pose_key {
         Some(key) => Some(sensors.pose_publisher(key, &live.world_frame)?),
         None => None,
     };
-    let (mut node, mut run_files) = Node::open(cfg, &header, transport, &mut robot.est)?;
     tracing::info!(
         robot = cfg.robot_id,
         "{}: listening for {} (IMU) and {} (camera)",
@@ -270,7 +276,6 @@ pub fn run_live_node(
         keys.imu,
         keys.image
     );
-    node.wait_for_peers(cfg, stop);
 
     let limits = LiveLimits {
         wait_first: Duration::from_secs_f64(live.wait_s),

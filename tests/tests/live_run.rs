@@ -1,0 +1,83 @@
+//! `sim-fleet live-run` as a user runs it: three robots rendered, each
+//! published over Zenoh and run by an agent on live sensors, scored against
+//! the truth. The agent must be built with the image frontend
+//! (`--features agent/vision`, as the README's test command builds it).
+
+use integration_tests::{bin, read_json};
+use std::path::Path;
+use std::process::Command;
+
+fn repo(rel: &str) -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(rel)
+}
+
+#[test]
+fn live_run_scores_a_fleet_on_live_sensors_and_reuses_its_sequences() {
+    let help = Command::new(bin("agent"))
+        .args(["live", "--help"])
+        .output()
+        .unwrap();
+    assert!(
+        help.status.success(),
+        "the agent was built without the image frontend: \
+         cargo build --release --workspace --bins --features agent/vision"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let sequences = dir.path().join("sequences");
+    let run = |out: &str, extra: &[&str]| {
+        let out = dir.path().join(out);
+        let output = Command::new(bin("sim-fleet"))
+            .arg("live-run")
+            .arg(repo("sim-fleet/scenarios/euroc_vicon_room1.yaml"))
+            .args(["--duration-s", "15", "--speed", "2", "--seed", "3"])
+            .args(extra)
+            .arg("--sequences")
+            .arg(&sequences)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+        assert!(
+            output.status.success(),
+            "{stdout}\n{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        println!("{stdout}");
+        (read_json(&out.join("live_summary.json")), stdout)
+    };
+    let (summary, stdout) = run("coop", &[]);
+    assert!(stdout.contains("dc-full-history at 2x real time, starts at the truth"));
+    let robots = summary["robots"].as_array().unwrap();
+    assert_eq!(robots.len(), 3);
+    for r in robots {
+        let get = |k: &str| r[k].as_f64().unwrap();
+        assert!(r["estimates"].as_u64().unwrap() > 120, "{r}");
+        assert!(get("ate_ori_deg") < 0.6 && get("ate_pos_m") < 0.06, "{r}");
+        assert!(get("nees_ori") < 6.0 && get("nees_pos") < 6.0, "{r}");
+        assert!(r["loop_closures"].as_u64().unwrap() > 0, "{r}");
+        assert_eq!(r["start_offset"][0].as_f64(), Some(0.0), "{r}");
+        let sensors = r["sensors"].as_str().unwrap();
+        assert!(
+            sensors.starts_with("IMU 6001 received, 0 undecodable")
+                && sensors.contains("images 151 received, 0 undecodable"),
+            "{sensors}"
+        );
+    }
+    let made = std::fs::metadata(sequences.join("seq0/made.json"))
+        .unwrap()
+        .modified()
+        .unwrap();
+    // The same sequences serve another variant, from moved starts.
+    let (summary, _) = run("alone", &["--variant", "indp-slam", "--perturb-start"]);
+    for r in summary["robots"].as_array().unwrap() {
+        assert!(r["loop_closures"].is_null(), "{r}");
+        let offset = r["start_offset"][0].as_f64().unwrap();
+        assert!(offset > 0.0 && offset < 0.5, "{r}");
+    }
+    let again = std::fs::metadata(sequences.join("seq0/made.json"))
+        .unwrap()
+        .modified()
+        .unwrap();
+    assert_eq!(made, again, "the sequences were rendered again");
+}
