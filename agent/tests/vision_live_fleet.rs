@@ -10,39 +10,16 @@
 
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
+mod live_support;
+
+use live_support::{agent, session_to, succeeded, wait_for};
+
 use common::metrics::{associate, ate, nees, Alignment};
 use common::trajectory::{read_covariances, read_euroc_csv, read_tum, StampedPose};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::process::{Child, Stdio};
+use std::time::Duration;
 use zenoh::Wait;
-
-fn agent() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_agent"))
-}
-
-fn succeeded(what: &str, out: &Output) -> String {
-    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(
-        out.status.success(),
-        "{what} failed:\n{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    stdout
-}
-
-/// Waits for `child` at most `limit`, killing it past that.
-fn wait_for(mut child: Child, limit: Duration) -> Output {
-    let start = Instant::now();
-    while child.try_wait().expect("wait").is_none() {
-        if start.elapsed() > limit {
-            let _ = child.kill();
-            panic!("the process did not end within {limit:?}");
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    }
-    child.wait_with_output().expect("output")
-}
 
 /// The heading of the IMU's `y` axis in the truth's frame, deg (EuRoC's
 /// IMU has `x` up: `y` is the level one).
@@ -97,18 +74,6 @@ clock:
         sensors = ports[2 + r as usize],
         other = 1 - r,
     )
-}
-
-/// A session of the test's own, connected to an agent's sensor session.
-fn session_to(port: u16) -> zenoh::Session {
-    let mut config = zenoh::Config::default();
-    config
-        .insert_json5("connect/endpoints", &format!("[\"tcp/127.0.0.1:{port}\"]"))
-        .expect("connect");
-    config
-        .insert_json5("scouting/multicast/enabled", "false")
-        .expect("scouting");
-    zenoh::open(config).wait().expect("session")
 }
 
 #[test]

@@ -6,8 +6,12 @@
 
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
+mod live_support;
+
+use live_support::{agent, session_to, succeeded, wait_for};
+
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Child, Stdio};
 use std::time::{Duration, Instant};
 use zenoh::Wait;
 
@@ -15,45 +19,6 @@ fn data(rel: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../../shared/data")
         .join(rel)
-}
-
-fn agent() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_agent"))
-}
-
-fn succeeded(what: &str, out: &Output) -> String {
-    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(
-        out.status.success(),
-        "{what} failed:\n{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    stdout
-}
-
-/// Waits for `child` at most `limit`, killing it past that.
-fn wait_for(mut child: Child, limit: Duration) -> Output {
-    let start = Instant::now();
-    while child.try_wait().expect("wait").is_none() {
-        if start.elapsed() > limit {
-            let _ = child.kill();
-            panic!("the process did not end within {limit:?}");
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    }
-    child.wait_with_output().expect("output")
-}
-
-/// A session of the test's own, connected to the live agent.
-fn session_to(port: u16) -> zenoh::Session {
-    let mut config = zenoh::Config::default();
-    config
-        .insert_json5("connect/endpoints", &format!("[\"tcp/127.0.0.1:{port}\"]"))
-        .expect("connect");
-    config
-        .insert_json5("scouting/multicast/enabled", "false")
-        .expect("scouting");
-    zenoh::open(config).wait().expect("session")
 }
 
 /// Sends payloads that are not the topics' messages on both keys, once the

@@ -207,23 +207,56 @@ pub fn try_update<F: Filter + ?Sized>(
     if readings.len() < 2 || state.means().imu.vel.norm() > MAX_SPEED_MPS {
         return false;
     }
+    let motion = images();
     let still = match standstill_test(state, readings, opts, chi2, false) {
         // The images, when they tell, must not have seen motion: once a
         // standstill is taken no clone is made and no visual update runs, so
         // a creep the IMU cannot feel would otherwise be held still for as
         // long as it lasts (the reference clone stays, and its span grows).
-        Some(update) => (!images()
-            .is_some_and(|m| m.moved(opts.pixel_sigma_px, chi2, opts.chi2_multiplier)))
-        .then_some(update),
-        None => images()
-            .is_some_and(|m| m.mean_px < opts.zupt_max_disparity_px)
-            .then(|| standstill_test(state, readings, opts, chi2, true))
-            .flatten(),
+        Ok(update) => match motion {
+            Some(m) if m.moved(opts.pixel_sigma_px, chi2, opts.chi2_multiplier) => {
+                Err(Refusal::TracksMoved(m.mean_px))
+            }
+            _ => Ok(update),
+        },
+        Err(Refusal::Readings) => match motion {
+            Some(m) if m.mean_px < opts.zupt_max_disparity_px => {
+                standstill_test(state, readings, opts, chi2, true)
+            }
+            Some(m) => Err(Refusal::ReadingsAndTracks(m.mean_px)),
+            None => Err(Refusal::ReadingsNoReference),
+        },
+        Err(e) => Err(e),
     };
-    let Some((h, res, r)) = still else {
-        return false;
-    };
-    state.ekf_update(&[Var::Imu], &h, &res, &r).is_ok()
+    match still {
+        Ok((h, res, r)) => state.ekf_update(&[Var::Imu], &h, &res, &r).is_ok(),
+        Err(why) => {
+            // Why a robot that may be at rest is not taken for it: the first
+            // thing to look at when a start drifts.
+            tracing::debug!(t = state.means().t, ?why, "no standstill");
+            false
+        }
+    }
+}
+
+/// A zero-velocity update: `(H, r, R)`.
+type ZuptUpdate = (DMatrix<f64>, DVector<f64>, DMatrix<f64>);
+
+/// Why a frame was not taken for a standstill.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Refusal {
+    /// The readings do not agree with rest against the datasheet noise.
+    Readings,
+    /// ... and no clone old enough to tell the tracks' motion.
+    ReadingsNoReference,
+    /// ... and the tracks moved this many pixels on average.
+    ReadingsAndTracks(f64),
+    /// The readings agree with rest, the tracks moved (mean px).
+    TracksMoved(f64),
+    /// The velocity the filter holds does not agree with zero.
+    Velocity,
+    /// The test's covariance could not be inverted.
+    Singular,
 }
 
 /// The zero-velocity update's `(H, r, R)` if the readings pass the standstill
@@ -241,7 +274,7 @@ fn standstill_test<F: Filter + ?Sized>(
     opts: &EstimatorOptions,
     chi2: &Chi2Table,
     own_scatter: bool,
-) -> Option<(DMatrix<f64>, DVector<f64>, DMatrix<f64>)> {
+) -> Result<ZuptUpdate, Refusal> {
     let (h, res, r, scatter) = build(state.means(), readings, opts, own_scatter);
     // The IMU rows (0..6) and the velocity rows (6..9), each on its own.
     let rows = |first: usize, n: usize| {
@@ -251,7 +284,7 @@ fn standstill_test<F: Filter + ?Sized>(
             &res.rows(first, n).into_owned(),
             &r.view((first, first), (n, n)).into_owned(),
         );
-        d2.ok()
+        d2.map_err(|_| Refusal::Singular)
     };
     let gate = |d2: f64, dof: usize| d2 <= opts.chi2_multiplier * chi2.get(dof);
     let imu_d2 = rows(0, 6)?;
@@ -260,7 +293,13 @@ fn standstill_test<F: Filter + ?Sized>(
     } else {
         gate(imu_d2 + scatter, 6 * readings.len())
     };
-    (readings_at_rest && gate(rows(6, 3)?, 3)).then_some((h, res, r))
+    if !readings_at_rest {
+        return Err(Refusal::Readings);
+    }
+    if !gate(rows(6, 3)?, 3) {
+        return Err(Refusal::Velocity);
+    }
+    Ok((h, res, r))
 }
 
 #[cfg(test)]
