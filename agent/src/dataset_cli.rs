@@ -53,10 +53,7 @@ pub fn dataset_options(
 ) -> Result<(EstimatorOptions, Variant)> {
     let mut o = EstimatorOptions::default();
     if let Some(n) = imu_noise {
-        o.imu.gyro_noise_density = n.gyroscope_noise_density;
-        o.imu.gyro_random_walk = n.gyroscope_random_walk;
-        o.imu.accel_noise_density = n.accelerometer_noise_density;
-        o.imu.accel_random_walk = n.accelerometer_random_walk;
+        n.apply(&mut o);
     }
     let mut variant = Variant::IndpSlam;
     if let Some(path) = estimator {

@@ -47,6 +47,16 @@ pub struct ImuNoiseSpec {
     pub accelerometer_random_walk: f64,
 }
 
+impl ImuNoiseSpec {
+    /// Sets the filter's IMU noise to this one.
+    pub fn apply(&self, opts: &mut common::estimator_options::EstimatorOptions) {
+        opts.imu.gyro_noise_density = self.gyroscope_noise_density;
+        opts.imu.gyro_random_walk = self.gyroscope_random_walk;
+        opts.imu.accel_noise_density = self.accelerometer_noise_density;
+        opts.imu.accel_random_walk = self.accelerometer_random_walk;
+    }
+}
+
 /// A parsed camera sensor.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CameraSensor {

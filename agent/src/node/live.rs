@@ -81,10 +81,7 @@ impl LiveSetup {
         }
         let mut opts = EstimatorOptions::default();
         if let Some(n) = sensors.imu_noise {
-            opts.imu.gyro_noise_density = n.gyroscope_noise_density;
-            opts.imu.gyro_random_walk = n.gyroscope_random_walk;
-            opts.imu.accel_noise_density = n.accelerometer_noise_density;
-            opts.imu.accel_random_walk = n.accelerometer_random_walk;
+            n.apply(&mut opts);
         }
         variant.apply(&mut opts);
         cfg.estimator.apply(&mut opts);
