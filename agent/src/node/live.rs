@@ -44,6 +44,10 @@ const EVENT_QUEUE: usize = 1024;
 /// Wall time between two notes that the static start is still waiting.
 const START_NOTE_PERIOD: Duration = Duration::from_secs(5);
 
+/// Wall time between two rounds of catch-up, history store, heartbeat and
+/// status checks.
+const HOUSEKEEPING_PERIOD: Duration = Duration::from_millis(50);
+
 /// Longest wait for a sensor event before the loop looks at its peers, ms.
 const POLL_MS: u64 = 5;
 
@@ -298,6 +302,7 @@ pub fn run_live_node(
     let mut status = StatusLog::new(cfg.status_period_s);
     let mut t_first: Option<f64> = None;
     let mut last_heartbeat = Instant::now();
+    let mut last_housekeeping = Instant::now();
     loop {
         if Node::stopping(stop) {
             node.report.interrupted = true;
@@ -338,10 +343,15 @@ pub fn run_live_node(
             Some(Err(why)) => node.report.run.rejected.push(why),
             None => {}
         }
-        // 4. Housekeeping on the fleet clock.
+        // 4. Housekeeping on the fleet clock, as often as the simulated loop's
+        // camera ticks: not after each of the IMU's 200-400 samples a second.
         let Some(now_s) = node.fleet_t else {
             continue;
         };
+        if last_housekeeping.elapsed() < HOUSEKEEPING_PERIOD {
+            continue;
+        }
+        last_housekeeping = Instant::now();
         node.catch_up(now_s);
         node.store_histories(now_s, false);
         node.report.ticks = robot.frames_seen;
@@ -374,6 +384,7 @@ pub fn run_live_node(
             }
         }
     }
+    node.report.ticks = robot.frames_seen;
     drop(rx);
     match reader.join() {
         Ok(events) => events.close(Duration::from_secs(5)),
