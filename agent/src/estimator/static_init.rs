@@ -112,6 +112,56 @@ pub struct StaticInitResult {
     /// Gyroscope standard deviation over the window (rad/s), defined as
     /// [`StaticInitResult::accel_std`].
     pub gyro_std: f64,
+    /// Standard error of [`StaticInitResult::bias_gyro`], rad/s, largest
+    /// over the axes: how well the window measured the bias. A platform
+    /// "at rest" may still wobble slowly (a drone on its skids, the
+    /// motion-capture jitter a simulator's B-spline follows), and its
+    /// readings are then correlated over tenths of a second, so the error
+    /// is estimated from the scatter of the means of [`BIAS_BLOCK_S`]
+    /// blocks (batch means), not from the samples as if independent.
+    pub bias_gyro_sigma: f64,
+}
+
+/// Length of the blocks whose mean readings give
+/// [`StaticInitResult::bias_gyro_sigma`], s: as long as the zero-velocity
+/// updates' reading windows (one camera period), so that a wobble slow
+/// enough to fool one of them shows in the blocks' scatter.
+pub const BIAS_BLOCK_S: f64 = 0.1;
+
+/// Fewest whole blocks for [`StaticInitResult::bias_gyro_sigma`]; with fewer
+/// it is infinite (unknown).
+const MIN_BIAS_BLOCKS: usize = 5;
+
+/// Batch-means standard error of the mean gyro reading of `window`, the
+/// largest over the axes (see [`StaticInitResult::bias_gyro_sigma`]).
+fn gyro_mean_standard_error(window: &[ImuSample]) -> f64 {
+    let Some(first) = window.first() else {
+        return f64::INFINITY;
+    };
+    let mut means: Vec<Vector3<f64>> = Vec::new();
+    let (mut sum, mut n, mut block) = (Vector3::zeros(), 0usize, 0usize);
+    for s in window {
+        let b = ((s.t - first.t) / BIAS_BLOCK_S).floor() as usize;
+        if b != block {
+            if n > 0 {
+                means.push(sum / n as f64);
+            }
+            (sum, n, block) = (Vector3::zeros(), 0, b);
+        }
+        sum += s.gyro;
+        n += 1;
+    }
+    // The last block is partial unless the window ends on a boundary: left out.
+    let k = means.len();
+    if k < MIN_BIAS_BLOCKS {
+        return f64::INFINITY;
+    }
+    let mean: Vector3<f64> = means.iter().sum::<Vector3<f64>>() / k as f64;
+    let mut var = Vector3::<f64>::zeros();
+    for m in &means {
+        var += (m - mean).component_mul(&(m - mean)) / (k - 1) as f64;
+    }
+    (var.max() / k as f64).sqrt()
 }
 
 /// Why [`static_initialize`] did not initialize.
@@ -242,6 +292,7 @@ pub fn static_initialize(
         velocity: Vector3::zeros(),
         accel_std,
         gyro_std,
+        bias_gyro_sigma: gyro_mean_standard_error(window),
     })
 }
 
@@ -557,6 +608,11 @@ mod tests {
         // Ground truth's gyro bias there is about (-0.0022, 0.0215, 0.0770) rad/s.
         let gt_bg = Vector3::new(-0.002_247, 0.021_535, 0.077_030);
         assert!((init.bias_gyro - gt_bg).norm() < 5e-3, "{}", init.bias_gyro);
+        // The standard error the window claims covers that (the rotors shake
+        // the readings far beyond the datasheet's noise).
+        println!("gyro bias standard error {:.5} rad/s", init.bias_gyro_sigma);
+        let worst_axis = (init.bias_gyro - gt_bg).amax();
+        assert!(worst_axis < 3.0 * init.bias_gyro_sigma, "{worst_axis}");
         assert_eq!(init.velocity, Vector3::zeros());
         assert_eq!(init.bias_accel, Vector3::zeros());
     }
@@ -638,6 +694,42 @@ mod tests {
             // The window is the last 2 s of the 3 s of samples.
             assert_eq!(init.t, samples[599].t);
         }
+    }
+
+    /// White noise: the batch-means standard error is the samples' σ/√n.
+    /// A slow wobble (0.01 rad/s at 1.3 Hz, as a simulator's B-spline
+    /// through motion-capture jitter, or a drone on its skids) correlates
+    /// the readings, and the error is larger than that formula says.
+    #[test]
+    fn the_gyro_bias_standard_error_counts_a_slow_wobble() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let rot = Matrix3::identity();
+        let bg = Vector3::new(0.001, -0.002, 0.0);
+        // Uniform in ±0.006: σ = 0.006/√3 per axis; the window holds 400 samples.
+        let still = synthetic_static(&mut rng, &rot, &bg, 600, 0.05, 0.006);
+        let init = static_initialize(&still, &StaticInitOptions::default())
+            .unwrap_or_else(|e| panic!("{e}"));
+        let white = 0.006 / 3f64.sqrt() / 400f64.sqrt();
+        assert!(
+            (init.bias_gyro_sigma / white - 1.0).abs() < 0.5,
+            "{} against {white}",
+            init.bias_gyro_sigma
+        );
+        let mut wobbling = still.clone();
+        for s in &mut wobbling {
+            s.gyro.y += 0.01 * (2.0 * std::f64::consts::PI * 1.3 * s.t).sin();
+        }
+        let init_w = static_initialize(&wobbling, &StaticInitOptions::default())
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert!(
+            init_w.bias_gyro_sigma > 3.0 * white,
+            "{} against {white}",
+            init_w.bias_gyro_sigma
+        );
+        // And the bias it found is off by no more than a few of those.
+        assert!((init_w.bias_gyro - bg).amax() < 3.0 * init_w.bias_gyro_sigma);
+        // Too short a window to tell: unknown.
+        assert_eq!(gyro_mean_standard_error(&still[..30]), f64::INFINITY);
     }
 
     #[test]

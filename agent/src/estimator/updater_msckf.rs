@@ -117,7 +117,8 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
     let relaxed = tri.relaxed();
     let mut tri = tri;
     let passed = stats.used + stats.rejected_chi2;
-    if stats.failed > 0 && passed * RELAX_WHEN_FAILED_PER_PASSED < stats.failed {
+    let relax = stats.failed > 0 && passed * RELAX_WHEN_FAILED_PER_PASSED < stats.failed;
+    if relax {
         untriangulated.truncate(before);
         (stats, tried, stacked) = stack_up_to(
             state,
@@ -131,6 +132,13 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
         );
         tri = &relaxed;
     }
+    tracing::debug!(
+        used = stats.used,
+        gated = stats.rejected_chi2,
+        failed = stats.failed,
+        relax,
+        "first update: features used, gated out, not triangulated"
+    );
     let Some(mut st) = stacked else {
         return (stats, tried);
     };

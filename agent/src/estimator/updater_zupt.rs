@@ -229,7 +229,13 @@ pub fn try_update<F: Filter + ?Sized>(
         Err(e) => Err(e),
     };
     match still {
-        Ok((h, res, r)) => state.ekf_update(&[Var::Imu], &h, &res, &r).is_ok(),
+        Ok((h, res, r)) => {
+            let ok = state.ekf_update(&[Var::Imu], &h, &res, &r).is_ok();
+            // The gyro bias is what a wobble taken for rest would pull.
+            let bg = state.means().imu.bias_gyro;
+            tracing::debug!(t = state.means().t, ok, bias_gyro = ?bg.as_slice(), "standstill");
+            ok
+        }
         Err(why) => {
             // Why a robot that may be at rest is not taken for it: the first
             // thing to look at when a start drifts.
