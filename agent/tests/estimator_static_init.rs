@@ -40,6 +40,40 @@ fn static_initialization_on_real_euroc_imu_recovers_roll_and_pitch_within_one_de
         res.bias_gyro
     );
     assert!(tilt_deg < 1.0, "tilt error {tilt_deg} deg");
+    // The gyro bias starts with the window's standard error, not the
+    // configured 0.02 rad/s (IMU error state: bias_gyro at 9..12).
+    let var_bg = state.cov()[(9, 9)];
+    let expected = res.bias_gyro_sigma.min(sigmas.sigma_bias_gyro);
+    assert!(
+        (var_bg.sqrt() - expected).abs() < 1e-12,
+        "{var_bg} {expected}"
+    );
+    assert!(res.bias_gyro_sigma < 0.005, "{}", res.bias_gyro_sigma);
+}
+
+/// A noise-free IMU at rest (a synthetic test's) would claim the gyro bias
+/// exactly: the prior stays at the gyro's white noise over the window.
+#[test]
+fn a_noise_free_static_start_keeps_the_gyro_bias_uncertain_by_the_white_noise() {
+    let opts = EstimatorOptions::default();
+    let floor = opts.imu.gyro_noise_density / StaticInitOptions::default().window_s.sqrt();
+    let mut est = Estimator::new(opts, CameraCalibration::euroc_cam0());
+    for k in 0..1200 {
+        est.feed_imu(common::measurement::ImuSample {
+            t: k as f64 / 400.0,
+            gyro: Vector3::new(0.001, 0.0, 0.0),
+            accel: Vector3::new(0.0, 0.0, 9.81),
+        })
+        .expect("valid sample");
+    }
+    let res = est
+        .initialize_static(&StaticInitOptions::default(), &static_start_sigmas())
+        .expect("standing still");
+    assert_eq!(res.bias_gyro_sigma, 0.0);
+    let state = est.state().expect("initialized");
+    for i in 9..12 {
+        assert!((state.cov()[(i, i)].sqrt() - floor).abs() < 1e-15);
+    }
 }
 
 /// Placed in the motion capture's frame with the true heading and position

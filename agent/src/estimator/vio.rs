@@ -187,7 +187,8 @@ impl Estimator {
     /// roll and pitch, the mean gyro reading the gyro bias; `sigmas` gives the prior
     /// standard deviations (its time and mean fields are ignored), but the gyro
     /// bias's is at most the window's standard error of it
-    /// ([`StaticInitResult::bias_gyro_sigma`]). Returns the
+    /// ([`StaticInitResult::bias_gyro_sigma`]), and at least the gyro's white
+    /// noise over the window. Returns the
     /// initializer's result; on error nothing changes.
     pub fn initialize_static(
         &mut self,
@@ -247,8 +248,13 @@ impl Estimator {
             // The window measured the gyro bias this well; a looser prior
             // lets the first zero-velocity update, 0.1 s of readings, take a
             // slow wobble for bias (a rendered V1_03 start: 0.008 rad/s off,
-            // and the orientation drifted 0.3 deg/s while standing).
-            sigma_bias_gyro: sigmas.sigma_bias_gyro.min(res.bias_gyro_sigma),
+            // and the orientation drifted 0.3 deg/s while standing). Never
+            // below what the gyro's white noise allows over the window (a
+            // noise-free IMU would otherwise claim the bias exactly).
+            sigma_bias_gyro: sigmas
+                .sigma_bias_gyro
+                .min(res.bias_gyro_sigma)
+                .max(self.opts.imu.gyro_noise_density / init.window_s.sqrt()),
             ..sigmas.clone()
         });
         Ok(res)
