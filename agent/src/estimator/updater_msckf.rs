@@ -114,7 +114,7 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
     // rests on it (V1_01, seed 3 from a 3 deg tilt: 1 of 110, and the filter
     // diverged). Then this first update takes them looser, and its iterations
     // triangulate the points again at the corrected clones.
-    let relaxed = tri.relaxed();
+    let relaxed = tri.relaxed(ray_noise_rad(state, opts));
     let mut tri = tri;
     let passed = stats.used + stats.rejected_chi2;
     let relax = stats.failed > 0 && passed * RELAX_WHEN_FAILED_PER_PASSED < stats.failed;
@@ -237,6 +237,21 @@ fn relinearize<F: Filter + ?Sized>(
     Relinearized::Done
 }
 
+/// The angular noise of one camera ray, radians: the pixel noise over the
+/// geometric mean of the current focal lengths. It bounds how far the first
+/// update loosens the rays' condition number
+/// ([`TriangulationOptions::relaxed`]). Zero (no bound) when the focal lengths
+/// are not positive.
+fn ray_noise_rad<F: Filter + ?Sized>(state: &F, opts: &EstimatorOptions) -> f64 {
+    let camera = &state.means().calib.camera;
+    let focal = (camera.fx() * camera.fy()).sqrt();
+    if focal > 0.0 {
+        opts.pixel_sigma_px / focal
+    } else {
+        0.0
+    }
+}
+
 /// A first update whose step left its features' rays apart (see
 /// [`relinearize`]): a start a few degrees off and a gyro bias of 0.02 rad/s have
 /// bent the window's clones so far that the Jacobians at their first estimates
@@ -263,7 +278,7 @@ fn rescue<F: Filter + ?Sized>(
         use_fej: false,
         ..opts.clone()
     };
-    let relaxed = tri.relaxed();
+    let relaxed = tri.relaxed(ray_noise_rad(state, opts));
     let last = state.save();
     state.restore(prior);
     let rebuilt = stack_up_to(
