@@ -186,8 +186,10 @@ fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
 
 /// A moving robot: 20 s of V1_01 rendered (`simulator::euroc_export`, as
 /// `sim-fleet export-euroc` writes it), from its still start through its first
-/// turns, live at four times real time. The live run is the file replay, bit
-/// for bit, and it is on the truth.
+/// turns, live at twice real time. The live run is the file replay, bit for
+/// bit, and it is on the truth. (At four times real time, 25 ms per image, the
+/// agent dropped images when the other test of this file and a build shared
+/// the two cores.)
 #[test]
 fn a_rendered_flight_runs_live_on_the_truth_as_it_runs_from_files() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -215,7 +217,7 @@ fn a_rendered_flight_runs_live_on_the_truth_as_it_runs_from_files() {
             "--connect",
             &listen,
             "--speed",
-            "4",
+            "2",
         ])
         .output()
         .expect("agent publish-euroc");
