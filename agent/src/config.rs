@@ -290,6 +290,14 @@ pub struct LiveInputConfig {
     /// The frame id of the published poses.
     #[serde(default = "default_world_frame")]
     pub world_frame: String,
+    /// Where the estimate goes as `nav_msgs/msg/Odometry` after every frame
+    /// (the pose in `world_frame`, the velocity and angular rate in
+    /// `body_frame`, each with its covariance); none when unset.
+    #[serde(default)]
+    pub odom_key: Option<String>,
+    /// The odometry's `child_frame_id`: the IMU, whose axes the twist is in.
+    #[serde(default = "default_body_frame")]
+    pub body_frame: String,
     /// Where the robot stands at its start, in the fleet's frame.
     pub start: StartPose,
     /// Wait this long for the first sensor message, s.
@@ -363,6 +371,10 @@ fn default_imu_key() -> String {
 
 fn default_image_key() -> String {
     "cam0/image_raw".into()
+}
+
+fn default_body_frame() -> String {
+    "imu".to_owned()
 }
 
 fn default_world_frame() -> String {
@@ -1130,6 +1142,10 @@ mod tests {
         assert_eq!(l.imu_key, "imu0");
         assert_eq!(l.image_key, "cam0/image_raw");
         assert_eq!(l.pose_key, None);
+        assert_eq!(
+            (l.odom_key.as_deref(), l.body_frame.as_str()),
+            (None, "imu")
+        );
         assert_eq!(l.start.position_m, [1.0, 2.0, 0.5]);
         assert_eq!((l.start.sigma_ori_deg, l.start.sigma_pos_m), (1.0, 0.05));
         assert!(c.input.scenario.as_os_str().is_empty());

@@ -55,6 +55,15 @@ pub struct LiveArgs {
     /// defines (gravity along -z, origin and yaw at the start).
     #[arg(long, default_value = "vio_world")]
     pub world_frame: String,
+    /// Where the estimate goes as an odometry, after every frame
+    /// (`nav_msgs/msg/Odometry`: the pose in `--world-frame`, the velocity and
+    /// angular rate in `--body-frame`, each with its covariance; `none`:
+    /// nowhere).
+    #[arg(long, default_value = "vio/odom")]
+    pub odom_key: String,
+    /// The odometry's `child_frame_id`: the IMU, whose axes the twist is in.
+    #[arg(long, default_value = "imu")]
+    pub body_frame: String,
 }
 
 fn seconds(name: &str, s: f64) -> Result<Duration> {
@@ -93,6 +102,13 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
                 .with_context(|| format!("publishing poses on {key}"))?,
         ),
     };
+    let mut odometry = match args.odom_key.as_str() {
+        "none" => None,
+        key => Some(
+            live.odometry_publisher(key, &args.world_frame, &args.body_frame)
+                .with_context(|| format!("publishing odometry on {key}"))?,
+        ),
+    };
     tracing::info!(
         "{}: listening for {} (IMU) and {} (camera)",
         variant.name(),
@@ -114,11 +130,15 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
     let mut events = live.events(stop, limits);
     let mut latency = EstimateLatency::new(events.arrivals());
     let result = run.run(&mut events, |record| {
-        let (Some(pose), Some(cov)) = (record.estimate.last(), record.covariance.last()) else {
+        let (Some(pose), Some(cov), Some(twist)) = (
+            record.estimate.last(),
+            record.covariance.last(),
+            record.last_twist.as_ref(),
+        ) else {
             return;
         };
-        if let Some(p) = poses.as_mut() {
-            p.publish(pose, cov);
+        for p in [poses.as_mut(), odometry.as_mut()].into_iter().flatten() {
+            p.publish(pose, cov, twist);
         }
         latency.estimated(pose.t);
     });
@@ -131,6 +151,12 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
             args.pose_key,
             p.failed,
             latency.line()
+        );
+    }
+    if let Some(p) = &odometry {
+        println!(
+            "odometry: {} published on {} ({} refused)",
+            p.sent, args.odom_key, p.failed
         );
     }
     if counts.nothing_received() {

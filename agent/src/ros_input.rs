@@ -14,6 +14,7 @@
 //! published as those topics, paced like the sensors that recorded it.
 
 use crate::dataset::EurocDataset;
+use crate::estimator::frame_output::BodyTwist;
 use crate::transport::settings::ZenohSettings;
 use common::image::GrayImage;
 use common::measurement::{FeatureFrame, ImuSample};
@@ -256,6 +257,28 @@ impl LiveSensors {
     /// `frame_id`). It drops what a slow subscriber cannot take: the
     /// estimator never waits for the network.
     pub fn pose_publisher(&self, key: &str, frame_id: &str) -> Result<PosePublisher, LiveError> {
+        self.publisher(key, frame_id, None)
+    }
+
+    /// A publisher of the estimate as `nav_msgs/msg/Odometry` on `key`: the
+    /// pose in `frame_id`, the body's velocity and angular rate in
+    /// `child_frame_id` (the IMU), each with its covariance. Drops as
+    /// [`Self::pose_publisher`] does.
+    pub fn odometry_publisher(
+        &self,
+        key: &str,
+        frame_id: &str,
+        child_frame_id: &str,
+    ) -> Result<PosePublisher, LiveError> {
+        self.publisher(key, frame_id, Some(child_frame_id.to_owned()))
+    }
+
+    fn publisher(
+        &self,
+        key: &str,
+        frame_id: &str,
+        child_frame_id: Option<String>,
+    ) -> Result<PosePublisher, LiveError> {
         let publisher = self
             .session
             .declare_publisher(key.to_owned())
@@ -265,6 +288,7 @@ impl LiveSensors {
         Ok(PosePublisher {
             publisher,
             frame_id: frame_id.to_owned(),
+            child_frame_id,
             sent: 0,
             failed: 0,
         })
@@ -565,21 +589,42 @@ impl EstimateLatency {
     }
 }
 
-/// Publishes a robot's estimated pose ([`LiveSensors::pose_publisher`]).
+/// Publishes a robot's estimate, as a pose ([`LiveSensors::pose_publisher`])
+/// or an odometry ([`LiveSensors::odometry_publisher`]).
 pub struct PosePublisher {
     publisher: zenoh::pubsub::Publisher<'static>,
     frame_id: String,
-    /// Poses published.
+    /// The body's frame id: `nav_msgs/Odometry` when set, else
+    /// `geometry_msgs/PoseWithCovarianceStamped`.
+    child_frame_id: Option<String>,
+    /// Messages published.
     pub sent: u64,
-    /// Poses the session refused (logged once).
+    /// Messages the session refused (logged once).
     pub failed: u64,
 }
 
 impl PosePublisher {
-    /// Publishes `pose` with its covariance.
-    pub fn publish(&mut self, pose: &StampedPose, cov: &StampedCovariance) {
+    /// Publishes `pose` with its covariance, and with `twist` for an odometry.
+    pub fn publish(&mut self, pose: &StampedPose, cov: &StampedCovariance, twist: &BodyTwist) {
         let covariance = ros_cdr::ros_pose_covariance(pose, cov);
-        let payload = ros_cdr::encode_pose(&Header::at(pose.t, &self.frame_id), pose, &covariance);
+        let header = Header::at(pose.t, &self.frame_id);
+        let payload = match &self.child_frame_id {
+            None => ros_cdr::encode_pose(&header, pose, &covariance),
+            Some(child) => {
+                let mut twist_cov = [0.0; 36];
+                for r in 0..6 {
+                    for c in 0..6 {
+                        twist_cov[6 * r + c] = twist.cov[(r, c)];
+                    }
+                }
+                let ros_twist = ros_cdr::RosTwist {
+                    linear: twist.linear,
+                    angular: twist.angular,
+                    covariance: twist_cov,
+                };
+                ros_cdr::encode_odometry(&header, child, pose, &covariance, &ros_twist)
+            }
+        };
         match self.publisher.put(payload).wait() {
             Ok(()) => self.sent += 1,
             Err(e) => {

@@ -2,6 +2,7 @@
 //! peers): the agent reads its own robot's sensors from the simulator, as a real
 //! robot reads its own, and the result is scored against the simulator's truth.
 
+use crate::estimator::frame_output::BodyTwist;
 use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, FrameRecord, InitialState};
 use common::measurement::FeatureFrame;
 use common::metrics::{ate, nees, rpe, Alignment, PosePair, DEFAULT_RPE_SEGMENTS_M};
@@ -152,6 +153,9 @@ pub struct RobotRun {
     pub without_truth: bool,
     /// Per-frame records (timing, feature counts).
     pub frames: Vec<FrameRecord>,
+    /// The body twist of the last recorded estimate (published beside the
+    /// pose on live sensors; only the last is kept).
+    pub last_twist: Option<BodyTwist>,
     /// Inputs and frames the estimator rejected, with the reason.
     pub rejected: Rejections,
     /// Cooperation counters at the end (cooperative variants only).
@@ -349,6 +353,7 @@ pub fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: Frame
         pos: gt.trans,
     });
     run.covariance.push(o.covariance());
+    run.last_twist = Some(o.twist);
     run.frames.push(o.record);
 }
 
@@ -358,6 +363,7 @@ impl RobotRun {
         debug_assert!(self.without_truth && self.truth.is_empty());
         self.estimate.push(o.pose());
         self.covariance.push(o.covariance());
+        self.last_twist = Some(o.twist);
         self.frames.push(o.record);
     }
 

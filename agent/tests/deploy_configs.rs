@@ -31,6 +31,8 @@ fn example_live_configuration_loads() {
     let live = cfg.input.live.expect("the live block");
     assert!(live.calibration.ends_with("deploy/config/kalibr"));
     assert_eq!(live.zenoh.connect, ["tcp/127.0.0.1:7447"]);
+    assert_eq!(live.odom_key.as_deref(), Some("vio/odom"));
+    assert_eq!(live.body_frame, "imu");
     assert_eq!(
         live.start.heading_axis_i().expect("axis"),
         nalgebra::Vector3::x()

@@ -108,7 +108,14 @@ fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
     let (imu_key, image_key) = ("robot7/imu0", "robot7/cam0/image_raw");
     let listen = format!("tcp/127.0.0.1:{port}");
     let keys = ["--imu-key", imu_key, "--image-key", image_key];
-    let pose = ["--pose-key", "robot7/vio/pose"];
+    let pose = [
+        "--pose-key",
+        "robot7/vio/pose",
+        "--odom-key",
+        "robot7/vio/odom",
+        "--body-frame",
+        "robot7/imu",
+    ];
     let live = spawn_live(
         &micro,
         &gt,
@@ -120,6 +127,11 @@ fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
     let listener = session_to(port);
     let poses = listener
         .declare_subscriber("robot7/vio/pose")
+        .with(zenoh::handlers::FifoChannel::new(10_000))
+        .wait()
+        .expect("subscriber");
+    let odometry = listener
+        .declare_subscriber("robot7/vio/odom")
         .with(zenoh::handlers::FifoChannel::new(10_000))
         .wait()
         .expect("subscriber");
@@ -178,6 +190,35 @@ fn a_sequence_published_over_zenoh_runs_live_as_it_runs_from_files() {
     assert!((sent.pose.pos - last.pos).norm() < 1e-6);
     assert!((sent.pose.rot - last.rot).norm() < 1e-6);
     assert!(sent.covariance[0] > 0.0 && sent.covariance[35] > 0.0);
+    // And as an odometry: the same pose, and the twist of a drone that stands
+    // on the floor with its rotors running (the sequence ends before take-off).
+    let odoms: Vec<_> = odometry
+        .drain()
+        .map(|s| common::ros_cdr::decode_odometry(&s.payload().to_bytes()).expect("an odometry"))
+        .collect();
+    assert_eq!(odoms.len(), estimates.len());
+    assert!(
+        live.contains(&format!("odometry: {} published", estimates.len())),
+        "{live}"
+    );
+    let odom = odoms.last().expect("one");
+    assert_eq!(odom.header.frame_id, "vio_world");
+    assert_eq!(odom.child_frame_id, "robot7/imu");
+    assert_eq!((odom.pose.t, odom.pose.pos), (sent.pose.t, sent.pose.pos));
+    assert_eq!(odom.pose_covariance, sent.covariance);
+    let tw = &odom.twist;
+    println!(
+        "last twist {:?} {:?}, variances {:?}",
+        tw.linear,
+        tw.angular,
+        (0..6).map(|i| tw.covariance[7 * i]).collect::<Vec<_>>()
+    );
+    for i in 0..6 {
+        let var = tw.covariance[7 * i];
+        assert!(var > 0.0 && var.is_finite(), "twist variance {i}: {var}");
+    }
+    assert!(tw.linear.norm() < 0.05, "{:?}", tw.linear);
+    assert!(tw.angular.norm() < 0.1, "{:?}", tw.angular);
     listener.close().wait().expect("close");
 
     assert_live_is_the_replay(&micro, &gt, &live_out, &file_out);

@@ -435,16 +435,7 @@ pub fn ros_pose_covariance(pose: &StampedPose, cov: &StampedCovariance) -> [f64;
 pub fn encode_pose(header: &Header, pose: &StampedPose, covariance: &[f64; 36]) -> Vec<u8> {
     let mut w = Writer::new();
     w.header(header);
-    for v in pose.pos.iter() {
-        w.f64(*v);
-    }
-    let q = UnitQuaternion::from_matrix(&pose.rot);
-    for v in [q.i, q.j, q.k, q.w] {
-        w.f64(v);
-    }
-    for v in covariance {
-        w.f64(*v);
-    }
+    w.pose_with_covariance(pose, covariance);
     w.buf
 }
 
@@ -452,32 +443,133 @@ pub fn encode_pose(header: &Header, pose: &StampedPose, covariance: &[f64; 36]) 
 pub fn decode_pose(payload: &[u8]) -> Result<RosPose, CdrError> {
     let mut r = Reader::new(payload)?;
     let header = r.header()?;
-    let pos = r.vector3("pose.position")?;
-    let (x, y, z, w) = (
-        r.f64("pose.orientation")?,
-        r.f64("pose.orientation")?,
-        r.f64("pose.orientation")?,
-        r.f64("pose.orientation")?,
-    );
-    let q = Quaternion::new(w, x, y, z);
-    if (q.norm() - 1.0).abs() > 1e-6 {
-        return Err(CdrError::NotUnit("pose.orientation"));
+    let (pose, covariance) = r.pose_with_covariance(header.t_s())?;
+    Ok(RosPose {
+        pose,
+        header,
+        covariance,
+    })
+}
+
+/// `geometry_msgs/TwistWithCovariance`: a velocity and an angular rate, in
+/// the frame the message names (an odometry's `child_frame_id`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RosTwist {
+    /// Linear velocity, m/s.
+    pub linear: Vector3<f64>,
+    /// Angular rate, rad/s.
+    pub angular: Vector3<f64>,
+    /// Covariance of (vx, vy, vz, wx, wy, wz), row-major.
+    pub covariance: [f64; 36],
+}
+
+/// `nav_msgs/Odometry`: the pose in the header's frame, the twist in the
+/// body's (`child_frame_id`), as a controller or `robot_localization` takes
+/// it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RosOdometry {
+    /// Stamp and the world's frame id.
+    pub header: Header,
+    /// The body's frame id.
+    pub child_frame_id: String,
+    /// The pose: `R_ItoG`, `p_IinG`.
+    pub pose: StampedPose,
+    /// Covariance of the pose, as in [`RosPose::covariance`].
+    pub pose_covariance: [f64; 36],
+    /// The twist, in the body's axes.
+    pub twist: RosTwist,
+}
+
+/// Encodes a `nav_msgs/msg/Odometry`.
+pub fn encode_odometry(
+    header: &Header,
+    child_frame_id: &str,
+    pose: &StampedPose,
+    pose_covariance: &[f64; 36],
+    twist: &RosTwist,
+) -> Vec<u8> {
+    let mut w = Writer::new();
+    w.header(header);
+    w.string(child_frame_id);
+    w.pose_with_covariance(pose, pose_covariance);
+    for v in twist.linear.iter().chain(twist.angular.iter()) {
+        w.f64(*v);
     }
+    for v in &twist.covariance {
+        w.f64(*v);
+    }
+    w.buf
+}
+
+/// Decodes a `nav_msgs/msg/Odometry`.
+pub fn decode_odometry(payload: &[u8]) -> Result<RosOdometry, CdrError> {
+    let mut r = Reader::new(payload)?;
+    let header = r.header()?;
+    let child_frame_id = r.string("child_frame_id")?;
+    let (pose, pose_covariance) = r.pose_with_covariance(header.t_s())?;
+    let linear = r.vector3("twist.linear")?;
+    let angular = r.vector3("twist.angular")?;
     let mut covariance = [0.0; 36];
     for v in &mut covariance {
-        *v = r.f64("pose.covariance")?;
+        *v = r.f64("twist.covariance")?;
     }
-    Ok(RosPose {
-        pose: StampedPose {
-            t: header.t_s(),
+    Ok(RosOdometry {
+        header,
+        child_frame_id,
+        pose,
+        pose_covariance,
+        twist: RosTwist {
+            linear,
+            angular,
+            covariance,
+        },
+    })
+}
+
+impl Writer {
+    /// A `geometry_msgs/PoseWithCovariance`.
+    fn pose_with_covariance(&mut self, pose: &StampedPose, covariance: &[f64; 36]) {
+        for v in pose.pos.iter() {
+            self.f64(*v);
+        }
+        let q = UnitQuaternion::from_matrix(&pose.rot);
+        for v in [q.i, q.j, q.k, q.w] {
+            self.f64(v);
+        }
+        for v in covariance {
+            self.f64(*v);
+        }
+    }
+}
+
+impl Reader<'_> {
+    /// A `geometry_msgs/PoseWithCovariance`, stamped `t_s`; the orientation
+    /// must be a unit quaternion.
+    fn pose_with_covariance(&mut self, t_s: f64) -> Result<(StampedPose, [f64; 36]), CdrError> {
+        let pos = self.vector3("pose.position")?;
+        let (x, y, z, w) = (
+            self.f64("pose.orientation")?,
+            self.f64("pose.orientation")?,
+            self.f64("pose.orientation")?,
+            self.f64("pose.orientation")?,
+        );
+        let q = Quaternion::new(w, x, y, z);
+        if (q.norm() - 1.0).abs() > 1e-6 {
+            return Err(CdrError::NotUnit("pose.orientation"));
+        }
+        let mut covariance = [0.0; 36];
+        for v in &mut covariance {
+            *v = self.f64("pose.covariance")?;
+        }
+        let pose = StampedPose {
+            t: t_s,
             rot: UnitQuaternion::from_quaternion(q)
                 .to_rotation_matrix()
                 .into_inner(),
             pos,
-        },
-        header,
-        covariance,
-    })
+        };
+        Ok((pose, covariance))
+    }
 }
 
 #[cfg(test)]
@@ -608,6 +700,45 @@ mod tests {
         assert_eq!(m.header.frame_id, "world");
         assert!((m.pose.rot - rot).norm() < 1e-12 && m.pose.pos == pose.pos);
         assert_eq!(m.covariance, c);
+    }
+
+    /// An odometry message round-trips, and every truncation of it is an
+    /// error, not a panic.
+    #[test]
+    fn an_odometry_round_trips_with_its_twist() {
+        let pose = StampedPose {
+            t: 7.5,
+            rot: nalgebra::Rotation3::from_euler_angles(0.1, -0.4, 2.0).into_inner(),
+            pos: Vector3::new(3.0, 1.0, -0.5),
+        };
+        let mut pose_cov = [0.0; 36];
+        let mut twist_cov = [0.0; 36];
+        for k in 0..36 {
+            pose_cov[k] = k as f64 * 1e-3;
+            twist_cov[k] = -(k as f64) * 1e-4;
+        }
+        let twist = RosTwist {
+            linear: Vector3::new(0.5, -0.1, 0.02),
+            angular: Vector3::new(0.01, 0.2, -0.3),
+            covariance: twist_cov,
+        };
+        let bytes = encode_odometry(
+            &Header::at(7.5, "fleet_world"),
+            "imu",
+            &pose,
+            &pose_cov,
+            &twist,
+        );
+        let m = decode_odometry(&bytes).expect("odometry");
+        assert_eq!(m.header.frame_id, "fleet_world");
+        assert_eq!(m.child_frame_id, "imu");
+        assert!((m.pose.rot - pose.rot).norm() < 1e-12 && m.pose.pos == pose.pos);
+        assert_eq!(m.pose.t, 7.5);
+        assert_eq!(m.pose_covariance, pose_cov);
+        assert_eq!(m.twist, twist);
+        for n in 0..bytes.len() {
+            assert!(decode_odometry(&bytes[..n]).is_err(), "{n} bytes decoded");
+        }
     }
 
     #[test]

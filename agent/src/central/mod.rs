@@ -20,9 +20,9 @@ use crate::estimator::cooperative::{frame_features, CoopFrameStats};
 use crate::estimator::feature_classes::{classify, clean_up, record_measurements};
 use crate::estimator::feature_db::FeatureDb;
 use crate::estimator::filter::FilterView;
-use crate::estimator::frame_output::cpu_ms;
+use crate::estimator::frame_output::{cpu_ms, GyroAtFrame, ImuCovariance};
 use crate::estimator::inputs::{check_frame, check_imu, InputError};
-use crate::estimator::propagator::{propagate, PropagateError};
+use crate::estimator::propagator::{propagate, readings_rate_hz, PropagateError};
 use crate::estimator::state::{ImuState, Means, Var};
 use crate::estimator::triangulation::TriangulationOptions;
 use crate::estimator::vio::{augment_clone, initial_blocks, FrameError};
@@ -31,7 +31,6 @@ use crate::estimator::{EstimatorOptions, FrameOutput, InitialState};
 use ::common::calibration::CameraCalibration;
 use ::common::measurement::{FeatureFrame, ImuSample};
 use joint::{JointState, JointVar};
-use nalgebra::Matrix3;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Instant;
 
@@ -244,6 +243,12 @@ impl CentralEstimator {
             return Err(FrameError::NotInitialized(frame.t));
         };
         let omega = propagate(&mut slot, buf, t_imu, &opts.imu, opts.use_fej)?;
+        let gyro = GyroAtFrame::new(
+            omega,
+            slot.means().imu.bias_gyro,
+            opts.imu.gyro_noise_density,
+            readings_rate_hz(buf, t_prev, t_imu),
+        );
         if opts.zero_velocity_update {
             let readings: Vec<ImuSample> = buf
                 .iter()
@@ -255,7 +260,7 @@ impl CentralEstimator {
                 timing.propagate_ms = ms(t_start);
                 timing.total_ms = timing.propagate_ms;
                 timing.cpu_ms = cpu_ms(cpu_start);
-                return Ok(self.output_without_updates(rid, timing, coop, true));
+                return Ok(self.output_without_updates(rid, &gyro, timing, coop, true));
             }
         }
         robot.seq += 1;
@@ -281,7 +286,7 @@ impl CentralEstimator {
             // Too few views to triangulate: as in the single-robot estimator.
             timing.total_ms = ms(t_start);
             timing.cpu_ms = cpu_ms(cpu_start);
-            return Ok(self.output_without_updates(rid, timing, coop, false));
+            return Ok(self.output_without_updates(rid, &gyro, timing, coop, false));
         }
         let slam_allowed = means.t - robot.start_t >= opts.slam_delay_s;
         let mut classes = classify(&robot.features, means, key, &opts, slam_allowed);
@@ -401,7 +406,7 @@ impl CentralEstimator {
         timing.total_ms = ms(t_start);
         timing.cpu_ms = cpu_ms(cpu_start);
         timing.cooperation_ms = coop.matching_ms + coop.common_vio_ms + coop.common_slam_ms;
-        Ok(self.output(rid, timing, msckf, slam, coop, false))
+        Ok(self.output(rid, &gyro, timing, (msckf, slam, coop), false))
     }
 
     /// Drops links whose tracks no longer exist.
@@ -423,16 +428,16 @@ impl CentralEstimator {
     fn output_without_updates(
         &self,
         r: u16,
+        gyro: &GyroAtFrame,
         timing: crate::estimator::vio::FrameTiming,
         coop: CoopFrameStats,
         zero_velocity: bool,
     ) -> FrameOutput {
         self.output(
             r,
+            gyro,
             timing,
-            Default::default(),
-            Default::default(),
-            coop,
+            (Default::default(), Default::default(), coop),
             zero_velocity,
         )
     }
@@ -440,10 +445,13 @@ impl CentralEstimator {
     fn output(
         &self,
         r: u16,
+        gyro: &GyroAtFrame,
         timing: crate::estimator::vio::FrameTiming,
-        msckf: updater_msckf::MsckfStats,
-        slam: updater_slam::SlamStats,
-        coop: CoopFrameStats,
+        stats: (
+            updater_msckf::MsckfStats,
+            updater_slam::SlamStats,
+            CoopFrameStats,
+        ),
         zero_velocity: bool,
     ) -> FrameOutput {
         let cov = self.joint.cov.matrix();
@@ -455,28 +463,26 @@ impl CentralEstimator {
                 var: Var::Imu,
             })
             .unwrap_or(0);
-        let block = |a: usize| -> Matrix3<f64> {
-            if cov.nrows() >= o + a + 3 {
-                cov.fixed_view::<3, 3>(o + a, o + a).into_owned()
-            } else {
-                Matrix3::zeros()
-            }
+        let cov_imu: ImuCovariance = if cov.nrows() >= o + 15 {
+            cov.fixed_view::<15, 15>(o, o).into_owned()
+        } else {
+            ImuCovariance::zeros()
         };
         match self.joint.means(r) {
             Some(m) => FrameOutput::of(
                 m,
-                block(0),
-                block(3),
+                &cov_imu,
+                gyro,
                 timing,
-                (msckf, slam, coop),
+                stats,
                 zero_velocity,
             ),
             None => FrameOutput::of(
                 &Means::new(0.0, ImuState::default(), CameraCalibration::euroc_cam0()),
-                Matrix3::zeros(),
-                Matrix3::zeros(),
+                &cov_imu,
+                gyro,
                 timing,
-                (msckf, slam, coop),
+                stats,
                 zero_velocity,
             ),
         }

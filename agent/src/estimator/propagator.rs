@@ -96,6 +96,17 @@ fn segments(buf: &[ImuSample], t0: f64, t1: f64) -> Result<Vec<Segment>, Propaga
         .collect())
 }
 
+/// How many readings of `buf` fall in `(t0, t1]` per second: the IMU's rate
+/// over the interval a frame propagated across (0 when the interval is empty).
+pub fn readings_rate_hz(buf: &[ImuSample], t0: f64, t1: f64) -> f64 {
+    let n = buf.iter().filter(|s| s.t > t0 && s.t <= t1).count();
+    if t1 > t0 {
+        n as f64 / (t1 - t0)
+    } else {
+        0.0
+    }
+}
+
 /// Propagates the filter's robot to IMU time `t1` with the readings in `buf`
 /// (time ordered): the mean, then the covariance once with the interval's `Φ`
 /// and `Q`. Returns the bias-corrected angular velocity at `t1` (for the clone's

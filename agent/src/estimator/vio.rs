@@ -8,12 +8,12 @@ use super::cooperative::{self, frame_features, CoopFrameStats};
 use super::feature_classes::{classify, clean_up, record_measurements, FeatureClasses};
 use super::feature_db::FeatureDb;
 use super::filter::Filter;
-use super::frame_output::cpu_ms;
+use super::frame_output::{cpu_ms, GyroAtFrame, ImuCovariance};
 pub use super::frame_output::{FrameOutput, FrameRecord, FrameTiming};
 pub use super::inputs::InputError;
 use super::inputs::{check_frame, check_imu};
 use super::options::EstimatorOptions;
-use super::propagator::{propagate, PropagateError};
+use super::propagator::{propagate, readings_rate_hz, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
 use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
 use super::triangulation::TriangulationOptions;
@@ -337,6 +337,12 @@ impl Estimator {
         let t_prev = state.t;
         let buf = self.imu.make_contiguous();
         let omega = propagate(state, buf, t_imu, &opts.imu, opts.use_fej)?;
+        let gyro = GyroAtFrame::new(
+            omega,
+            state.means.imu.bias_gyro,
+            opts.imu.gyro_noise_density,
+            readings_rate_hz(buf, t_prev, t_imu),
+        );
         // A standstill: the zero-velocity update replaces this frame's visual update
         // (no parallax to gain, and no clone to spend).
         if opts.zero_velocity_update {
@@ -354,6 +360,7 @@ impl Estimator {
                 timing.cpu_ms = cpu_ms(cpu_start);
                 return Ok(output_without_updates(
                     state,
+                    &gyro,
                     timing,
                     Default::default(),
                     true,
@@ -377,7 +384,7 @@ impl Estimator {
             // Too few views to triangulate: keep every track for the first update.
             timing.total_ms = ms(t_start);
             timing.cpu_ms = cpu_ms(cpu_start);
-            return Ok(output_without_updates(state, timing, coop, false));
+            return Ok(output_without_updates(state, &gyro, timing, coop, false));
         }
 
         // 4. Sort the features into classes, with the peers' evidence for ours.
@@ -509,7 +516,7 @@ impl Estimator {
             + coop.common_slam_ms
             + coop.constraint_ms
             + coop.ci_update_ms;
-        Ok(output(state, timing, msckf, slam, coop, false))
+        Ok(output(state, &gyro, timing, msckf, slam, coop, false))
     }
 }
 
@@ -563,12 +570,14 @@ pub(crate) fn initial_blocks(
 /// filling).
 fn output_without_updates(
     state: &State,
+    gyro: &GyroAtFrame,
     timing: FrameTiming,
     coop: CoopFrameStats,
     zero_velocity: bool,
 ) -> FrameOutput {
     output(
         state,
+        gyro,
         timing,
         Default::default(),
         Default::default(),
@@ -580,6 +589,7 @@ fn output_without_updates(
 /// The estimate and its marginal covariances after a frame.
 fn output(
     state: &State,
+    gyro: &GyroAtFrame,
     timing: FrameTiming,
     msckf: updater_msckf::MsckfStats,
     slam: updater_slam::SlamStats,
@@ -588,10 +598,11 @@ fn output(
 ) -> FrameOutput {
     let p = state.cov();
     let o = state.offset(Var::Imu).unwrap_or(0);
+    let cov_imu: ImuCovariance = p.fixed_view::<15, 15>(o, o).into_owned();
     FrameOutput::of(
         state,
-        p.fixed_view::<3, 3>(o, o).into_owned(),
-        p.fixed_view::<3, 3>(o + 3, o + 3).into_owned(),
+        &cov_imu,
+        gyro,
         timing,
         (msckf, slam, coop),
         zero_velocity,

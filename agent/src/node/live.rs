@@ -270,6 +270,10 @@ pub fn run_live_node(
         Some(key) => Some(sensors.pose_publisher(key, &live.world_frame)?),
         None => None,
     };
+    let mut odometry = match &live.odom_key {
+        Some(key) => Some(sensors.odometry_publisher(key, &live.world_frame, &live.body_frame)?),
+        None => None,
+    };
     tracing::info!(
         robot = cfg.robot_id,
         "{}: listening for {} (IMU) and {} (camera)",
@@ -331,11 +335,14 @@ pub fn run_live_node(
                     run_files.as_mut(),
                 );
                 let run = &node.report.run;
-                if let (true, Some(pose), Some(cov)) =
-                    (n > 0, run.estimate.last(), run.covariance.last())
-                {
-                    if let Some(p) = poses.as_mut() {
-                        p.publish(pose, cov);
+                if let (true, Some(pose), Some(cov), Some(twist)) = (
+                    n > 0,
+                    run.estimate.last(),
+                    run.covariance.last(),
+                    run.last_twist.as_ref(),
+                ) {
+                    for p in [poses.as_mut(), odometry.as_mut()].into_iter().flatten() {
+                        p.publish(pose, cov, twist);
                     }
                     latency.estimated(pose.t);
                 }
@@ -396,6 +403,14 @@ pub fn run_live_node(
         tracing::info!(
             robot = cfg.robot_id,
             "poses: {} published ({} refused)",
+            p.sent,
+            p.failed
+        );
+    }
+    if let Some(p) = &odometry {
+        tracing::info!(
+            robot = cfg.robot_id,
+            "odometry: {} published ({} refused)",
             p.sent,
             p.failed
         );
