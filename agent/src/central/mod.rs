@@ -469,14 +469,7 @@ impl CentralEstimator {
             ImuCovariance::zeros()
         };
         match self.joint.means(r) {
-            Some(m) => FrameOutput::of(
-                m,
-                &cov_imu,
-                gyro,
-                timing,
-                stats,
-                zero_velocity,
-            ),
+            Some(m) => FrameOutput::of(m, &cov_imu, gyro, timing, stats, zero_velocity),
             None => FrameOutput::of(
                 &Means::new(0.0, ImuState::default(), CameraCalibration::euroc_cam0()),
                 &cov_imu,
