@@ -23,25 +23,18 @@ pub struct GyroAtFrame {
 }
 
 impl GyroAtFrame {
-    /// From the propagation's bias-corrected rate `omega`, the bias it
-    /// corrected with, the gyro's noise density (rad/s/√Hz) and the readings'
-    /// rate (Hz): one discrete reading's variance is density² times the rate.
-    /// A rate that is not positive and finite gives no noise term.
-    pub fn new(
-        omega: Vector3<f64>,
-        bias_gyro: Vector3<f64>,
-        noise_density: f64,
-        rate_hz: f64,
-    ) -> Self {
+    /// From the reading at the frame's IMU time, the gyro's noise density
+    /// (rad/s/√Hz) and the readings' rate (Hz): one discrete reading's
+    /// variance is density² times the rate (an upper bound for a reading
+    /// interpolated between two). A rate that is not positive and finite
+    /// gives no noise term.
+    pub fn new(reading: Vector3<f64>, noise_density: f64, rate_hz: f64) -> Self {
         let noise_var = if rate_hz.is_finite() && rate_hz > 0.0 {
             noise_density * noise_density * rate_hz
         } else {
             0.0
         };
-        Self {
-            reading: omega + bias_gyro,
-            noise_var,
-        }
+        Self { reading, noise_var }
     }
 }
 
@@ -245,8 +238,7 @@ mod tests {
             bias_accel: Vector3::new(0.1, 0.0, -0.1),
         };
         let gyro = GyroAtFrame::new(
-            Vector3::new(0.2, 0.1, -0.4),
-            imu.bias_gyro,
+            Vector3::new(0.2, 0.1, -0.4) + imu.bias_gyro,
             1.6968e-4,
             200.0,
         );
@@ -278,7 +270,7 @@ mod tests {
     #[test]
     fn no_readings_rate_means_no_white_noise_term() {
         for rate in [0.0, -1.0, f64::NAN, f64::INFINITY] {
-            let g = GyroAtFrame::new(Vector3::zeros(), Vector3::zeros(), 1e-3, rate);
+            let g = GyroAtFrame::new(Vector3::zeros(), 1e-3, rate);
             assert_eq!(g.noise_var, 0.0);
         }
     }

@@ -96,6 +96,20 @@ fn segments(buf: &[ImuSample], t0: f64, t1: f64) -> Result<Vec<Segment>, Propaga
         .collect())
 }
 
+/// The gyro's reading at `t`, interpolated between the readings of `buf`
+/// around it (the nearest at either end; `None` for an empty buffer).
+pub fn gyro_reading_at(buf: &[ImuSample], t: f64) -> Option<Vector3<f64>> {
+    let after = buf.partition_point(|s| s.t < t);
+    match (
+        after.checked_sub(1).and_then(|i| buf.get(i)),
+        buf.get(after),
+    ) {
+        (Some(a), Some(b)) => Some(lerp(a, b, t).gyro),
+        (Some(only), None) | (None, Some(only)) => Some(only.gyro),
+        (None, None) => None,
+    }
+}
+
 /// How many readings of `buf` fall in `(t0, t1]` per second: the IMU's rate
 /// over the interval a frame propagated across (0 when the interval is empty).
 pub fn readings_rate_hz(buf: &[ImuSample], t0: f64, t1: f64) -> f64 {

@@ -13,7 +13,7 @@ pub use super::frame_output::{FrameOutput, FrameRecord, FrameTiming};
 pub use super::inputs::InputError;
 use super::inputs::{check_frame, check_imu};
 use super::options::EstimatorOptions;
-use super::propagator::{propagate, readings_rate_hz, PropagateError};
+use super::propagator::{gyro_reading_at, propagate, readings_rate_hz, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
 use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
 use super::triangulation::TriangulationOptions;
@@ -337,9 +337,11 @@ impl Estimator {
         let t_prev = state.t;
         let buf = self.imu.make_contiguous();
         let omega = propagate(state, buf, t_imu, &opts.imu, opts.use_fej)?;
+        // The body's rate as published beside the estimate: the reading at
+        // the frame's IMU time (the propagation's last rate is a mean over
+        // its last interval).
         let gyro = GyroAtFrame::new(
-            omega,
-            state.means.imu.bias_gyro,
+            gyro_reading_at(buf, t_imu).unwrap_or(omega + state.means.imu.bias_gyro),
             opts.imu.gyro_noise_density,
             readings_rate_hz(buf, t_prev, t_imu),
         );
