@@ -10,10 +10,13 @@
 // Helpers outside `#[test]` functions: a failed setup is a failed test.
 #![allow(clippy::expect_used)]
 
+mod sim_drive;
+
 use agent::central::run::run_central;
 use agent::runner::{options_for, run_robot, RobotRun, Variant};
 use common::summary::MetricSet;
 use nalgebra::UnitQuaternion;
+use sim_drive::drive_robot0;
 use simulator::{Fleet, Scenario};
 use std::path::Path;
 use std::time::Instant;
@@ -224,48 +227,27 @@ fn slam_runs_are_accurate_and_consistent_over_three_seeds() {
 /// `slam_runs_started_off_the_truth_are_consistent` bounds in position.
 #[test]
 fn the_body_twist_is_consistent_with_the_truth() {
-    use agent::estimator::Estimator;
-    use agent::runner::initial_state;
-    use simulator::SimEvent;
     let dir = tempfile::tempdir().expect("tempdir");
     let sc = scenario(dir.path(), "{}");
     let (mut lin, mut ang, mut n) = (0.0, 0.0, 0usize);
     for seed in SEEDS {
         let fleet = Fleet::build(&sc, seed).expect("fleet");
         let opts = options_for(&sc.estimator, &fleet, Variant::IndpSlam);
-        let start = fleet.estimator_start_time(0).expect("robot 0");
-        let mut est = Estimator::new(opts, fleet.initial_calibration(0));
-        let mut started = false;
         let (mut seed_lin, mut seed_ang, mut seed_n) = (0.0, 0.0, 0usize);
-        for ev in fleet.stream(0).expect("stream") {
-            match ev {
-                SimEvent::Imu(s) => est.feed_imu(s).expect("imu"),
-                SimEvent::Camera(c) => {
-                    if !started {
-                        if c.truth.t >= start {
-                            est.initialize(&initial_state(&fleet, 0, &c.truth));
-                            started = true;
-                        }
-                        continue;
-                    }
-                    est.feed_frame(c.frame).expect("frame");
-                }
-            }
-            for out in est.poll() {
-                let o = out.expect("frame output");
-                let Some(truth) = fleet.truths[0].state(o.t()) else {
-                    continue;
-                };
-                let tw = &o.twist;
-                let e_lin = tw.linear - truth.rot.transpose() * truth.vel;
-                let e_ang = tw.angular - truth.omega;
-                let p_lin = tw.cov.fixed_view::<3, 3>(0, 0).into_owned();
-                let p_ang = tw.cov.fixed_view::<3, 3>(3, 3).into_owned();
-                seed_lin += e_lin.dot(&(p_lin.try_inverse().expect("SPD") * e_lin));
-                seed_ang += e_ang.dot(&(p_ang.try_inverse().expect("SPD") * e_ang));
-                seed_n += 1;
-            }
-        }
+        drive_robot0(&fleet, opts, |_, o| {
+            let Some(truth) = fleet.truths[0].state(o.t()) else {
+                return true;
+            };
+            let tw = &o.twist;
+            let e_lin = tw.linear - truth.rot.transpose() * truth.vel;
+            let e_ang = tw.angular - truth.omega;
+            let p_lin = tw.cov.fixed_view::<3, 3>(0, 0).into_owned();
+            let p_ang = tw.cov.fixed_view::<3, 3>(3, 3).into_owned();
+            seed_lin += e_lin.dot(&(p_lin.try_inverse().expect("SPD") * e_lin));
+            seed_ang += e_ang.dot(&(p_ang.try_inverse().expect("SPD") * e_ang));
+            seed_n += 1;
+            true
+        });
         assert!(seed_n > 350, "seed {seed}: {seed_n} frames");
         println!(
             "seed {seed}: body velocity NEES {:.2}, angular rate NEES {:.2} over {seed_n} frames",

@@ -7,11 +7,13 @@
 // Helpers outside `#[test]` functions: a failed setup is a failed test.
 #![allow(clippy::expect_used)]
 
+mod sim_drive;
+
 use agent::estimator::state::{State, Var};
-use agent::estimator::Estimator;
-use agent::runner::{initial_state, options_for, Variant};
+use agent::runner::{options_for, Variant};
 use nalgebra::{DMatrix, Matrix3, Matrix4, UnitQuaternion, Vector3};
-use simulator::{Fleet, Scenario, SimEvent};
+use sim_drive::drive_robot0;
+use simulator::{Fleet, Scenario};
 use std::path::Path;
 
 /// A figure-eight at 1 m/s, 1.5 m up, with some roll and pitch (TUM, 20 Hz).
@@ -114,55 +116,31 @@ fn largest_growth(use_fej: bool) -> f64 {
     let sc = Scenario::load(&path).expect("scenario");
     let fleet = Fleet::build(&sc, 1).expect("fleet");
     let opts = options_for(&sc.estimator, &fleet, Variant::IndpSlam);
-    let start = fleet.estimator_start_time(0).expect("start");
-    let mut est = Estimator::new(opts, fleet.initial_calibration(0));
-    let mut started = false;
     let mut prev: Option<Matrix4<f64>> = None;
     let mut frames = 0;
     let mut worst = f64::NEG_INFINITY;
-    for ev in fleet.stream(0).expect("stream") {
-        match ev {
-            SimEvent::Imu(s) => est.feed_imu(s).expect("imu"),
-            SimEvent::Camera(c) => {
-                if !started {
-                    if c.truth.t >= start {
-                        est.initialize(&initial_state(&fleet, 0, &c.truth));
-                        started = true;
-                    }
-                    continue;
-                }
-                est.feed_frame(c.frame).expect("frame");
+    drive_robot0(&fleet, opts, |est, _| {
+        let state = est.state().expect("initialized");
+        let info = information(state);
+        if let Some(p) = prev {
+            // Growth relative to what was known: information along the
+            // unobservable directions may only fall.
+            let grew = (info - p).symmetric_eigenvalues().max();
+            let scale = p.symmetric_eigenvalues().max().max(1e-12);
+            let rel = grew / scale;
+            if rel > 1e-3 {
+                println!(
+                    "frame {frames}: yaw information {:.4e} -> {:.4e}, relative growth {rel:.2e}",
+                    p[(0, 0)],
+                    info[(0, 0)]
+                );
             }
+            worst = worst.max(rel);
         }
-        for out in est.poll() {
-            out.expect("frame processed");
-            let state = est.state().expect("initialized");
-            let info = information(state);
-            if let Some(p) = prev {
-                // Growth relative to what was known: information along the
-                // unobservable directions may only fall.
-                let grew = (info - p).symmetric_eigenvalues().max();
-                let scale = p.symmetric_eigenvalues().max().max(1e-12);
-                let rel = grew / scale;
-                if rel > 1e-3 {
-                    println!(
-                        "frame {frames}: yaw information {:.4e} -> {:.4e}, relative growth {rel:.2e}",
-                        p[(0, 0)],
-                        info[(0, 0)]
-                    );
-                }
-                worst = worst.max(rel);
-            }
-            prev = Some(info);
-            frames += 1;
-            if frames > 150 {
-                break;
-            }
-        }
-        if frames > 150 {
-            break;
-        }
-    }
+        prev = Some(info);
+        frames += 1;
+        frames <= 150
+    });
     println!(
         "FEJ {use_fej}: {frames} frames, largest relative growth of the information along N: {worst:.2e}"
     );
