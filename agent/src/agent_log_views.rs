@@ -7,6 +7,7 @@
 //! are base64 in JSON, as Foxglove's JSON encoding wants them.
 
 use crate::agent_log::{stamp, AgentLog, LogError};
+use crate::estimator::frame_output::StampedTwist;
 use common::image::GrayImage;
 use common::measurement::FeatureFrame;
 use common::so3::xyzw_from_rot;
@@ -152,20 +153,48 @@ impl AgentLog {
         self.put(ch, t, &v)
     }
 
+    /// The body's velocity and angular rate (IMU axes) on `topic`, with
+    /// their standard deviations when estimated (`sigma` empty for a truth).
+    pub fn twist(
+        &mut self,
+        topic: &str,
+        tw: &StampedTwist,
+        estimated: bool,
+    ) -> Result<(), LogError> {
+        let ch = self.channel(topic, "fleet.BodyTwist", &body_twist_schema())?;
+        let v = json!({
+            "timestamp": stamp(tw.t),
+            "frame_id": "imu",
+            "linear_mps": {"x": tw.linear.x, "y": tw.linear.y, "z": tw.linear.z},
+            "angular_radps": {"x": tw.angular.x, "y": tw.angular.y, "z": tw.angular.z},
+            "sigma": if estimated { tw.sigma.to_vec() } else { Vec::new() },
+        });
+        self.put(ch, tw.t, &v)
+    }
+
     /// A finished run at once (for the standalone commands): the estimate and
-    /// truth (`/estimate`, `/groundtruth`), the covariance, and both paths at
-    /// the last pose's time. `truth` may be empty.
+    /// truth (`/estimate`, `/groundtruth`), the covariance, the body twists
+    /// (`/estimate/twist`, `/groundtruth/twist`), and both paths at the last
+    /// pose's time. `truth` and `truth_twists` may be empty.
     pub fn run_poses(
         &mut self,
         estimate: &[StampedPose],
         covariance: &[StampedCovariance],
+        twists: &[StampedTwist],
         truth: &[StampedPose],
+        truth_twists: &[StampedTwist],
     ) -> Result<(), LogError> {
         for p in estimate {
             self.pose("/estimate", "world", p.t, &p.rot, &p.pos)?;
         }
         for c in covariance {
             self.covariance(c.t, &c.ori, &c.pos)?;
+        }
+        for tw in twists {
+            self.twist("/estimate/twist", tw, true)?;
+        }
+        for tw in truth_twists {
+            self.twist("/groundtruth/twist", tw, false)?;
         }
         for p in truth {
             self.pose("/groundtruth", "world", p.t, &p.rot, &p.pos)?;
@@ -258,6 +287,13 @@ impl AgentLog {
     }
 }
 
+/// `fleet.BodyTwist`: a body's velocity and angular rate in its own axes.
+fn body_twist_schema() -> String {
+    format!(
+        r#"{{"title":"fleet.BodyTwist","type":"object","properties":{{"timestamp":{TIME},"frame_id":{{"type":"string"}},"linear_mps":{VEC3},"angular_radps":{VEC3},"sigma":{{"type":"array","items":{{"type":"number"}},"description":"standard deviations of vx vy vz (m/s) wx wy wz (rad/s); empty for a truth"}}}}}}"#
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -281,5 +317,49 @@ mod tests {
             serde_json::to_value(msg).unwrap(),
             json!({"timestamp": stamp(1.5), "frame_id": "world", "poses": [pose_json(&p.rot, &p.pos)]})
         );
+    }
+
+    /// A standalone run's log holds the estimated and true twists, one per
+    /// pose, the estimate's with six standard deviations.
+    #[test]
+    fn a_finished_run_logs_its_twists() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.mcap");
+        let mut log = AgentLog::create(&path).unwrap();
+        let poses: Vec<StampedPose> = (0..3)
+            .map(|k| StampedPose {
+                t: k as f64,
+                rot: Matrix3::identity(),
+                pos: Vector3::new(k as f64, 0.0, 0.0),
+            })
+            .collect();
+        let twists: Vec<StampedTwist> = poses
+            .iter()
+            .map(|p| StampedTwist {
+                t: p.t,
+                linear: Vector3::new(1.0, 0.0, 0.0),
+                angular: Vector3::new(0.0, 0.0, 0.1),
+                sigma: [0.01, 0.01, 0.01, 0.002, 0.002, 0.002],
+            })
+            .collect();
+        log.run_poses(&poses, &[], &twists, &poses, &twists).unwrap();
+        log.finish().unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        let mut sigmas = std::collections::BTreeMap::new();
+        for m in mcap::MessageStream::new(&bytes).unwrap() {
+            let m = m.unwrap();
+            if m.channel.schema.as_ref().unwrap().name != "fleet.BodyTwist" {
+                continue;
+            }
+            let v: Value = serde_json::from_slice(&m.data).unwrap();
+            assert_eq!(v["linear_mps"]["x"], 1.0);
+            assert_eq!(v["angular_radps"]["z"], 0.1);
+            sigmas
+                .entry(m.channel.topic.clone())
+                .or_insert_with(Vec::new)
+                .push(v["sigma"].as_array().unwrap().len());
+        }
+        assert_eq!(sigmas["/estimate/twist"], [6, 6, 6]);
+        assert_eq!(sigmas["/groundtruth/twist"], [0, 0, 0]);
     }
 }

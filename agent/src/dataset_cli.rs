@@ -190,7 +190,7 @@ impl StreamRun<'_> {
             .finish(rec)
             .with_context(|| format!("writing {}", out.display()))?;
         let truth: Vec<StampedPose> = rec.truth.iter().flatten().copied().collect();
-        log.run_poses(&rec.estimate, &rec.covariance, &truth)?;
+        log.run_poses(&rec.estimate, &rec.covariance, &rec.twists, &truth, &[])?;
         log.finish()?;
 
         let s = score(&run, self.sensors.groundtruth);

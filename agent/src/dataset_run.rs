@@ -4,7 +4,7 @@
 //! to score.
 
 use crate::dataset::EurocDataset;
-use crate::estimator::frame_output::BodyTwist;
+use crate::estimator::frame_output::{BodyTwist, StampedTwist};
 use crate::estimator::static_init::{static_start_sigmas, StaticInitOptions, StaticInitResult};
 use crate::estimator::{Estimator, EstimatorOptions, FrameRecord};
 use crate::frontend::{Frontend, FrontendError, FrontendOptions, FrontendOutput};
@@ -134,9 +134,11 @@ pub struct DatasetRecord {
     pub truth: Vec<Option<StampedPose>>,
     /// Per-frame counts and costs.
     pub frames: Vec<FrameRecord>,
-    /// The body twist of the last estimate (published beside the pose on
-    /// live sensors; only the last is kept).
+    /// The body twist of the last estimate, with its whole covariance
+    /// (published beside the pose on live sensors).
     pub last_twist: Option<BodyTwist>,
+    /// The body twist after each frame, with its standard deviations.
+    pub twists: Vec<StampedTwist>,
     /// Motion capture frame to the estimate's: the turn about z and the
     /// translation, fixed at the first estimate the truth covers.
     to_estimate: Option<(Rotation3<f64>, Vector3<f64>)>,
@@ -320,6 +322,7 @@ pub fn run_stream<E: std::fmt::Display>(
                     let truth = sensors
                         .groundtruth
                         .and_then(|gt| interpolate_pose(gt, o.t()));
+                    run.record.twists.push(o.twist.stamped(o.t()));
                     run.record.last_twist = Some(o.twist);
                     run.record.push(o.pose(), o.covariance(), o.record, truth);
                     estimated = true;

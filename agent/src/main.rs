@@ -731,7 +731,21 @@ fn run(args: &RunArgs) -> Result<()> {
     } else {
         run_robot(&fleet, args.robot, opts)?
     };
-    log.run_poses(&run.estimate, &run.covariance, &run.truth)?;
+    let truth_twists: Vec<_> = run
+        .twists
+        .iter()
+        .filter_map(|tw| {
+            let s = fleet.truths.get(args.robot)?.state(tw.t)?;
+            Some(agent::runner::truth_twist(tw.t, &s))
+        })
+        .collect();
+    log.run_poses(
+        &run.estimate,
+        &run.covariance,
+        &run.twists,
+        &run.truth,
+        &truth_twists,
+    )?;
     log.finish()?;
     for r in run.rejected.iter().take(5) {
         tracing::warn!("rejected: {r}");

@@ -23,7 +23,7 @@ use crate::outbox::Outbox;
 use crate::peer_events::{PeerEvent, PeerEvents};
 use crate::peer_history::{HistoryLimits, PeerHistory};
 use crate::run_files::{RunFiles, FLUSH_PERIOD};
-use crate::runner::{initial_state, options_for, record, RobotRun, RunError, Variant};
+use crate::runner::{initial_state, options_for, record, truth_twist, RobotRun, RunError, Variant};
 use crate::status_log::{Counters, StatusLog};
 use crate::transport::{Received, Transport, TransportError};
 use common::measurement::FeatureFrame;
@@ -1532,8 +1532,12 @@ fn log_estimate(
     };
     let _ = log.pose("/estimate", "world", o.t(), &o.rot, &o.pos);
     let _ = log.covariance(o.t(), &o.cov_ori, &o.cov_pos);
+    let _ = log.twist("/estimate/twist", &o.twist.stamped(o.t()), true);
     if let Some(gt) = truth.and_then(|truth| truth.spline.pose(o.t())) {
         let _ = log.pose("/groundtruth", "world", o.t(), &gt.rot, &gt.trans);
+    }
+    if let Some(gt) = truth.and_then(|truth| truth.spline.state(o.t())) {
+        let _ = log.twist("/groundtruth/twist", &truth_twist(o.t(), &gt), false);
     }
     let run = &node.report.run;
     let frames = run.frames.len();

@@ -2,7 +2,7 @@
 //! peers): the agent reads its own robot's sensors from the simulator, as a real
 //! robot reads its own, and the result is scored against the simulator's truth.
 
-use crate::estimator::frame_output::BodyTwist;
+use crate::estimator::frame_output::{BodyTwist, StampedTwist};
 use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, FrameRecord, InitialState};
 use common::measurement::FeatureFrame;
 use common::metrics::{ate, nees, rpe, Alignment, PosePair, DEFAULT_RPE_SEGMENTS_M};
@@ -153,9 +153,11 @@ pub struct RobotRun {
     pub without_truth: bool,
     /// Per-frame records (timing, feature counts).
     pub frames: Vec<FrameRecord>,
-    /// The body twist of the last recorded estimate (published beside the
-    /// pose on live sensors; only the last is kept).
+    /// The body twist of the last recorded estimate, with its whole
+    /// covariance (published beside the pose on live sensors).
     pub last_twist: Option<BodyTwist>,
+    /// The body twist after each frame, with its standard deviations.
+    pub twists: Vec<StampedTwist>,
     /// Inputs and frames the estimator rejected, with the reason.
     pub rejected: Rejections,
     /// Cooperation counters at the end (cooperative variants only).
@@ -341,6 +343,17 @@ pub fn initial_state(fleet: &Fleet, robot: usize, truth: &TruthState) -> Initial
     }
 }
 
+/// The true body twist at `t` from the spline's state: the velocity in the
+/// body's axes and the angular rate (standard deviations zero).
+pub fn truth_twist(t: f64, s: &simulator::bspline::SplineState) -> StampedTwist {
+    StampedTwist {
+        t,
+        linear: s.rot.transpose() * s.vel,
+        angular: s.omega,
+        sigma: [0.0; 6],
+    }
+}
+
 /// Appends a frame's output to `run`, with the truth at the estimate's time.
 pub fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: FrameOutput) {
     let Some(gt) = truth.spline.pose(o.t()) else {
@@ -353,6 +366,7 @@ pub fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: Frame
         pos: gt.trans,
     });
     run.covariance.push(o.covariance());
+    run.twists.push(o.twist.stamped(o.t()));
     run.last_twist = Some(o.twist);
     run.frames.push(o.record);
 }
@@ -363,6 +377,7 @@ impl RobotRun {
         debug_assert!(self.without_truth && self.truth.is_empty());
         self.estimate.push(o.pose());
         self.covariance.push(o.covariance());
+        self.twists.push(o.twist.stamped(o.t()));
         self.last_twist = Some(o.twist);
         self.frames.push(o.record);
     }

@@ -115,6 +115,12 @@ fn an_agent_on_images_writes_foxglove_schemas_a_reader_counts_back() {
                 let n = v["points"][0]["points"].as_array().unwrap().len();
                 assert!(n > 100, "{n} tracked features drawn");
             }
+            "fleet.BodyTwist" => {
+                let sigma = v["sigma"].as_array().unwrap();
+                let estimated = m.channel.topic == "/estimate/twist";
+                assert_eq!(sigma.len(), if estimated { 6 } else { 0 });
+                assert!(v["linear_mps"]["x"].is_f64() && v["angular_radps"]["z"].is_f64());
+            }
             _ => {}
         }
     }
@@ -123,6 +129,8 @@ fn an_agent_on_images_writes_foxglove_schemas_a_reader_counts_back() {
     assert_eq!(by_topic["/estimate"], f);
     assert_eq!(by_topic["/groundtruth"], f);
     assert_eq!(by_schema["fleet.PoseCovariance"], f);
+    assert_eq!(by_topic["/estimate/twist"], f);
+    assert_eq!(by_topic["/groundtruth/twist"], f);
     // Every 10 frames (a short run), and once more at the end.
     assert_eq!(by_topic["/estimate/path"], f.div_ceil(10) + 1);
     assert_eq!(by_topic["/groundtruth/path"], f.div_ceil(10) + 1);

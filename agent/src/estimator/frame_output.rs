@@ -61,6 +61,34 @@ impl Default for BodyTwist {
     }
 }
 
+impl BodyTwist {
+    /// What a run keeps of it at time `t`: the twist and its standard
+    /// deviations.
+    pub fn stamped(&self, t: f64) -> StampedTwist {
+        StampedTwist {
+            t,
+            linear: self.linear,
+            angular: self.angular,
+            sigma: std::array::from_fn(|i| self.cov[(i, i)].max(0.0).sqrt()),
+        }
+    }
+}
+
+/// A body twist at a time, with the standard deviations of its six
+/// components (what a run records per frame; the covariance's cross terms
+/// go only to the live odometry).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StampedTwist {
+    /// IMU time, s.
+    pub t: f64,
+    /// Velocity in the body (IMU) frame, m/s.
+    pub linear: Vector3<f64>,
+    /// Angular rate in the body frame, rad/s.
+    pub angular: Vector3<f64>,
+    /// Standard deviations of `[linear; angular]`.
+    pub sigma: [f64; 6],
+}
+
 /// The body twist of `imu`, with its covariance carried from the IMU block
 /// `cov` to first order. With `R = R̂ Exp(δθ)`, `Rᵀ v = R̂ᵀ v̂ + ⌊R̂ᵀ v̂⌋× δθ +
 /// R̂ᵀ δv`, and the rate's error is `-δb_g` plus the reading's white noise.
