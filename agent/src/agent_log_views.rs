@@ -342,7 +342,8 @@ mod tests {
                 sigma: [0.01, 0.01, 0.01, 0.002, 0.002, 0.002],
             })
             .collect();
-        log.run_poses(&poses, &[], &twists, &poses, &twists).unwrap();
+        log.run_poses(&poses, &[], &twists, &poses, &twists)
+            .unwrap();
         log.finish().unwrap();
         let bytes = std::fs::read(&path).unwrap();
         let mut sigmas = std::collections::BTreeMap::new();
