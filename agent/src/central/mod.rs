@@ -22,7 +22,7 @@ use crate::estimator::feature_db::FeatureDb;
 use crate::estimator::filter::FilterView;
 use crate::estimator::frame_output::{cpu_ms, GyroAtFrame, ImuCovariance};
 use crate::estimator::inputs::{check_frame, check_imu, InputError};
-use crate::estimator::propagator::{gyro_reading_at, propagate, readings_rate_hz, PropagateError};
+use crate::estimator::propagator::{gyro_at_frame, propagate, PropagateError};
 use crate::estimator::state::{ImuState, Means, Var};
 use crate::estimator::triangulation::TriangulationOptions;
 use crate::estimator::vio::{augment_clone, initial_blocks, FrameError};
@@ -243,14 +243,7 @@ impl CentralEstimator {
             return Err(FrameError::NotInitialized(frame.t));
         };
         let omega = propagate(&mut slot, buf, t_imu, &opts.imu, opts.use_fej)?;
-        // The body's rate as published beside the estimate: the reading at
-        // the frame's IMU time (the propagation's last rate is a mean over
-        // its last interval).
-        let gyro = GyroAtFrame::new(
-            gyro_reading_at(buf, t_imu).unwrap_or(omega + slot.means().imu.bias_gyro),
-            opts.imu.gyro_noise_density,
-            readings_rate_hz(buf, t_prev, t_imu),
-        );
+        let gyro = gyro_at_frame(buf, t_prev, t_imu, &opts.imu);
         if opts.zero_velocity_update {
             let readings: Vec<ImuSample> = buf
                 .iter()

@@ -12,8 +12,8 @@ use nalgebra::{Matrix3, Matrix6, SMatrix, Vector3};
 /// rad), position (m), velocity (m/s), gyro bias (rad/s), accel bias (m/s²).
 pub type ImuCovariance = SMatrix<f64, 15, 15>;
 
-/// The gyroscope at a frame: the reading the propagation ended on, and the
-/// variance of its white noise per axis.
+/// The gyroscope at a frame: its reading at the frame's IMU time, and the
+/// variance of its white noise per axis ([`super::propagator::gyro_at_frame`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct GyroAtFrame {
     /// The raw reading (bias included), rad/s, IMU frame.

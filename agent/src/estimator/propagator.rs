@@ -10,6 +10,7 @@
 //! the covariance once.
 
 use super::filter::Filter;
+use super::frame_output::GyroAtFrame;
 use super::options::ImuNoise;
 use super::state::{ImuFej, Means};
 use common::measurement::ImuSample;
@@ -96,29 +97,27 @@ fn segments(buf: &[ImuSample], t0: f64, t1: f64) -> Result<Vec<Segment>, Propaga
         .collect())
 }
 
-/// The gyro's reading at `t`, interpolated between the readings of `buf`
-/// around it (the nearest at either end; `None` for an empty buffer).
-pub fn gyro_reading_at(buf: &[ImuSample], t: f64) -> Option<Vector3<f64>> {
-    let after = buf.partition_point(|s| s.t < t);
-    match (
+/// The gyro at a frame's IMU time `t1`, for the twist published beside the
+/// estimate: the reading interpolated at `t1` (the propagation's last rate
+/// is a mean over its last interval, half a sample late), with the white
+/// noise of one reading at the rate the readings of `(t0, t1]` came in.
+/// An empty buffer (which propagation refuses first) gives a zero reading.
+pub fn gyro_at_frame(buf: &[ImuSample], t0: f64, t1: f64, noise: &ImuNoise) -> GyroAtFrame {
+    let after = buf.partition_point(|s| s.t < t1);
+    let reading = match (
         after.checked_sub(1).and_then(|i| buf.get(i)),
         buf.get(after),
     ) {
-        (Some(a), Some(b)) => Some(lerp(a, b, t).gyro),
-        (Some(only), None) | (None, Some(only)) => Some(only.gyro),
-        (None, None) => None,
-    }
-}
-
-/// How many readings of `buf` fall in `(t0, t1]` per second: the IMU's rate
-/// over the interval a frame propagated across (0 when the interval is empty).
-pub fn readings_rate_hz(buf: &[ImuSample], t0: f64, t1: f64) -> f64 {
-    let n = buf.iter().filter(|s| s.t > t0 && s.t <= t1).count();
-    if t1 > t0 {
-        n as f64 / (t1 - t0)
-    } else {
-        0.0
-    }
+        (Some(a), Some(b)) => lerp(a, b, t1).gyro,
+        (Some(only), None) | (None, Some(only)) => only.gyro,
+        (None, None) => Vector3::zeros(),
+    };
+    // Readings in (t0, t1]; the buffer is time ordered.
+    let n = buf
+        .partition_point(|s| s.t <= t1)
+        .saturating_sub(buf.partition_point(|s| s.t <= t0));
+    let rate_hz = if t1 > t0 { n as f64 / (t1 - t0) } else { 0.0 };
+    GyroAtFrame::new(reading, noise.gyro_noise_density, rate_hz)
 }
 
 /// Propagates the filter's robot to IMU time `t1` with the readings in `buf`
@@ -269,6 +268,29 @@ mod tests {
     use crate::estimator::state::{ImuState, State, Var};
     use common::calibration::CameraCalibration;
     use nalgebra::DMatrix;
+
+    /// The reading is interpolated at the frame's time, and the rate counts
+    /// the readings of `(t0, t1]`.
+    #[test]
+    fn the_gyro_at_a_frame_is_interpolated_at_its_time() {
+        let buf: Vec<ImuSample> = (0..=40)
+            .map(|k| ImuSample {
+                t: k as f64 * 0.005,
+                gyro: Vector3::new(k as f64, 0.0, 0.0),
+                accel: Vector3::zeros(),
+            })
+            .collect();
+        let noise = ImuNoise::default();
+        let g = gyro_at_frame(&buf, 0.05, 0.1525, &noise);
+        assert!((g.reading.x - 30.5).abs() < 1e-9, "{}", g.reading.x);
+        // 20 readings (0.055 ... 0.15) in 0.1025 s.
+        let rate = 20.0 / 0.1025;
+        assert!((g.noise_var - noise.gyro_noise_density.powi(2) * rate).abs() < 1e-15);
+        // On a reading, and past the buffer's end.
+        assert_eq!(gyro_at_frame(&buf, 0.0, 0.1, &noise).reading.x, 20.0);
+        assert_eq!(gyro_at_frame(&buf, 0.1, 0.5, &noise).reading.x, 40.0);
+        assert_eq!(gyro_at_frame(&[], 0.0, 0.1, &noise).noise_var, 0.0);
+    }
 
     fn state_at(imu: ImuState) -> State {
         State::new(

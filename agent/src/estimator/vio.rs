@@ -13,7 +13,7 @@ pub use super::frame_output::{FrameOutput, FrameRecord, FrameTiming};
 pub use super::inputs::InputError;
 use super::inputs::{check_frame, check_imu};
 use super::options::EstimatorOptions;
-use super::propagator::{gyro_reading_at, propagate, readings_rate_hz, PropagateError};
+use super::propagator::{gyro_at_frame, propagate, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
 use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
 use super::triangulation::TriangulationOptions;
@@ -337,14 +337,7 @@ impl Estimator {
         let t_prev = state.t;
         let buf = self.imu.make_contiguous();
         let omega = propagate(state, buf, t_imu, &opts.imu, opts.use_fej)?;
-        // The body's rate as published beside the estimate: the reading at
-        // the frame's IMU time (the propagation's last rate is a mean over
-        // its last interval).
-        let gyro = GyroAtFrame::new(
-            gyro_reading_at(buf, t_imu).unwrap_or(omega + state.means.imu.bias_gyro),
-            opts.imu.gyro_noise_density,
-            readings_rate_hz(buf, t_prev, t_imu),
-        );
+        let gyro = gyro_at_frame(buf, t_prev, t_imu, &opts.imu);
         // A standstill: the zero-velocity update replaces this frame's visual update
         // (no parallax to gain, and no clone to spend).
         if opts.zero_velocity_update {
