@@ -10,11 +10,12 @@
 //! `R_ItoG = R̂ Exp(δθ)`, `R_CtoI = R̂_c Exp(δφ)`, the camera error is
 //! `δθ_C = R̂_cᵀ δθ + δφ` and `δp_C = δp − R̂ ⌊p̂_c⌋ δθ + R̂ δp_c`.
 
+use super::frame_alignment::CameraEstimate;
 use super::slam_feature::global_position;
-use super::state::{State, Var};
+use super::state::{ClonePose, State, Var};
 use common::calibration::CameraCalibration;
 use common::so3::skew;
-use nalgebra::{DMatrix, Matrix3, Vector3};
+use nalgebra::{DMatrix, Matrix3, Matrix6, Vector3};
 
 /// One camera pose of the window.
 #[derive(Clone, Debug, PartialEq)]
@@ -81,17 +82,7 @@ pub fn camera_window(state: &State, with_landmarks: bool) -> CameraWindow {
     }
     let mut poses = Vec::with_capacity(n);
     for (i, (key, clone)) in state.clones.iter().enumerate() {
-        let r = 6 * i;
-        jac.view_mut((r, r), (3, 3))
-            .copy_from(&c.rot_c_to_i.transpose());
-        jac.view_mut((r + 3, r), (3, 3))
-            .copy_from(&(-clone.rot * skew(&c.p_c_in_i)));
-        jac.view_mut((r + 3, r + 3), (3, 3)).fill_with_identity();
-        if has_ext {
-            let e = 6 * n;
-            jac.view_mut((r, e), (3, 3)).fill_with_identity();
-            jac.view_mut((r + 3, e + 3), (3, 3)).copy_from(&clone.rot);
-        }
+        fill_camera_jacobian(&mut jac, 6 * i, 6 * i, has_ext.then_some(6 * n), c, clone);
         poses.push(CameraPoseEstimate {
             key: *key,
             t_cam: clone.t_cam,
@@ -124,6 +115,49 @@ pub fn camera_window(state: &State, with_landmarks: bool) -> CameraWindow {
         landmarks,
         calib: c.clone(),
     }
+}
+
+/// Rows `row..row + 6` of the map from the clone's error (columns `col..col +
+/// 6`) and the extrinsic's (at `ext`, when estimated) to the camera pose's.
+fn fill_camera_jacobian(
+    jac: &mut DMatrix<f64>,
+    row: usize,
+    col: usize,
+    ext: Option<usize>,
+    c: &CameraCalibration,
+    clone: &ClonePose,
+) {
+    jac.view_mut((row, col), (3, 3))
+        .copy_from(&c.rot_c_to_i.transpose());
+    jac.view_mut((row + 3, col), (3, 3))
+        .copy_from(&(-clone.rot * skew(&c.p_c_in_i)));
+    jac.view_mut((row + 3, col + 3), (3, 3))
+        .fill_with_identity();
+    if let Some(e) = ext {
+        jac.view_mut((row, e), (3, 3)).fill_with_identity();
+        jac.view_mut((row + 3, e + 3), (3, 3)).copy_from(&clone.rot);
+    }
+}
+
+/// The camera pose of clone `key` with the covariance of its `[δθ_C, δp_C]`
+/// (the extrinsic's uncertainty folded in), `None` without that clone.
+pub fn camera_estimate(state: &State, key: u64) -> Option<CameraEstimate> {
+    let clone = state.clones.get(&key)?;
+    let c = &state.calib;
+    let has_ext = state.has(Var::Extrinsic);
+    let mut vars = vec![Var::Clone(key)];
+    if has_ext {
+        vars.push(Var::Extrinsic);
+    }
+    let sub = gather(state, &vars);
+    let mut jac = DMatrix::zeros(6, sub.nrows());
+    fill_camera_jacobian(&mut jac, 0, 0, has_ext.then_some(6), c, clone);
+    let cov = &jac * sub * jac.transpose();
+    Some(CameraEstimate {
+        rot: clone.rot * c.rot_c_to_i,
+        pos: clone.pos + clone.rot * c.p_c_in_i,
+        cov: Matrix6::from_fn(|r, k| 0.5 * (cov[(r, k)] + cov[(k, r)])),
+    })
 }
 
 /// The joint covariance of `vars`, in that order.
@@ -268,6 +302,20 @@ mod tests {
         let expected = &jac * s.cov() * jac.transpose();
         let err = (&expected - &nominal.cov).abs().max();
         assert!(err < 1e-6 * expected.abs().max(), "max error {err}");
+    }
+
+    #[test]
+    fn one_camera_estimate_is_its_block_of_the_window() {
+        let s = state();
+        let w = camera_window(&s, false);
+        for (i, pose) in w.poses.iter().enumerate() {
+            let one = camera_estimate(&s, pose.key).expect("a clone");
+            assert_eq!(one.rot, pose.rot);
+            assert_eq!(one.pos, pose.pos);
+            let block = w.cov.view((6 * i, 6 * i), (6, 6));
+            assert!((one.cov - block).abs().max() < 1e-12 * block.abs().max());
+        }
+        assert!(camera_estimate(&s, 999).is_none());
     }
 
     #[test]

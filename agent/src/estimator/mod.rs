@@ -14,6 +14,7 @@ pub mod feature_classes;
 pub mod feature_db;
 pub mod feature_system;
 pub mod filter;
+pub mod frame_alignment;
 pub mod frame_output;
 pub mod gated_update;
 pub mod inputs;
