@@ -231,5 +231,16 @@ pub fn metrics_of(report: &NodeReport) -> MetricSet {
     // Without catch-up nothing is replayed.
     m.replay_bytes_sent = Some(report.catch_up.as_ref().map_or(0, |c| c.replay_bytes));
     m.cpu_s = report.cpu_s;
+    if let Some(frames) = &report.peer_frames {
+        let s = crate::cooperation::peer_frames::score(frames, |p| {
+            report.true_peer_frames.get(&p).copied()
+        });
+        m.peer_frames_aligned = Some(s.aligned);
+        m.peer_frame_yaw_err_deg = s.yaw_err_deg;
+        m.peer_frame_pos_err_m = s.pos_err_m;
+        m.peer_frame_nees = s.nees;
+        let start = report.run.estimate.first().map(|p| p.t);
+        m.first_peer_frame_s = s.first_aligned_at_s.zip(start).map(|(a, b)| a - b);
+    }
     m
 }

@@ -499,6 +499,11 @@ pub struct EstimatorSection {
     /// is divided by it.
     #[serde(default)]
     pub ci_peer_weight: Option<f64>,
+    /// The robots were not given their start poses in one fleet frame: find
+    /// each peer's frame from loop closures before using its windows (needs
+    /// the loop closures of `dc-full-history`).
+    #[serde(default)]
+    pub align_peer_frames: Option<bool>,
     /// Vocabulary file for historical loop closures (`vocab train` output);
     /// without it, a vocabulary for random binary descriptors (the simulator's)
     /// is built in memory.
@@ -561,6 +566,7 @@ impl EstimatorSection {
             (&mut c.common_slam, self.common_slam),
             (&mut c.slam_constraint, self.slam_constraint),
             (&mut c.historical, self.historical),
+            (&mut c.align_peer_frames, self.align_peer_frames),
         ] {
             if let Some(v) = value {
                 *flag = v;
@@ -627,6 +633,7 @@ impl Default for EstimatorSection {
             projection: None,
             ci_weighting: None,
             ci_peer_weight: None,
+            align_peer_frames: None,
             vocabulary: None,
         }
     }

@@ -107,6 +107,11 @@ pub struct NodeReport {
     pub peak_history_bytes: usize,
     /// Each peer's keyframe database at the end: bytes, and bytes per window.
     pub keyframe_db_bytes: BTreeMap<u32, (usize, f64)>,
+    /// Each peer's frame as aligned to ours (`align_peer_frames`; `None` off).
+    pub peer_frames: Option<BTreeMap<u32, crate::cooperation::peer_frames::PeerFrame>>,
+    /// Where each peer's frame truly is in ours, `(yaw rad, translation m)`
+    /// (simulation).
+    pub true_peer_frames: BTreeMap<u32, (f64, nalgebra::Vector3<f64>)>,
     /// Ticks done.
     pub ticks: u64,
     /// Fleet time covered, s.
@@ -1173,9 +1178,8 @@ pub fn run_node(
     let cpu_start = cpu_time::ThreadTime::try_now().ok();
     let fleet = &setup.fleet;
     let robot = setup.robot;
-    let truth = fleet
-        .truths
-        .get(robot)
+    let truth = &fleet
+        .agent_truth(robot)
         .ok_or(simulator::SimError::NoSuchRobot(robot))?;
     let spec = &fleet.scenario.estimator;
     let start_t = fleet
@@ -1183,6 +1187,9 @@ pub fn run_node(
         .ok_or(simulator::SimError::NoSuchRobot(robot))?;
     let mut opts = options_for(spec, fleet, setup.variant);
     cfg.estimator.apply(&mut opts);
+    // E.g. robots in their own frames with a variant that closes no loops:
+    // it could never find its peers' frames.
+    opts.validate().map_err(RunError::Options)?;
     let mut est = Estimator::new(opts, fleet.initial_calibration(robot));
     let header = RunHeader {
         scenario: fleet.scenario.name.clone(),
@@ -1370,7 +1377,19 @@ pub fn run_node(
         data_unfinished: tick < setup.ticks_total,
         fleet_s: t_last.min(own_end) - grid.t0_s,
     };
-    Ok(node.finish(cfg, &est, run_files, stop, &end, cpu_start.as_ref()))
+    let mut report = node.finish(cfg, &est, run_files, stop, &end, cpu_start.as_ref());
+    // The truth of the peers' frames in ours (robot ids are fleet indices).
+    report.true_peer_frames = (0..fleet.robot_count())
+        .filter(|r| *r != robot)
+        .filter_map(|r| {
+            let f = fleet.frame_between(robot, r)?;
+            Some((
+                u32::try_from(r).ok()?,
+                (f.rot[(1, 0)].atan2(f.rot[(0, 0)]), f.trans),
+            ))
+        })
+        .collect();
+    Ok(report)
 }
 
 /// How the main loop of a run ended.
@@ -1456,6 +1475,10 @@ impl Node {
             .cooperation()
             .map(|c| c.keyframe_db_bytes())
             .unwrap_or_default();
+        self.report.peer_frames = est
+            .cooperation()
+            .filter(|c| c.aligns_peer_frames())
+            .map(|c| c.peer_frames());
         if let Some((asking, replayer)) = self.catch_up.as_ref() {
             let (a, r) = (&asking.stats, &replayer.stats);
             self.report.catch_up = Some(CatchUpStats {

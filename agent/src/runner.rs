@@ -10,7 +10,7 @@ use common::so3::exp_so3;
 use common::summary::MetricSet;
 use common::trajectory::{StampedCovariance, StampedPose};
 use simulator::camera_sim::{CameraEvent, TruthState};
-use simulator::scenario::EstimatorSpec;
+use simulator::scenario::{EstimatorSpec, StartFrame};
 use simulator::{Fleet, SimEvent};
 use std::str::FromStr;
 use thiserror::Error;
@@ -117,6 +117,12 @@ pub enum RunError {
     /// A variant name that does not exist.
     #[error("unknown variant `{0}` (known: indp, indp-slam, dc-cmsckf, dc-cmsckf-cslam, dc-full-window, dc-full-history, ce-cmsckf, ce-cmsckf-cslam)")]
     UnknownVariant(String),
+    /// The options the scenario and the overrides give are refused.
+    #[error("estimator options: {0}")]
+    Options(String),
+    /// A centralized variant asked to run robots in their own frames.
+    #[error("{0} keeps every robot in one joint state: it needs `estimator.start_frame: fleet`")]
+    NeedsFleetFrame(&'static str),
     /// The robot never moved enough to start.
     #[error("robot {0} has no camera frame after its start time")]
     NeverStarted(usize),
@@ -131,9 +137,16 @@ pub enum RunError {
 }
 
 /// The estimator options a scenario asks for, for one variant.
+///
+/// With `start_frame: own` the distributed cooperative variants align their
+/// peers' frames (`align_peer_frames`), which needs loop closures: of those,
+/// only `dc-full-history` passes [`EstimatorOptions::validate`].
 pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> EstimatorOptions {
     let mut o = spec.options(&fleet.scenario.sensors);
     variant.apply(&mut o);
+    if spec.start_frame == StartFrame::Own && variant.cooperative() && !variant.centralized() {
+        o.cooperation.align_peer_frames = true;
+    }
     o
 }
 
@@ -273,9 +286,8 @@ pub fn run_stream(
     events: impl Iterator<Item = SimEvent>,
     mut frames: impl FnMut(CameraEvent) -> Result<Option<FeatureFrame>, RunError>,
 ) -> Result<RobotRun, RunError> {
-    let truth = fleet
-        .truths
-        .get(robot)
+    let truth = &fleet
+        .agent_truth(robot)
         .ok_or(simulator::SimError::NoSuchRobot(robot))?;
     let start = fleet
         .estimator_start_time(robot)
@@ -325,8 +337,11 @@ pub fn run_stream(
 /// Robot `robot`'s start: the true state plus the fleet's start error for it
 /// (zero unless the scenario samples it from the prior), with the scenario's
 /// prior standard deviations (OpenVINS's simulation start when it is zero).
+///
+/// With `start_frame: own` the state is in the robot's own frame.
 pub fn initial_state(fleet: &Fleet, robot: usize, truth: &TruthState) -> InitialState {
     let spec = &fleet.scenario.estimator;
+    let truth = &fleet.state_in_robot_frame(robot, truth).unwrap_or(*truth);
     let err = fleet.start_error(robot);
     InitialState {
         t: truth.t,

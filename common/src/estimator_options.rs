@@ -277,6 +277,22 @@ pub struct CooperationOptions {
     /// two caps above, a frame's cooperative work has a bound that does not
     /// depend on the fleet's size. 0 turns common VIO features off.
     pub max_common_per_frame: usize,
+    /// The peers' world frames are not ours (robots not given their start
+    /// poses in one fleet frame): each peer's yaw and translation are measured
+    /// from loop closures to its keyframe windows, and its windows are used
+    /// only once that is confirmed. Needs `historical`.
+    pub align_peer_frames: bool,
+    /// Fewest loop-closure points that must agree on an alignment.
+    pub min_alignment_inliers: usize,
+    /// Loop closures to different keyframe windows of a peer that must agree
+    /// before its frame is taken (perceptual aliasing makes one wrong now and
+    /// then). At least 1.
+    pub alignment_confirmations: usize,
+    /// Largest yaw standard deviation of an alignment measurement, deg.
+    pub max_alignment_yaw_sigma_deg: f64,
+    /// Largest root summed translation variance of an alignment
+    /// measurement, m.
+    pub max_alignment_translation_sigma_m: f64,
 }
 
 impl Default for CooperationOptions {
@@ -308,6 +324,11 @@ impl Default for CooperationOptions {
             max_peers_matched_per_frame: 3,
             max_ci_participants: 2,
             max_common_per_frame: 3,
+            align_peer_frames: false,
+            min_alignment_inliers: 12,
+            alignment_confirmations: 2,
+            max_alignment_yaw_sigma_deg: 2.0,
+            max_alignment_translation_sigma_m: 0.5,
         }
     }
 }
@@ -339,6 +360,14 @@ impl CooperationOptions {
             ("constraint_sigma_m", self.constraint_sigma_m),
             ("epipolar_threshold_px", self.epipolar_threshold_px),
             ("max_window_age_s", self.max_window_age_s),
+            (
+                "max_alignment_yaw_sigma_deg",
+                self.max_alignment_yaw_sigma_deg,
+            ),
+            (
+                "max_alignment_translation_sigma_m",
+                self.max_alignment_translation_sigma_m,
+            ),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!(
@@ -368,6 +397,20 @@ impl CooperationOptions {
             if v == 0 {
                 return Err(format!("cooperation.{name} must be at least 1"));
             }
+        }
+        if self.align_peer_frames && self.any() && !self.historical {
+            return Err(
+                "cooperation.align_peer_frames needs historical (variant dc-full-history): \
+                 the peers' frames are measured from loop closures to their keyframe windows"
+                    .into(),
+            );
+        }
+        if self.min_alignment_inliers < 3 || self.alignment_confirmations == 0 {
+            return Err(format!(
+                "cooperation.min_alignment_inliers must be at least 3 and \
+                 alignment_confirmations at least 1 (got {} and {})",
+                self.min_alignment_inliers, self.alignment_confirmations
+            ));
         }
         Ok(())
     }
@@ -615,6 +658,13 @@ mod tests {
         assert!(bad(|o| o.cooperation.max_window_age_s = f64::INFINITY).contains("window_age"));
         assert!(bad(|o| o.cooperation.match_ratio = 0.0).contains("match_ratio"));
         assert!(bad(|o| o.cooperation.loop_min_score = 1.5).contains("loop_min_score"));
+        assert!(bad(|o| {
+            o.cooperation.align_peer_frames = true;
+            o.cooperation.common_vio = true;
+        })
+        .contains("needs historical"));
+        assert!(bad(|o| o.cooperation.alignment_confirmations = 0).contains("confirmations"));
+        assert!(bad(|o| o.cooperation.max_alignment_yaw_sigma_deg = 0.0).contains("yaw_sigma"));
         assert!(bad(|o| o.cooperation.max_ci_participants = 0).contains("max_ci_participants"));
         assert!(bad(|o| o.cooperation.max_peers_matched_per_frame = 0)
             .contains("max_peers_matched_per_frame"));

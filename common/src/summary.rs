@@ -112,6 +112,18 @@ pub struct MetricSet {
     /// Bytes of history replays this agent sent to peers that asked for
     /// windows they had missed (history catch-up).
     pub replay_bytes_sent: Option<u64>,
+    /// Peers whose world frame this agent aligned to its own from loop
+    /// closures (`align_peer_frames`; `null` when off).
+    pub peer_frames_aligned: Option<u64>,
+    /// Root mean square yaw error of those alignments at the end, deg
+    /// (simulation: against the true relative start poses).
+    pub peer_frame_yaw_err_deg: Option<f64>,
+    /// Root mean square translation error of those alignments at the end, m.
+    pub peer_frame_pos_err_m: Option<f64>,
+    /// Mean NEES (4 DoF: yaw, translation) of those alignments at the end.
+    pub peer_frame_nees: Option<f64>,
+    /// Fleet time from this robot's start to its first aligned peer, s.
+    pub first_peer_frame_s: Option<f64>,
     /// CPU time of the run, s: an agent process's, all its threads (transport
     /// included) from the start of its run to the end; an agent on a thread of
     /// `sim-fleet`, or a standalone run (`agent run`, the independent
@@ -211,6 +223,11 @@ impl MetricSet {
             peer_windows_held: u(|s| s.peer_windows_held),
             peer_windows_whole: u(|s| s.peer_windows_whole),
             replay_bytes_sent: u(|s| s.replay_bytes_sent),
+            peer_frames_aligned: u(|s| s.peer_frames_aligned),
+            peer_frame_yaw_err_deg: f(|s| s.peer_frame_yaw_err_deg),
+            peer_frame_pos_err_m: f(|s| s.peer_frame_pos_err_m),
+            peer_frame_nees: f(|s| s.peer_frame_nees),
+            first_peer_frame_s: f(|s| s.first_peer_frame_s),
             cpu_s: f(|s| s.cpu_s),
         }
     }

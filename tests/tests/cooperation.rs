@@ -84,6 +84,38 @@ fn agents_over_iceoryx2_share_features_and_close_loops_on_peer_histories() {
     assert_cooperates(&summary);
 }
 
+/// The same fleet, each robot in its own frame (`start_frame: own`): no robot
+/// knows where the others started, and each finds their frames from its loop
+/// closures to their keyframe windows before it uses them.
+#[test]
+fn agents_in_their_own_frames_align_their_peers_from_loop_closures_over_zenoh() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scenario(dir.path());
+    let text = std::fs::read_to_string(&sc).unwrap();
+    std::fs::write(&sc, text + "  start_frame: own\n").unwrap();
+    let summary = sim_fleet_run(&sc, &dir.path().join("own"), &OVER_ZENOH);
+    // Robot 1 flies 4 s behind robot 0, over its places; robot 2 after both.
+    for (r, peers) in [(1, 1.0), (2, 2.0)] {
+        assert_eq!(
+            metric(&summary, r, "peer_frames_aligned"),
+            peers,
+            "robot {r}"
+        );
+        let yaw = metric(&summary, r, "peer_frame_yaw_err_deg");
+        let pos = metric(&summary, r, "peer_frame_pos_err_m");
+        assert!(yaw < 1.0 && pos < 0.2, "robot {r}: {yaw} deg, {pos} m off");
+        let updates = metric(&summary, r, "common_feature_updates");
+        assert!(
+            updates > 10.0,
+            "robot {r}: {updates} common feature updates"
+        );
+    }
+    for r in 0..3 {
+        let ate = metric(&summary, r, "ate_pos_m");
+        assert!(ate.is_finite() && ate < 0.5, "robot {r}: ATE {ate} m");
+    }
+}
+
 #[test]
 fn the_centralized_estimator_runs_the_fleet_in_one_process() {
     let dir = tempfile::tempdir().unwrap();

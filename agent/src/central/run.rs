@@ -7,6 +7,7 @@ use super::CentralEstimator;
 use crate::runner::{
     initial_state, options_for, record, thread_cpu_s, RobotRun, RunError, Variant,
 };
+use simulator::scenario::StartFrame;
 use simulator::{Fleet, SimEvent};
 
 fn time_of(e: &SimEvent) -> f64 {
@@ -22,6 +23,11 @@ pub fn run_central(fleet: &Fleet, variant: Variant) -> Result<Vec<RobotRun>, Run
     let cpu_start = cpu_time::ThreadTime::try_now().ok();
     let n = fleet.robot_count();
     let spec = &fleet.scenario.estimator;
+    // One joint state holds every robot in one frame: the reference that
+    // knows the robots' relative start poses by construction.
+    if spec.start_frame != StartFrame::Fleet {
+        return Err(RunError::NeedsFleetFrame(variant.name()));
+    }
     let opts = options_for(spec, fleet, variant);
     let calibs = (0..n).map(|r| fleet.initial_calibration(r)).collect();
     let mut est = CentralEstimator::new(opts, calibs);

@@ -4,6 +4,7 @@
 
 use super::window_cache::WindowCache;
 use super::{Cooperation, Link, LinkSource, Peers, CONSTRAINT_FLAG};
+use crate::estimator::frame_alignment::FrameAlignment;
 use crate::estimator::peer_window::PeerWindow;
 use crate::estimator::updater_common::{CommonTrack, PeerObservation};
 use crate::estimator::updater_common_slam::SlamConstraint;
@@ -73,10 +74,10 @@ impl Cooperation {
                 let Some(h) = peers.get(&link.peer) else {
                     continue;
                 };
-                let Some(p) = *index
-                    .entry((link.peer, link.source))
-                    .or_insert_with(|| participant(&mut ev, &mut self.windows, link, h))
-                else {
+                let Some(p) = *index.entry((link.peer, link.source)).or_insert_with(|| {
+                    let frame = self.frame_of(link.peer)?;
+                    participant(&mut ev, &mut self.windows, link, h, frame.as_ref())
+                }) else {
                     continue;
                 };
                 let used = self.peers.get(&link.peer).map(|s| &s.used);
@@ -245,8 +246,12 @@ impl Cooperation {
         }
     }
 
-    /// Whether a link may be used for this class under the options.
+    /// Whether a link may be used for this class under the options (and its
+    /// peer's frame is known).
     fn allowed(&self, link: &Link, slam: bool) -> bool {
+        if self.frame_of(link.peer).is_none() {
+            return false;
+        }
         let class = if slam {
             self.opts.common_slam
         } else {
@@ -296,6 +301,7 @@ fn participant(
     cache: &mut WindowCache,
     link: &Link,
     h: &PeerHistory,
+    frame: Option<&FrameAlignment>,
 ) -> Option<usize> {
     let (snap, historical) = match link.source {
         LinkSource::Window => (h.latest.as_ref()?, false),
@@ -309,7 +315,7 @@ fn participant(
     {
         return Some(i);
     }
-    let w = cache.window(link.peer, key, historical, snap)?;
+    let w = cache.window(link.peer, key, historical, snap, frame)?;
     ev.participants.push(w);
     ev.historical.push(historical);
     Some(ev.participants.len() - 1)

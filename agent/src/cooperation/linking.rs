@@ -1,8 +1,9 @@
 //! Step 1 of a frame: matching our features to the peers' current frames and
 //! to their keyframe databases, verified matches becoming links.
 
-use super::loop_closure::{describe, detect, FrameFeatures, KeyframeDb, LoopParams};
+use super::loop_closure::{describe, detect, FrameFeatures, KeyframeDb, LoopClosure, LoopParams};
 use super::matcher::{epipolar_inliers, match_descriptors, MatchRules};
+use super::peer_frames::{alignment_options, measure};
 use super::{Cooperation, Link, LinkSource, Peers};
 use crate::peer_history::PeerHistory;
 use common::descriptor::Descriptor;
@@ -161,6 +162,51 @@ impl Cooperation {
         }
     }
 
+    /// Measures where peer `peer`'s frame is in ours from the loop closures
+    /// `found` to its keyframe windows (see `peer_frames`).
+    fn measure_frame(
+        &mut self,
+        peer: u32,
+        h: &PeerHistory,
+        frame: &FrameFeatures,
+        found: &[LoopClosure],
+    ) {
+        let Some(camera) = frame.camera.as_ref() else {
+            return;
+        };
+        let opts = alignment_options(&self.opts, frame.sigma_normalized);
+        let confirmations = self.opts.alignment_confirmations;
+        let focal = self.focal_px;
+        let state = self.peers.entry(peer).or_default();
+        for lc in found {
+            if !state.frame.wants_measurement(frame.t_s) {
+                break;
+            }
+            let Some(kf) = h.keyframes.get(&lc.keyframe) else {
+                continue;
+            };
+            match measure(lc, kf, frame, camera, focal, &opts) {
+                Some(m) => {
+                    let was = state.frame.alignment().is_some();
+                    state.frame.add(m, lc.keyframe, frame.t_s, confirmations);
+                    if !was {
+                        if let Some(a) = state.frame.alignment() {
+                            tracing::info!(
+                                peer,
+                                yaw_deg = a.yaw_rad.to_degrees(),
+                                t_m = ?a.t_m.as_slice(),
+                                yaw_sigma_deg = a.yaw_sigma_rad().to_degrees(),
+                                t_sigma_m = a.translation_sigma_m(),
+                                "peer frame aligned"
+                            );
+                        }
+                    }
+                }
+                None => self.stats.alignment_failures += 1,
+            }
+        }
+    }
+
     /// Indexes new peer keyframes and links our frame to the verified ones.
     fn match_history(&mut self, frame: &FrameFeatures, peers: &Peers, threshold: f64, seq: u64) {
         let Some(voc) = self.vocabulary.clone() else {
@@ -196,6 +242,9 @@ impl Cooperation {
             let verified = found.len();
             self.stats.loop_closures += verified as u64;
             self.stats.loop_rejected += candidates.saturating_sub(verified) as u64;
+            if self.opts.align_peer_frames {
+                self.measure_frame(peer, h, frame, &found);
+            }
             for lc in found {
                 for (ours, theirs) in lc.pairs {
                     let link = Link {

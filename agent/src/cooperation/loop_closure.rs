@@ -5,6 +5,7 @@
 //! direct index) and verified with the fundamental-matrix RANSAC.
 
 use super::matcher::epipolar_inliers;
+use crate::estimator::frame_alignment::CameraEstimate;
 use crate::peer_history::{KeyframeWindow, PeerHistory};
 use common::descriptor::Descriptor;
 use nalgebra::Vector2;
@@ -66,6 +67,11 @@ pub struct FrameFeatures {
     pub xy: Vec<Vector2<f64>>,
     /// The frame's time, s (fleet clock).
     pub t_s: f64,
+    /// Our camera's pose now with its covariance, when the peers' frames are
+    /// being aligned (`align_peer_frames`).
+    pub camera: Option<CameraEstimate>,
+    /// Our pixel noise over our focal length (normalized units).
+    pub sigma_normalized: f64,
 }
 
 /// A verified loop closure: our tracks matched to the peer's tracks of one

@@ -17,14 +17,17 @@ mod evidence;
 mod linking;
 pub mod loop_closure;
 pub mod matcher;
+pub mod peer_frames;
 mod used_marks;
 mod window_cache;
 
 pub use evidence::Evidence;
 
+use crate::estimator::frame_alignment::FrameAlignment;
 use crate::peer_history::PeerHistory;
 use common::estimator_options::CooperationOptions;
 use loop_closure::KeyframeDb;
+use peer_frames::PeerFrame;
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 use used_marks::UsedMarks;
@@ -85,12 +88,17 @@ pub struct CooperationStats {
     pub loop_rejected: u64,
     /// Links made.
     pub links: u64,
+    /// Loop closures to a peer whose frame was being aligned that gave no
+    /// alignment measurement (too few points, too uncertain).
+    pub alignment_failures: u64,
 }
 
 /// Per-peer state.
 #[derive(Debug, Default)]
 struct PeerState {
     keyframes: Option<KeyframeDb>,
+    /// Where the peer's frame is in ours (`align_peer_frames`).
+    frame: PeerFrame,
     /// Measurements used ([`used_marks`]).
     used: UsedMarks,
 }
@@ -144,6 +152,34 @@ impl Cooperation {
                 let db = s.keyframes.as_ref()?;
                 Some((*p, (db.bytes(), db.bytes_per_keyframe())))
             })
+            .collect()
+    }
+
+    /// Whether the peers' frames are being aligned: the matcher then needs our
+    /// camera's pose (`FrameFeatures::camera`).
+    pub fn aligns_peer_frames(&self) -> bool {
+        self.opts.align_peer_frames
+    }
+
+    /// How peer `peer`'s windows are taken into our frame: `Some(None)` as
+    /// they are (one fleet frame), `Some(Some(a))` through its confirmed
+    /// alignment, `None` not at all (not aligned yet).
+    pub(crate) fn frame_of(&self, peer: u32) -> Option<Option<FrameAlignment>> {
+        if !self.opts.align_peer_frames {
+            return Some(None);
+        }
+        self.peers
+            .get(&peer)
+            .and_then(|s| s.frame.alignment())
+            .map(|a| Some(*a))
+    }
+
+    /// Each peer's frame as we know it: its confirmed alignment (if any), and
+    /// the measurements taken and refused.
+    pub fn peer_frames(&self) -> BTreeMap<u32, PeerFrame> {
+        self.peers
+            .iter()
+            .map(|(p, s)| (*p, s.frame.clone()))
             .collect()
     }
 

@@ -11,6 +11,7 @@
 //! estimates stay bit for bit the same), and a peer that sends a different
 //! snapshot under the same key gets its new one.
 
+use crate::estimator::frame_alignment::{window_in_frame, FrameAlignment};
 use crate::estimator::peer_window::PeerWindow;
 use common::messages::StateSnapshot;
 
@@ -25,6 +26,8 @@ struct Entry {
     key: u64,
     historical: bool,
     snapshot: StateSnapshot,
+    /// The alignment the window was taken into our frame with.
+    frame: Option<FrameAlignment>,
     window: Option<PeerWindow>,
     last_used: u64,
 }
@@ -38,7 +41,8 @@ pub(super) struct WindowCache {
 
 impl WindowCache {
     /// Peer `peer`'s window `key` from `snap` (`historical` when it is a stored
-    /// keyframe window): the cached one when `snap` is the snapshot it was built
+    /// keyframe window), in our frame through `frame` when the peer's is not
+    /// ours: the cached one when `snap` and `frame` are what it was built
     /// from, else built now (and kept in place of the least recently used).
     pub(super) fn window(
         &mut self,
@@ -46,21 +50,30 @@ impl WindowCache {
         key: u64,
         historical: bool,
         snap: &StateSnapshot,
+        frame: Option<&FrameAlignment>,
     ) -> Option<PeerWindow> {
         self.clock += 1;
         let clock = self.clock;
         if let Some(e) = self.entries.iter_mut().find(|e| {
-            e.peer == peer && e.key == key && e.historical == historical && e.snapshot == *snap
+            e.peer == peer
+                && e.key == key
+                && e.historical == historical
+                && e.frame.as_ref() == frame
+                && e.snapshot == *snap
         }) {
             e.last_used = clock;
             return e.window.clone();
         }
-        let window = PeerWindow::from_snapshot(peer, key, snap);
+        let window = PeerWindow::from_snapshot(peer, key, snap).map(|w| match frame {
+            Some(a) => window_in_frame(&w, a),
+            None => w,
+        });
         let entry = Entry {
             peer,
             key,
             historical,
             snapshot: snap.clone(),
+            frame: frame.copied(),
             window: window.clone(),
             last_used: clock,
         };
@@ -112,8 +125,8 @@ mod tests {
         let snap = snapshot_for_tests(3, 40);
         let built = PeerWindow::from_snapshot(2, 7, &snap);
         assert!(built.is_some());
-        assert_eq!(cache.window(2, 7, false, &snap), built);
-        assert_eq!(cache.window(2, 7, false, &snap), built);
+        assert_eq!(cache.window(2, 7, false, &snap, None), built);
+        assert_eq!(cache.window(2, 7, false, &snap, None), built);
         assert_eq!(cache.len(), 1);
     }
 
@@ -123,13 +136,35 @@ mod tests {
         let first = snapshot_for_tests(3, 40);
         let second = snapshot_for_tests(3, 41);
         assert_eq!(
-            cache.window(2, 7, false, &first),
+            cache.window(2, 7, false, &first, None),
             PeerWindow::from_snapshot(2, 7, &first)
         );
-        let again = cache.window(2, 7, false, &second);
+        let again = cache.window(2, 7, false, &second, None);
         assert_eq!(again, PeerWindow::from_snapshot(2, 7, &second));
         assert_ne!(again, PeerWindow::from_snapshot(2, 7, &first));
         assert_eq!(cache.len(), 1, "the new content replaces the old entry");
+    }
+
+    #[test]
+    fn a_new_alignment_of_the_peer_builds_its_window_again_in_our_frame() {
+        let mut cache = WindowCache::default();
+        let snap = snapshot_for_tests(3, 40);
+        let raw = PeerWindow::from_snapshot(2, 7, &snap).expect("usable");
+        let a = FrameAlignment {
+            yaw_rad: 0.3,
+            t_m: nalgebra::Vector3::new(1.0, 2.0, 0.0),
+            cov: nalgebra::Matrix4::identity() * 1e-4,
+        };
+        assert_eq!(cache.window(2, 7, false, &snap, None), Some(raw.clone()));
+        let moved = cache.window(2, 7, false, &snap, Some(&a));
+        assert_eq!(moved, Some(window_in_frame(&raw, &a)));
+        assert_eq!(cache.len(), 1);
+        let mut b = a;
+        b.yaw_rad = 0.31;
+        assert_eq!(
+            cache.window(2, 7, false, &snap, Some(&b)),
+            Some(window_in_frame(&raw, &b))
+        );
     }
 
     #[test]
@@ -137,8 +172,8 @@ mod tests {
         let mut cache = WindowCache::default();
         let snap = snapshot_for_tests(2, 40);
         for key in 0..(CAPACITY as u64 + 5) {
-            let _ = cache.window(1, key, true, &snap);
-            let _ = cache.window(1, 0, true, &snap);
+            let _ = cache.window(1, key, true, &snap, None);
+            let _ = cache.window(1, 0, true, &snap, None);
         }
         assert_eq!(cache.len(), CAPACITY);
         assert!(

@@ -103,7 +103,7 @@ impl FrameAlignment {
     }
 
     /// `[ψ_other − ψ, t_other − t]` (the yaw difference wrapped).
-    fn difference(&self, other: &Self) -> Vector4<f64> {
+    pub fn difference(&self, other: &Self) -> Vector4<f64> {
         let d = other.t_m - self.t_m;
         Vector4::new(wrap(other.yaw_rad - self.yaw_rad), d.x, d.y, d.z)
     }

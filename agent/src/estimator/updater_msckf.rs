@@ -242,7 +242,7 @@ fn relinearize<F: Filter + ?Sized>(
 /// update loosens the rays' condition number
 /// ([`TriangulationOptions::relaxed`]). Zero (no bound) when the focal lengths
 /// are not positive.
-fn ray_noise_rad<F: Filter + ?Sized>(state: &F, opts: &EstimatorOptions) -> f64 {
+pub(crate) fn ray_noise_rad<F: Filter + ?Sized>(state: &F, opts: &EstimatorOptions) -> f64 {
     let camera = &state.means().calib.camera;
     let focal = (camera.fx() * camera.fy()).sqrt();
     if focal > 0.0 {

@@ -2,7 +2,7 @@
 //! frames go in (validated; bad input is rejected with a reason and changes
 //! nothing); after each processed frame the estimate and its covariance come out.
 
-use super::camera_window::{camera_window, CameraWindow};
+use super::camera_window::{camera_estimate, camera_window, CameraWindow};
 use super::chi2::Chi2Table;
 use super::cooperative::{self, frame_features, CoopFrameStats};
 use super::feature_classes::{classify, clean_up, record_measurements, FeatureClasses};
@@ -372,7 +372,12 @@ impl Estimator {
         let mut coop = CoopFrameStats::default();
         let t = Instant::now();
         if let Some(c) = self.coop.as_mut() {
-            c.match_frame(&frame_features(frame, &self.features, key), peers, key);
+            let mut ours = frame_features(frame, &self.features, key);
+            if c.aligns_peer_frames() {
+                ours.camera = camera_estimate(state, key);
+                ours.sigma_normalized = updater_msckf::ray_noise_rad(state, &opts);
+            }
+            c.match_frame(&ours, peers, key);
         }
         coop.matching_ms = ms(t);
         if !opts.window_ready(state.clones.len()) {

@@ -11,7 +11,7 @@ fn rpe_row(segment_m: f64, pos: Option<f64>, count: usize) -> RpeEntry {
     }
 }
 
-const METRIC_KEYS: [&str; 26] = [
+const METRIC_KEYS: [&str; 31] = [
     "ate_ori_deg",
     "ate_pos_m",
     "nees_ori",
@@ -37,6 +37,11 @@ const METRIC_KEYS: [&str; 26] = [
     "peer_windows_held",
     "peer_windows_whole",
     "replay_bytes_sent",
+    "peer_frames_aligned",
+    "peer_frame_yaw_err_deg",
+    "peer_frame_pos_err_m",
+    "peer_frame_nees",
+    "first_peer_frame_s",
     "cpu_s",
 ];
 

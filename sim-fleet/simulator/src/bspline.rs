@@ -96,6 +96,19 @@ impl SplineSe3 {
         })
     }
 
+    /// The same motion seen from another frame: every pose `T` becomes `f ∘ T`.
+    /// The increments between control points are relative, so the spline is
+    /// exactly the old one's poses moved by `f` (velocities and accelerations
+    /// rotated by it).
+    pub fn transformed(&self, f: &Se3) -> Self {
+        Self {
+            t0: self.t0,
+            dt: self.dt,
+            ctrl: self.ctrl.iter().map(|c| f.compose(c)).collect(),
+            omega: self.omega.clone(),
+        }
+    }
+
     /// Fits the spline to a trajectory as OpenVINS's simulator does: control points
     /// every `max(mean pose spacing, min_dt)` seconds, each the trajectory's pose
     /// interpolated at that time (slerp on rotation, linear on position).
@@ -254,6 +267,28 @@ mod tests {
             assert!((s.omega - omega_fd).norm() < 1e-6, "omega at {t}");
             let pose = spline.pose(t).unwrap();
             assert!((pose.rot - s.rot).norm() < 1e-12 && (pose.trans - s.pos).norm() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn a_transformed_spline_is_the_moved_motion() {
+        let spline = SplineSe3::fit(&synthetic(10.0, 20.0), 0.05).unwrap();
+        let f = Se3::new(
+            exp_so3(&Vector3::new(0.0, 0.0, 1.2)),
+            Vector3::new(3.0, -2.0, 0.5),
+        );
+        let moved = spline.transformed(&f);
+        for k in 0..50 {
+            let t = spline.start_time() + 0.05 + k as f64 * 0.17;
+            let (a, b) = (spline.state(t).unwrap(), moved.state(t).unwrap());
+            assert!((f.rot * a.rot - b.rot).norm() < 1e-9, "rot at {t}");
+            assert!(
+                (f.transform_point(&a.pos) - b.pos).norm() < 1e-9,
+                "pos at {t}"
+            );
+            assert!((f.rot * a.vel - b.vel).norm() < 1e-9, "vel at {t}");
+            assert!((f.rot * a.acc - b.acc).norm() < 1e-7, "acc at {t}");
+            assert!((a.omega - b.omega).norm() < 1e-9, "omega at {t}");
         }
     }
 

@@ -2,16 +2,17 @@
 //! robot's time-ordered measurement stream.
 
 use crate::bspline::SplineError;
-use crate::camera_sim::{CameraEvent, CameraGenerator};
+use crate::camera_sim::{CameraEvent, CameraGenerator, TruthState};
 use crate::imu::{Biases, ImuGenerator};
 use crate::perturb::{perturb_calibration, start_error, StartError};
 use crate::render::{RenderError, Renderer};
 use crate::rng::{stream_rng, Stream};
-use crate::scenario::Scenario;
+use crate::scenario::{Scenario, StartFrame};
 use crate::truth::RobotTruth;
 use crate::world::{camera_pose, ViewBounds, World};
 use common::calibration::CameraCalibration;
 use common::measurement::ImuSample;
+use common::so3::Se3;
 use common::trajectory::{laps, read_trajectory, TrajectoryError};
 use nalgebra::Vector3;
 use rand_chacha::ChaCha8Rng;
@@ -197,6 +198,56 @@ impl Fleet {
     pub fn start_error(&self, robot: usize) -> StartError {
         let mut rng = stream_rng(self.seed, Stream::InitialState(robot));
         start_error(&self.scenario.estimator, &mut rng)
+    }
+
+    /// `T_world→frame` of robot `robot`'s estimator frame: the identity with
+    /// `start_frame: fleet`; with `own`, the frame at its pose when its
+    /// estimator starts, yawed along its most horizontal IMU axis.
+    pub fn robot_frame(&self, robot: usize) -> Option<Se3> {
+        if self.scenario.estimator.start_frame == StartFrame::Fleet {
+            return Some(Se3::identity());
+        }
+        let start = self.estimator_start_time(robot)?;
+        let pose = self.truths.get(robot)?.spline.pose(start)?;
+        let axis = pose
+            .rot
+            .column_iter()
+            .min_by(|a, b| a.z.abs().total_cmp(&b.z.abs()))?
+            .into_owned();
+        let yaw = axis.y.atan2(axis.x);
+        let own_to_world = Se3::new(
+            common::so3::exp_so3(&Vector3::new(0.0, 0.0, yaw)),
+            pose.trans,
+        );
+        Some(own_to_world.inverse())
+    }
+
+    /// Robot `robot`'s truth as its estimator knows it: in its frame
+    /// ([`Fleet::robot_frame`]).
+    pub fn agent_truth(&self, robot: usize) -> Option<RobotTruth> {
+        let f = self.robot_frame(robot)?;
+        Some(self.truths.get(robot)?.transformed(&f))
+    }
+
+    /// A true state of robot `robot` in its estimator's frame.
+    pub fn state_in_robot_frame(&self, robot: usize, s: &TruthState) -> Option<TruthState> {
+        let f = self.robot_frame(robot)?;
+        Some(TruthState {
+            t: s.t,
+            rot: f.rot * s.rot,
+            pos: f.transform_point(&s.pos),
+            vel: f.rot * s.vel,
+            biases: s.biases,
+        })
+    }
+
+    /// `T_b→a`: where robot `b`'s estimator frame is in robot `a`'s (the
+    /// alignment robot `a` has to find with `start_frame: own`).
+    pub fn frame_between(&self, a: usize, b: usize) -> Option<Se3> {
+        Some(
+            self.robot_frame(a)?
+                .compose(&self.robot_frame(b)?.inverse()),
+        )
     }
 
     /// When robot `robot`'s estimator starts: once it moved `start_after_motion_m`.

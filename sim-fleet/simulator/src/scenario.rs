@@ -347,6 +347,23 @@ pub enum InitialError {
     Sampled,
 }
 
+/// The world frame each robot's estimator starts in.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StartFrame {
+    /// One fleet frame: every robot starts at its true pose in the scenario's
+    /// world, as if each had been given it.
+    #[default]
+    Fleet,
+    /// Each robot its own frame: the origin at its start position, `x` along
+    /// the heading of its most horizontal IMU axis (gravity fixes the rest).
+    /// The robots do not know where the others started: the cooperative
+    /// variants align the peers' frames from loop closures
+    /// (`cooperation.align_peer_frames`), and each robot's truth and scores are
+    /// in its own frame.
+    Own,
+}
+
 /// Estimator settings (consumed by the agents; defaults follow thesis Table 5.1 and
 /// OpenVINS's simulation setup).
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -407,6 +424,9 @@ pub struct EstimatorSpec {
     /// Path the robot must have travelled (summed over 0.1 s steps) before the
     /// filter starts, metres.
     pub start_after_motion_m: f64,
+    /// The frame each robot's estimator works in: `fleet` (one for all) or
+    /// `own` (its start; the peers' frames unknown to it).
+    pub start_frame: StartFrame,
     /// Which triangulated features are accepted (condition number, depth range in
     /// metres, depth/baseline ratio).
     pub triangulation: TriangulationLimits,
@@ -494,6 +514,7 @@ impl Default for EstimatorSpec {
             init_sigma_bias: 0.02,
             initial_error: InitialError::Truth,
             start_after_motion_m: 1.1,
+            start_frame: StartFrame::Fleet,
             triangulation: o.triangulation,
             cooperation: o.cooperation,
         }

@@ -422,3 +422,44 @@ fn a_robot_flying_laps_retraces_its_path_continuously() {
         prev = v;
     }
 }
+
+#[test]
+fn robots_in_their_own_frames_start_at_their_origins_and_keep_their_motion() {
+    let dir = tempfile::tempdir().unwrap();
+    let shared = Fleet::build(&scenario(dir.path(), ""), 1).unwrap();
+    let own = Fleet::build(&scenario(dir.path(), "estimator:\n  start_frame: own\n"), 1).unwrap();
+    for r in 0..2 {
+        assert_eq!(shared.robot_frame(r).unwrap().trans, Vector3::zeros());
+        let start = own.estimator_start_time(r).unwrap();
+        let truth = own.agent_truth(r).unwrap();
+        let s = truth.state(start).unwrap();
+        assert!(s.pos.norm() < 1e-9, "robot {r} starts at {:?}", s.pos);
+        // Yawed so that its most horizontal IMU axis points along x; the
+        // frame keeps gravity: roll and pitch are the world's.
+        let axis = s
+            .rot
+            .column_iter()
+            .min_by(|a, b| a.z.abs().total_cmp(&b.z.abs()))
+            .unwrap()
+            .into_owned();
+        assert!(axis.y.abs() < 1e-9 && axis.x > 0.0, "{axis:?}");
+        let world = own.truths[r].state(start + 3.0).unwrap();
+        let mine = truth.state(start + 3.0).unwrap();
+        assert!((world.rot.row(2) - mine.rot.row(2)).norm() < 1e-9);
+        assert!((world.vel.z - mine.vel.z).abs() < 1e-9);
+        assert!((world.vel.norm() - mine.vel.norm()).abs() < 1e-9);
+    }
+    // Robot 1's frame in robot 0's carries robot 1's points onto robot 0's.
+    let f = own.frame_between(0, 1).unwrap();
+    let t = own.estimator_start_time(1).unwrap() + 2.0;
+    let (a, b) = (own.agent_truth(0).unwrap(), own.agent_truth(1).unwrap());
+    let (p0, p1) = (
+        own.robot_frame(0)
+            .unwrap()
+            .transform_point(&own.truths[1].state(t).unwrap().pos),
+        b.state(t).unwrap().pos,
+    );
+    assert!((f.transform_point(&p1) - p0).norm() < 1e-9);
+    assert!(a.state(t).is_some());
+    assert!(f.rot[(2, 2)] > 1.0 - 1e-12, "a yaw only");
+}

@@ -1,6 +1,7 @@
 //! The true motion of one robot on the fleet clock.
 
 use crate::bspline::{SplineError, SplineSe3, SplineState};
+use common::so3::Se3;
 use common::trajectory::StampedPose;
 use nalgebra::Vector3;
 
@@ -33,6 +34,14 @@ impl RobotTruth {
             spline: SplineSe3::fit(&shifted, MIN_CONTROL_DT_S)?,
             time_shift_s: start_time_s - t0,
         })
+    }
+
+    /// The same truth in another frame (every pose `T` becomes `f ∘ T`).
+    pub fn transformed(&self, f: &Se3) -> Self {
+        Self {
+            spline: self.spline.transformed(f),
+            time_shift_s: self.time_shift_s,
+        }
     }
 
     /// First fleet time with a defined state.

@@ -53,7 +53,43 @@ pub fn render_table(study: &StudySummary) -> String {
         );
     }
     traffic_table(&mut out, study);
+    frames_table(&mut out, study);
     out
+}
+
+/// For agents that found their peers' frames from loop closures
+/// (`start_frame: own`): peers aligned per agent, how soon after its start,
+/// and the alignments' errors at the end against the true relative start
+/// poses, with their NEES (4 DoF: yaw, translation).
+fn frames_table(out: &mut String, study: &StudySummary) {
+    let agents: Vec<_> = study
+        .variants
+        .iter()
+        .filter(|(_, v)| v.mean.peer_frames_aligned.is_some())
+        .collect();
+    if agents.is_empty() {
+        return;
+    }
+    out.push_str(
+        "\nPeer frames found from loop closures (means over the runs of each run's robot mean):\n\n",
+    );
+    out.push_str(
+        "| variant | peers aligned | first after s | yaw error deg | position error m | NEES (4 DoF) |\n",
+    );
+    out.push_str("| --- | ---: | ---: | ---: | ---: | ---: |\n");
+    for (name, v) in agents {
+        let m = &v.mean;
+        let _ = writeln!(
+            out,
+            "| {name} | {} | {} | {} | {} | {} |",
+            m.peer_frames_aligned
+                .map_or_else(|| "-".to_string(), |n| n.to_string()),
+            num(m.first_peer_frame_s, 1),
+            num(m.peer_frame_yaw_err_deg, 3),
+            num(m.peer_frame_pos_err_m, 3),
+            num(m.peer_frame_nees, 2),
+        );
+    }
 }
 
 /// The traffic of the variants whose robots ran as agents (they sent
@@ -263,6 +299,37 @@ mod tests {
         assert_eq!(traffic.len(), 3, "header and one agent variant; {table}");
         assert_eq!(
             traffic[2], "| dc-full-history | 34.6 | 2.0 | 159 of 159 | 3 of 4 | 2.50 | 100 | 900 |",
+            "{table}"
+        );
+        assert!(!table.contains("Peer frames"), "{table}");
+    }
+
+    #[test]
+    fn agents_that_align_their_peers_frames_get_a_row_with_the_errors() {
+        let agent = |yaw: f64| {
+            let mut o = outcome(0.1);
+            let m = &mut o.metrics;
+            m.peer_frames_aligned = Some(2);
+            m.first_peer_frame_s = Some(2.0);
+            m.peer_frame_yaw_err_deg = Some(yaw);
+            m.peer_frame_pos_err_m = Some(0.06);
+            m.peer_frame_nees = Some(3.0);
+            o
+        };
+        let robots = vec![(0, "a".to_string())];
+        let study = study_of(vec![(
+            "dc-full-history".into(),
+            aggregate_variant(&robots, &[vec![agent(0.2), agent(0.4)]]),
+        )]);
+        let table = render_table(&study);
+        let rows: Vec<&str> = table
+            .lines()
+            .skip_while(|l| !l.starts_with("Peer frames"))
+            .filter(|l| l.starts_with("| "))
+            .collect();
+        assert_eq!(
+            rows.get(2).copied(),
+            Some("| dc-full-history | 2 | 2.0 | 0.300 | 0.060 | 3.00 |"),
             "{table}"
         );
     }
