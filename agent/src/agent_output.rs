@@ -239,7 +239,9 @@ pub fn metrics_of(report: &NodeReport) -> MetricSet {
         m.peer_frame_yaw_err_deg = s.yaw_err_deg;
         m.peer_frame_pos_err_m = s.pos_err_m;
         m.peer_frame_nees = s.nees;
-        let start = report.run.estimate.first().map(|p| p.t);
+        let start = report
+            .estimator_start_s
+            .or_else(|| report.run.estimate.first().map(|p| p.t));
         m.first_peer_frame_s = s.first_aligned_at_s.zip(start).map(|(a, b)| a - b);
     }
     m

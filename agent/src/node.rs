@@ -112,6 +112,9 @@ pub struct NodeReport {
     /// Where each peer's frame truly is in ours, `(yaw rad, translation m)`
     /// (simulation).
     pub true_peer_frames: BTreeMap<u32, (f64, nalgebra::Vector3<f64>)>,
+    /// When our estimator started (fleet clock), s (simulation; else the
+    /// first estimate's time stands in).
+    pub estimator_start_s: Option<f64>,
     /// Ticks done.
     pub ticks: u64,
     /// Fleet time covered, s.
@@ -1378,6 +1381,7 @@ pub fn run_node(
         fleet_s: t_last.min(own_end) - grid.t0_s,
     };
     let mut report = node.finish(cfg, &est, run_files, stop, &end, cpu_start.as_ref());
+    report.estimator_start_s = Some(start_t);
     // The truth of the peers' frames in ours (robot ids are fleet indices).
     report.true_peer_frames = (0..fleet.robot_count())
         .filter(|r| *r != robot)

@@ -772,6 +772,21 @@ fn summary_table(s: &RunSummary, camera_rate_hz: f64) -> String {
             1.0 / x
         );
     }
+    // Robots in their own frames: how each found its peers'.
+    for r in &s.robots {
+        let m = &r.metrics;
+        if let Some(n) = m.peer_frames_aligned {
+            let _ = writeln!(
+                t,
+                "robot {}: {n} peer frames aligned, the first {} s after its start; {} deg / {} m off (NEES {})",
+                r.id,
+                f(m.first_peer_frame_s, 1),
+                f(m.peer_frame_yaw_err_deg, 3),
+                f(m.peer_frame_pos_err_m, 3),
+                f(m.peer_frame_nees, 2),
+            );
+        }
+    }
     t
 }
 
@@ -829,5 +844,32 @@ mod tests {
                 assert_eq!(line.chars().count(), lines[0].chars().count(), "{table}");
             }
         }
+    }
+
+    #[test]
+    fn robots_that_aligned_their_peers_frames_get_a_line_each() {
+        let m = MetricSet {
+            peer_frames_aligned: Some(2),
+            first_peer_frame_s: Some(2.44),
+            peer_frame_yaw_err_deg: Some(0.3),
+            peer_frame_pos_err_m: Some(0.061),
+            peer_frame_nees: Some(3.1),
+            ..MetricSet::default()
+        };
+        let s = RunSummary {
+            robots: vec![common::summary::RobotSummary {
+                id: 1,
+                trajectory: "V1_02_medium".into(),
+                metrics: m,
+            }],
+            ..RunSummary::default()
+        };
+        let table = summary_table(&s, 10.0);
+        assert!(
+            table.contains(
+                "robot 1: 2 peer frames aligned, the first 2.4 s after its start; 0.300 deg / 0.061 m off (NEES 3.10)"
+            ),
+            "{table}"
+        );
     }
 }
