@@ -82,6 +82,48 @@ pub struct TransportReport<'a> {
     /// The end of the run: how long it took to settle, and whether it did
     /// (`None`: stopped before).
     pub settle: Option<&'a crate::node::SettleStats>,
+    /// Each peer's frame as this agent found it (`align_peer_frames`; absent
+    /// when off).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub peer_frames: Option<BTreeMap<u32, PeerFrameReport>>,
+}
+
+/// Where a peer's frame is in ours, as measured from loop closures.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct PeerFrameReport {
+    /// Whether the frame was confirmed (its windows were used from then on).
+    pub aligned: bool,
+    /// When it was confirmed (fleet clock), s.
+    pub aligned_at_s: Option<f64>,
+    /// `ψ` of `p_ours = R_z(ψ) p_peer + t`, deg.
+    pub yaw_deg: Option<f64>,
+    /// `t`, m.
+    pub t_m: Option<[f64; 3]>,
+    /// Standard deviation of the yaw, deg.
+    pub yaw_sigma_deg: Option<f64>,
+    /// Root of the summed translation variances, m.
+    pub t_sigma_m: Option<f64>,
+    /// Loop-closure measurements taken in.
+    pub measurements: u64,
+    /// Measurements that disagreed with the confirmed frame (dropped).
+    pub disagreements: u64,
+}
+
+impl PeerFrameReport {
+    /// The report of `f`.
+    pub fn of(f: &crate::cooperation::peer_frames::PeerFrame) -> Self {
+        let a = f.alignment();
+        Self {
+            aligned: a.is_some(),
+            aligned_at_s: f.aligned_at_s,
+            yaw_deg: a.map(|a| a.yaw_rad.to_degrees()),
+            t_m: a.map(|a| [a.t_m.x, a.t_m.y, a.t_m.z]),
+            yaw_sigma_deg: a.map(|a| a.yaw_sigma_rad().to_degrees()),
+            t_sigma_m: a.map(|a| a.translation_sigma_m()),
+            measurements: f.measurements,
+            disagreements: f.disagreements,
+        }
+    }
 }
 
 /// The finite values, sorted.
@@ -177,6 +219,12 @@ pub fn write_outputs(
         loss_dropped: report.loss_dropped,
         history_store: report.store.as_ref(),
         settle: report.settle.as_ref(),
+        peer_frames: report.peer_frames.as_ref().map(|frames| {
+            frames
+                .iter()
+                .map(|(p, f)| (*p, PeerFrameReport::of(f)))
+                .collect()
+        }),
     };
     let json = serde_json::to_string_pretty(&transport_report).map_err(std::io::Error::other)?;
     std::fs::write(dir.join("transport_stats.json"), json)?;

@@ -93,7 +93,8 @@ fn agents_in_their_own_frames_align_their_peers_from_loop_closures_over_zenoh() 
     let sc = scenario(dir.path());
     let text = std::fs::read_to_string(&sc).unwrap();
     std::fs::write(&sc, text + "  start_frame: own\n").unwrap();
-    let summary = sim_fleet_run(&sc, &dir.path().join("own"), &OVER_ZENOH);
+    let out = dir.path().join("own");
+    let summary = sim_fleet_run(&sc, &out, &OVER_ZENOH);
     // Robot 1 flies 4 s behind robot 0, over its places; robot 2 after both.
     for (r, peers) in [(1, 1.0), (2, 2.0)] {
         assert_eq!(
@@ -113,6 +114,15 @@ fn agents_in_their_own_frames_align_their_peers_from_loop_closures_over_zenoh() 
     for r in 0..3 {
         let ate = metric(&summary, r, "ate_pos_m");
         assert!(ate.is_finite() && ate < 0.5, "robot {r}: ATE {ate} m");
+    }
+    // Each agent says where it found each peer, with how sure it is.
+    let stats = integration_tests::read_json(&out.join("robot2/transport_stats.json"));
+    for peer in ["0", "1"] {
+        let f = &stats["peer_frames"][peer];
+        assert_eq!(f["aligned"], Value::Bool(true), "{f}");
+        let sigma = f["yaw_sigma_deg"].as_f64().unwrap_or(f64::NAN);
+        assert!(sigma > 0.0 && sigma < 2.0, "{f}");
+        assert!(f["measurements"].as_u64().unwrap_or(0) >= 2, "{f}");
     }
 }
 
