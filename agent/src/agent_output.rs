@@ -107,6 +107,8 @@ pub struct PeerFrameReport {
     pub measurements: u64,
     /// Measurements that disagreed with the confirmed frame (dropped).
     pub disagreements: u64,
+    /// Loop closures that gave no measurement.
+    pub failures: u64,
 }
 
 impl PeerFrameReport {
@@ -122,6 +124,7 @@ impl PeerFrameReport {
             t_sigma_m: a.map(|a| a.translation_sigma_m()),
             measurements: f.measurements,
             disagreements: f.disagreements,
+            failures: f.failures,
         }
     }
 }

@@ -202,7 +202,7 @@ impl Cooperation {
                         }
                     }
                 }
-                None => self.stats.alignment_failures += 1,
+                None => state.frame.failures += 1,
             }
         }
     }

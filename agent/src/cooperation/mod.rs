@@ -88,9 +88,6 @@ pub struct CooperationStats {
     pub loop_rejected: u64,
     /// Links made.
     pub links: u64,
-    /// Loop closures to a peer whose frame was being aligned that gave no
-    /// alignment measurement (too few points, too uncertain).
-    pub alignment_failures: u64,
 }
 
 /// Per-peer state.

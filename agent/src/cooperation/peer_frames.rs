@@ -57,6 +57,9 @@ pub struct PeerFrame {
     pub measurements: u64,
     /// Measurements that disagreed with the aligned frame.
     pub disagreements: u64,
+    /// Loop closures that gave no measurement (too few points agreed, or
+    /// they placed the frame too loosely).
+    pub failures: u64,
 }
 
 impl PeerFrame {
