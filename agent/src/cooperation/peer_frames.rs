@@ -70,11 +70,7 @@ impl PeerFrame {
 
     /// Whether a loop closure at `t_s` should be measured.
     pub fn wants_measurement(&self, t_s: f64) -> bool {
-        match (self.aligned, self.refined_at_s) {
-            (None, _) => true,
-            (Some(_), Some(t)) => t_s - t >= REFINE_PERIOD_S,
-            (Some(_), None) => true,
-        }
+        self.aligned.is_none() || self.refined_at_s.is_none_or(|t| t_s - t >= REFINE_PERIOD_S)
     }
 
     /// Takes in a measurement from keyframe window `keyframe` at `t_s`.
@@ -145,7 +141,7 @@ pub fn alignment_options(opts: &CooperationOptions, sigma: f64) -> AlignmentOpti
 fn anchor_of(kf: &KeyframeWindow) -> Option<CameraEstimate> {
     let snap = &kf.snapshot;
     let i = snap.clones.len().checked_sub(1)?;
-    let c = snap.clones[i];
+    let c = snap.clones.last()?;
     let mut cov = SMatrix::<f64, 6, 6>::zeros();
     for r in 0..6 {
         for k in 0..6 {
@@ -162,8 +158,8 @@ fn anchor_of(kf: &KeyframeWindow) -> Option<CameraEstimate> {
 /// The alignment measured by loop closure `lc` to keyframe window `kf`: each
 /// pair's peer track triangulated from the window's measurements, seen by
 /// our track in `frame`, from `camera` (our camera now, of focal length
-/// `our_focal_px`). `None` when it
-/// does not give one (too few points, too uncertain, ...).
+/// `our_focal_px`). `None` when it does not give one (too few points, too
+/// uncertain, ...).
 pub fn measure(
     lc: &LoopClosure,
     kf: &KeyframeWindow,
