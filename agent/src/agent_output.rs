@@ -82,15 +82,18 @@ pub struct TransportReport<'a> {
     /// The end of the run: how long it took to settle, and whether it did
     /// (`None`: stopped before).
     pub settle: Option<&'a crate::node::SettleStats>,
-    /// Each peer's frame as this agent found it (`align_peer_frames`; absent
-    /// when off).
+    /// Each peer's frames as this agent found them, oldest epoch first
+    /// (`align_peer_frames`; absent when off).
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub peer_frames: Option<BTreeMap<u32, PeerFrameReport>>,
+    pub peer_frames: Option<BTreeMap<u32, Vec<PeerFrameReport>>>,
 }
 
-/// Where a peer's frame is in ours, as measured from loop closures.
+/// Where one of a peer's frames is in ours, as measured from loop closures.
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct PeerFrameReport {
+    /// The frame (`StateSnapshot::frame_epoch`): a peer started again in
+    /// real time sends a new one.
+    pub frame_epoch: u64,
     /// Whether the frame was confirmed (its windows were used from then on).
     pub aligned: bool,
     /// When it was confirmed (fleet clock), s.
@@ -112,10 +115,11 @@ pub struct PeerFrameReport {
 }
 
 impl PeerFrameReport {
-    /// The report of `f`.
-    pub fn of(f: &crate::cooperation::peer_frames::PeerFrame) -> Self {
+    /// The report of `f`, the peer's frame `frame_epoch`.
+    pub fn of(frame_epoch: u64, f: &crate::cooperation::peer_frames::PeerFrame) -> Self {
         let a = f.alignment();
         Self {
+            frame_epoch,
             aligned: a.is_some(),
             aligned_at_s: f.aligned_at_s,
             yaw_deg: a.map(|a| a.yaw_rad.to_degrees()),
@@ -225,7 +229,10 @@ pub fn write_outputs(
         peer_frames: report.peer_frames.as_ref().map(|frames| {
             frames
                 .iter()
-                .map(|(p, f)| (*p, PeerFrameReport::of(f)))
+                .map(|(p, epochs)| {
+                    let each = epochs.iter().map(|(e, f)| PeerFrameReport::of(*e, f));
+                    (*p, each.collect())
+                })
                 .collect()
         }),
     };

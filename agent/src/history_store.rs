@@ -44,13 +44,15 @@ use thiserror::Error;
 /// The first bytes of a history file.
 const FILE_MAGIC: [u8; 4] = *b"FVHS";
 
-/// The format version this build writes and reads. Version 2 names the
-/// mission after the version; version 1 files (no mission, each written
-/// whole) are read as any mission's.
-const FILE_VERSION: u16 = 2;
+/// The format version this build writes and reads. Version 2 named the
+/// mission after the version (version 1 had none). Version 3: the records are
+/// of wire version 6, whose snapshots name their world frame; older files
+/// hold records this build cannot decode, so they are set aside whole
+/// (renamed, kept) rather than read as empty and overwritten.
+const FILE_VERSION: u16 = 3;
 
 /// The format versions this build reads.
-const READABLE_VERSIONS: [u16; 2] = [1, FILE_VERSION];
+const READABLE_VERSIONS: [u16; 1] = [FILE_VERSION];
 
 /// Bytes of the magic and the version.
 const PREFIX_LEN: u64 = FILE_MAGIC.len() as u64 + 2;
@@ -902,7 +904,7 @@ struct Header {
     len: u64,
     /// The format version.
     version: u16,
-    /// The mission it names (`None` in format 1).
+    /// The mission it names.
     mission: Option<String>,
 }
 
@@ -919,13 +921,6 @@ fn parse_header(r: &mut impl Read) -> Result<Header, Stop> {
         return Err(bad(format!(
             "format version {version}; this build reads {READABLE_VERSIONS:?}"
         )));
-    }
-    if version == 1 {
-        return Ok(Header {
-            len: PREFIX_LEN,
-            version,
-            mission: None,
-        });
     }
     let cut = || bad("the header is cut short".into());
     let mut n = [0u8; 2];
@@ -1360,7 +1355,7 @@ mod tests {
     }
 
     #[test]
-    fn another_missions_file_is_set_aside_and_a_version_1_file_is_read() {
+    fn another_missions_file_and_an_older_formats_are_set_aside() {
         let dir = tempfile::tempdir().unwrap();
         let h = history();
         let mut before = HistoryStore::open(dir.path(), "fleet", "loop, seed 2").unwrap();
@@ -1374,27 +1369,29 @@ mod tests {
         assert!(why.contains("kept as"), "{why}");
         assert!(loaded.histories.is_empty());
 
-        // Format 1: no mission after the version; read as this mission's,
-        // and its first write makes a file of format 2.
+        // Format 2 (records of an older wire version): kept aside whole, not
+        // read as nothing and overwritten.
+        let dir = tempfile::tempdir().unwrap();
         let mut store = HistoryStore::open(dir.path(), "fleet", MISSION).unwrap();
         store.save(4, &h).unwrap();
-        let v2 = std::fs::read(store.path_of(4)).unwrap();
-        let mut v1 = b"FVHS".to_vec();
-        v1.extend_from_slice(&1u16.to_le_bytes());
-        v1.extend_from_slice(&v2[store.header.len()..]);
-        std::fs::write(store.path_of(4), &v1).unwrap();
-        let (mut back, loaded) = load(dir.path());
-        assert!(loaded.unreadable.is_empty(), "{:?}", loaded.unreadable);
-        assert_eq!(loaded.histories[&4].keyframes, h.keyframes);
-        let mut more = h.clone();
-        grow(&mut more, 51..=60, &limits(), true);
-        back.save(4, &more).unwrap();
-        let (_, again) = load(dir.path());
-        assert!(again.unreadable.is_empty(), "{:?}", again.unreadable);
-        assert_eq!(again.histories[&4].keyframes, more.keyframes);
-        assert!(std::fs::read(store.path_of(4))
+        let mut old = std::fs::read(store.path_of(4)).unwrap();
+        old[4..6].copy_from_slice(&2u16.to_le_bytes());
+        std::fs::write(store.path_of(4), &old).unwrap();
+        let (_, loaded) = load(dir.path());
+        let why = &loaded.unreadable[0].why;
+        assert!(why.contains("format version 2"), "{why}");
+        assert!(why.contains("kept as"), "{why}");
+        assert!(loaded.histories.is_empty());
+        let kept: Vec<Vec<u8>> = std::fs::read_dir(dir.path())
             .unwrap()
-            .starts_with(&store.header));
+            .filter_map(|e| {
+                let p = e.ok()?.path();
+                let name = p.file_name()?.to_string_lossy().into_owned();
+                name.contains("unreadable")
+                    .then(|| std::fs::read(&p).unwrap())
+            })
+            .collect();
+        assert_eq!(kept, vec![old]);
     }
 
     #[test]
@@ -1409,7 +1406,7 @@ mod tests {
         store.save(5, &h).unwrap();
         let path = store.path_of(5);
         let s = inspect(&path);
-        assert_eq!(s.format, Some(2));
+        assert_eq!(s.format, Some(FILE_VERSION));
         assert_eq!(s.mission.as_deref(), Some(MISSION));
         assert_eq!(s.fleet_id.as_deref(), Some("fleet"));
         assert_eq!(s.robot, Some(5));

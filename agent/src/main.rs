@@ -646,6 +646,7 @@ fn flood_round(k: u64) -> Vec<(common::messages::MessageKind, common::messages::
                 frame_index: k,
                 t_s: t + 1.0,
                 keyframe: true,
+                frame_epoch: 0,
                 camera: CameraModelWire::default(),
                 covariance,
                 clones,

@@ -107,8 +107,10 @@ pub struct NodeReport {
     pub peak_history_bytes: usize,
     /// Each peer's keyframe database at the end: bytes, and bytes per window.
     pub keyframe_db_bytes: BTreeMap<u32, (usize, f64)>,
-    /// Each peer's frame as aligned to ours (`align_peer_frames`; `None` off).
-    pub peer_frames: Option<BTreeMap<u32, crate::cooperation::peer_frames::PeerFrame>>,
+    /// Each peer's frames (by epoch) as aligned to ours (`align_peer_frames`;
+    /// `None` off).
+    pub peer_frames:
+        Option<BTreeMap<u32, BTreeMap<u64, crate::cooperation::peer_frames::PeerFrame>>>,
     /// Where each peer's frame truly is in ours, `(yaw rad, translation m)`
     /// (simulation).
     pub true_peer_frames: BTreeMap<u32, (f64, nalgebra::Vector3<f64>)>,
@@ -1030,6 +1032,25 @@ impl Node {
     }
 }
 
+/// The world frame our snapshots are in (`StateSnapshot::frame_epoch`): 0,
+/// the fleet's, unless the robots are in frames of their own
+/// (`align_peer_frames`). Then 1 in lockstep, whose runs replay the same
+/// data from the same start pose whenever they start; and in real time the
+/// start's wall-clock time, since a robot started again (live sensors)
+/// stands wherever it was, and its new frame must not be taken for the old.
+fn frame_epoch(align_peer_frames: bool, mode: ClockMode) -> u64 {
+    if !align_peer_frames {
+        return 0;
+    }
+    match mode {
+        ClockMode::Lockstep => 1,
+        ClockMode::Realtime => std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(2, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
+            .max(2),
+    }
+}
+
 /// What a run is, for its report and its history store.
 struct RunHeader {
     scenario: String,
@@ -1097,7 +1118,12 @@ impl Node {
         let mut node = Node {
             transport,
             inbox: Inbox::new(&cfg.fleet_id, cfg.robot_id, cfg.history.max_peers),
-            outbox: Outbox::new(&cfg.fleet_id, cfg.robot_id, cfg.publish.clone()),
+            outbox: Outbox::new(
+                &cfg.fleet_id,
+                cfg.robot_id,
+                cfg.publish.clone(),
+                frame_epoch(est.options().cooperation.align_peer_frames, cfg.clock.mode),
+            ),
             lockstep: Lockstep::new(&cfg.clock.peers, 0.0),
             pending: Vec::new(),
             pending_bytes: BTreeMap::new(),
@@ -1585,6 +1611,21 @@ fn log_estimate(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_frame_of_our_own_is_named_by_the_start_that_could_not_keep_the_old() {
+        // One fleet frame, whatever the clock.
+        assert_eq!(frame_epoch(false, ClockMode::Lockstep), 0);
+        assert_eq!(frame_epoch(false, ClockMode::Realtime), 0);
+        // Lockstep starts replay the same start pose: the same frame, so
+        // two runs stay bit for bit the same.
+        assert_eq!(frame_epoch(true, ClockMode::Lockstep), 1);
+        // A start in real time names a frame no other start names.
+        let a = frame_epoch(true, ClockMode::Realtime);
+        std::thread::sleep(Duration::from_millis(2));
+        let b = frame_epoch(true, ClockMode::Realtime);
+        assert!(a > 1 && b > a, "{a} then {b}");
+    }
 
     /// Frames at which the paths are logged over a run of `frames` frames.
     fn logged(frames: usize) -> Vec<usize> {

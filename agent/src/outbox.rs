@@ -28,6 +28,8 @@ pub struct Outbox {
     last_keyframe_s: Option<f64>,
     /// Frame index of the last snapshot.
     last_snapshot_frame: Option<u64>,
+    /// The world frame our snapshots are in ([`StateSnapshot::frame_epoch`]).
+    frame_epoch: u64,
 }
 
 /// What snapshot a frame sends.
@@ -40,8 +42,9 @@ pub struct SnapshotPlan {
 }
 
 impl Outbox {
-    /// An outbox for robot `robot_id` of fleet `fleet_id`.
-    pub fn new(fleet_id: &str, robot_id: u32, cfg: PublishConfig) -> Self {
+    /// An outbox for robot `robot_id` of fleet `fleet_id`, whose snapshots
+    /// are in world frame `frame_epoch` ([`StateSnapshot::frame_epoch`]).
+    pub fn new(fleet_id: &str, robot_id: u32, cfg: PublishConfig, frame_epoch: u64) -> Self {
         Self {
             fleet_id: fleet_id.to_string(),
             robot_id,
@@ -51,6 +54,7 @@ impl Outbox {
             last_keyframe_end_s: None,
             last_keyframe_s: None,
             last_snapshot_frame: None,
+            frame_epoch,
         }
     }
 
@@ -150,10 +154,11 @@ impl Outbox {
     ) -> Vec<Envelope> {
         let t = frame.t;
         let mut out = Vec::new();
-        let Some(snapshot) = snapshot_of(frame_index, t, plan.keyframe, window, plan.landmarks)
+        let Some(mut snapshot) = snapshot_of(frame_index, t, plan.keyframe, window, plan.landmarks)
         else {
             return out;
         };
+        snapshot.frame_epoch = self.frame_epoch;
         self.last_snapshot_frame = Some(frame_index);
         if plan.keyframe {
             self.last_keyframe_s = Some(t);
@@ -224,6 +229,7 @@ pub fn snapshot_of(
         frame_index,
         t_s,
         keyframe,
+        frame_epoch: 0,
         camera: CameraModelWire::from(&window.calib.camera),
         clones: window
             .poses
@@ -286,7 +292,7 @@ mod tests {
     #[test]
     fn new_tracks_get_descriptors_once_and_keyframes_do_not_overlap() {
         let cfg = PublishConfig::default();
-        let mut ob = Outbox::new("f", 2, cfg);
+        let mut ob = Outbox::new("f", 2, cfg, 0);
         let calib = CameraCalibration::euroc_cam0();
         let mut keyframes = Vec::new();
         let mut snapshots = 0;

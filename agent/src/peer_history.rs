@@ -669,6 +669,7 @@ pub(crate) mod test_support {
             frame_index: (t_s * 10.0).round() as u64,
             t_s,
             keyframe,
+            frame_epoch: 0,
             camera: CameraModelWire {
                 model: DistortionWire::Radtan,
                 intrinsics: [450.0, 450.0, 370.0, 240.0, 0.0, 0.0, 0.0, 0.0],

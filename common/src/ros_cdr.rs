@@ -144,7 +144,9 @@ struct Reader<'a> {
 
 impl<'a> Reader<'a> {
     fn new(payload: &'a [u8]) -> Result<Self, CdrError> {
-        let head = payload.get(..4).ok_or(CdrError::Truncated {
+        // Lazily: `4 - len` underflows for every payload that has a header
+        // (a panic in debug builds).
+        let head = payload.get(..4).ok_or_else(|| CdrError::Truncated {
             what: "the encapsulation header",
             len: payload.len(),
             needed: 4 - payload.len(),

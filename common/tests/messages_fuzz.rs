@@ -161,6 +161,8 @@ fn state_snapshot() -> impl Strategy<Value = StateSnapshot> {
                 frame_index,
                 t_s,
                 keyframe,
+                // Any epoch, the full range of the varint.
+                frame_epoch: t_s.to_bits(),
                 camera,
                 clones,
                 covariance: PackedCovariance {

@@ -47,7 +47,7 @@ fn header_is_magic_version_then_bincode_standard() {
     assert_eq!(&bytes[..4], b"FVIO");
     assert_eq!(bytes[..4], MAGIC);
     assert_eq!(u16::from_le_bytes([bytes[4], bytes[5]]), WIRE_VERSION);
-    assert_eq!(WIRE_VERSION, 5);
+    assert_eq!(WIRE_VERSION, 6);
     let payload = bincode::serde::encode_to_vec(&env, bincode::config::standard()).unwrap();
     assert_eq!(&bytes[6..], &payload[..]);
 }
@@ -139,6 +139,7 @@ fn snapshot_round_trip_is_bit_exact() {
         frame_index: 1234,
         t_s: AWKWARD[4],
         keyframe: false,
+        frame_epoch: u64::MAX,
         camera,
         clones: clones.clone(),
         covariance: covariance.clone(),

@@ -118,7 +118,11 @@ fn agents_in_their_own_frames_align_their_peers_from_loop_closures_over_zenoh() 
     // Each agent says where it found each peer, with how sure it is.
     let stats = integration_tests::read_json(&out.join("robot2/transport_stats.json"));
     for peer in ["0", "1"] {
-        let f = &stats["peer_frames"][peer];
+        // One frame per peer (none started again), named 1 in lockstep.
+        let frames = stats["peer_frames"][peer].as_array().unwrap();
+        assert_eq!(frames.len(), 1, "{frames:?}");
+        let f = &frames[0];
+        assert_eq!(f["frame_epoch"].as_u64(), Some(1), "{f}");
         assert_eq!(f["aligned"], Value::Bool(true), "{f}");
         let sigma = f["yaw_sigma_deg"].as_f64().unwrap_or(f64::NAN);
         assert!(sigma > 0.0 && sigma < 2.0, "{f}");

@@ -9,6 +9,7 @@ use crate::estimator::peer_window::PeerWindow;
 use crate::estimator::updater_common::{CommonTrack, PeerObservation};
 use crate::estimator::updater_common_slam::SlamConstraint;
 use crate::peer_history::{time_key, KeyframeWindow, PeerHistory};
+use common::messages::StateSnapshot;
 use nalgebra::Vector2;
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -75,7 +76,7 @@ impl Cooperation {
                     continue;
                 };
                 let Some(p) = *index.entry((link.peer, link.source)).or_insert_with(|| {
-                    let frame = self.frame_of(link.peer)?;
+                    let frame = self.frame_of(link.peer, link_snapshot(h, link)?.frame_epoch)?;
                     participant(&mut ev, &mut self.windows, link, h, frame.as_ref())
                 }) else {
                     continue;
@@ -153,7 +154,7 @@ impl Cooperation {
         let mut window: Vec<(usize, Link)> = Vec::new();
         let mut historical: Vec<(u32, f64, Link)> = Vec::new();
         for link in self.links_of(id) {
-            if !self.allowed(link, slam) {
+            if !self.allowed(link, slam, peers) {
                 continue;
             }
             match link.source {
@@ -246,10 +247,14 @@ impl Cooperation {
         }
     }
 
-    /// Whether a link may be used for this class under the options (and its
-    /// peer's frame is known).
-    fn allowed(&self, link: &Link, slam: bool) -> bool {
-        if self.frame_of(link.peer).is_none() {
+    /// Whether a link may be used for this class under the options (and the
+    /// frame of its peer's window is known).
+    fn allowed(&self, link: &Link, slam: bool, peers: &Peers) -> bool {
+        let epoch = peers
+            .get(&link.peer)
+            .and_then(|h| link_snapshot(h, link))
+            .map(|s| s.frame_epoch);
+        if epoch.is_none_or(|e| self.frame_of(link.peer, e).is_none()) {
             return false;
         }
         let class = if slam {
@@ -303,10 +308,8 @@ fn participant(
     h: &PeerHistory,
     frame: Option<&FrameAlignment>,
 ) -> Option<usize> {
-    let (snap, historical) = match link.source {
-        LinkSource::Window => (h.latest.as_ref()?, false),
-        LinkSource::Keyframe(k) => (&h.keyframes.get(&k)?.snapshot, true),
-    };
+    let snap = link_snapshot(h, link)?;
+    let historical = matches!(link.source, LinkSource::Keyframe(_));
     let key = time_key(snap.end_s());
     if let Some(i) = ev
         .participants
@@ -319,6 +322,15 @@ fn participant(
     ev.participants.push(w);
     ev.historical.push(historical);
     Some(ev.participants.len() - 1)
+}
+
+/// The peer window a link points into: the peer's newest, or one of its
+/// keyframe windows.
+fn link_snapshot<'a>(h: &'a PeerHistory, link: &Link) -> Option<&'a StateSnapshot> {
+    match link.source {
+        LinkSource::Window => h.latest.as_ref(),
+        LinkSource::Keyframe(k) => h.keyframes.get(&k).map(|kf| &kf.snapshot),
+    }
 }
 
 /// The linked peer track's measurements at the poses of window `w`:

@@ -179,20 +179,24 @@ impl Cooperation {
         let focal = self.focal_px;
         let state = self.peers.entry(peer).or_default();
         for lc in found {
-            if !state.frame.wants_measurement(frame.t_s) {
-                break;
-            }
             let Some(kf) = h.keyframes.get(&lc.keyframe) else {
                 continue;
             };
+            // Each of the peer's frames is measured on its own windows only.
+            let epoch = kf.snapshot.frame_epoch;
+            let peer_frame = state.frames.entry(epoch).or_default();
+            if !peer_frame.wants_measurement(frame.t_s) {
+                continue;
+            }
             match measure(lc, kf, frame, camera, focal, &opts) {
                 Some(m) => {
-                    let was = state.frame.alignment().is_some();
-                    state.frame.add(m, lc.keyframe, frame.t_s, confirmations);
+                    let was = peer_frame.alignment().is_some();
+                    peer_frame.add(m, lc.keyframe, frame.t_s, confirmations);
                     if !was {
-                        if let Some(a) = state.frame.alignment() {
+                        if let Some(a) = peer_frame.alignment() {
                             tracing::info!(
                                 peer,
+                                epoch,
                                 yaw_deg = a.yaw_rad.to_degrees(),
                                 t_m = ?a.t_m.as_slice(),
                                 yaw_sigma_deg = a.yaw_sigma_rad().to_degrees(),
@@ -202,7 +206,7 @@ impl Cooperation {
                         }
                     }
                 }
-                None => state.frame.failures += 1,
+                None => peer_frame.failures += 1,
             }
         }
     }

@@ -94,8 +94,10 @@ pub struct CooperationStats {
 #[derive(Debug, Default)]
 struct PeerState {
     keyframes: Option<KeyframeDb>,
-    /// Where the peer's frame is in ours (`align_peer_frames`).
-    frame: PeerFrame,
+    /// Where each of the peer's frames (by `StateSnapshot::frame_epoch`: a
+    /// new one at each start that could not keep the old) is in ours
+    /// (`align_peer_frames`).
+    frames: BTreeMap<u64, PeerFrame>,
     /// Measurements used ([`used_marks`]).
     used: UsedMarks,
 }
@@ -158,25 +160,27 @@ impl Cooperation {
         self.opts.align_peer_frames
     }
 
-    /// How peer `peer`'s windows are taken into our frame: `Some(None)` as
-    /// they are (one fleet frame), `Some(Some(a))` through its confirmed
-    /// alignment, `None` not at all (not aligned yet).
-    pub(crate) fn frame_of(&self, peer: u32) -> Option<Option<FrameAlignment>> {
+    /// How peer `peer`'s windows in its frame `epoch` are taken into our
+    /// frame: `Some(None)` as they are (one fleet frame), `Some(Some(a))`
+    /// through its confirmed alignment, `None` not at all (not aligned yet).
+    pub(crate) fn frame_of(&self, peer: u32, epoch: u64) -> Option<Option<FrameAlignment>> {
         if !self.opts.align_peer_frames {
             return Some(None);
         }
         self.peers
             .get(&peer)
-            .and_then(|s| s.frame.alignment())
+            .and_then(|s| s.frames.get(&epoch))
+            .and_then(PeerFrame::alignment)
             .map(|a| Some(*a))
     }
 
-    /// Each peer's frame as we know it: its confirmed alignment (if any), and
-    /// the measurements taken and refused.
-    pub fn peer_frames(&self) -> BTreeMap<u32, PeerFrame> {
+    /// Each peer's frames as we know them, by epoch: the confirmed alignment
+    /// (if any), and the measurements taken and refused.
+    pub fn peer_frames(&self) -> BTreeMap<u32, BTreeMap<u64, PeerFrame>> {
         self.peers
             .iter()
-            .map(|(p, s)| (*p, s.frame.clone()))
+            .filter(|(_, s)| !s.frames.is_empty())
+            .map(|(p, s)| (*p, s.frames.clone()))
             .collect()
     }
 

@@ -228,9 +228,9 @@ pub fn measure(
 /// How well the peers' frames were aligned, against their true places.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct FrameScore {
-    /// Peers aligned.
+    /// Peer frames aligned (a peer started again in a new frame counts each).
     pub aligned: u64,
-    /// Root mean square yaw error over the aligned peers with a truth, deg.
+    /// Root mean square yaw error over the aligned frames with a truth, deg.
     pub yaw_err_deg: Option<f64>,
     /// Root mean square translation error, m.
     pub pos_err_m: Option<f64>,
@@ -240,15 +240,20 @@ pub struct FrameScore {
     pub first_aligned_at_s: Option<f64>,
 }
 
-/// Scores `frames` against `truth`, each peer's true `(yaw, translation)` of
-/// its frame in ours (`None`: unknown).
+/// Scores `frames` (per peer, per frame epoch) against `truth`, each peer's
+/// true `(yaw, translation)` of its frame in ours (`None`: unknown; a
+/// simulated robot started again starts from the same pose, so its frames
+/// share one truth).
 pub fn score(
-    frames: &std::collections::BTreeMap<u32, PeerFrame>,
+    frames: &std::collections::BTreeMap<u32, std::collections::BTreeMap<u64, PeerFrame>>,
     truth: impl Fn(u32) -> Option<(f64, nalgebra::Vector3<f64>)>,
 ) -> FrameScore {
     let mut out = FrameScore::default();
     let (mut yaw_sq, mut pos_sq, mut nees, mut n) = (0.0, 0.0, 0.0, 0usize);
-    for (peer, f) in frames {
+    let each = frames
+        .iter()
+        .flat_map(|(peer, epochs)| epochs.values().map(move |f| (peer, f)));
+    for (peer, f) in each {
         let Some(a) = f.alignment() else { continue };
         out.aligned += 1;
         out.first_aligned_at_s = match (out.first_aligned_at_s, f.aligned_at_s) {
@@ -322,8 +327,11 @@ mod tests {
         let mut frames = std::collections::BTreeMap::new();
         let mut f = PeerFrame::default();
         f.add(alignment(0.51, 1.1), 7, 12.0, 1);
-        frames.insert(2, f);
-        frames.insert(3, PeerFrame::default());
+        frames.insert(2, std::collections::BTreeMap::from([(1, f)]));
+        frames.insert(
+            3,
+            std::collections::BTreeMap::from([(1, PeerFrame::default())]),
+        );
         let s = score(&frames, |p| {
             (p == 2).then(|| (0.5, Vector3::new(1.0, 0.0, 0.0)))
         });

@@ -4,6 +4,7 @@
 
 use super::loop_closure::FrameFeatures;
 use super::*;
+use crate::estimator::frame_alignment::CameraEstimate;
 use crate::peer_history::HistoryLimits;
 use common::descriptor::Descriptor;
 use common::messages::{
@@ -67,6 +68,12 @@ fn peer_track(l: usize) -> u64 {
 /// A peer that flew 11 frames (t = 1.0 .. 2.0) along x and stored the window as
 /// a keyframe (descriptors of every track), with a small covariance.
 fn peer_history(w: &World, rng: &mut ChaCha8Rng) -> PeerHistory {
+    peer_history_in(w, rng, 0)
+}
+
+/// [`peer_history`] with its window in the peer's frame `epoch` (in the
+/// same place as ours).
+fn peer_history_in(w: &World, rng: &mut ChaCha8Rng, epoch: u64) -> PeerHistory {
     let mut h = PeerHistory::default();
     let limits = HistoryLimits {
         max_bytes: usize::MAX,
@@ -118,6 +125,7 @@ fn peer_history(w: &World, rng: &mut ChaCha8Rng) -> PeerHistory {
         frame_index: 10,
         t_s: 2.0,
         keyframe: true,
+        frame_epoch: epoch,
         camera: CameraModelWire::default(),
         covariance: PackedCovariance::from_dmatrix(&(DMatrix::identity(66, 66) * 1e-4))
             .unwrap_or_default(),
@@ -235,6 +243,58 @@ fn a_loop_closure_finds_the_keyframe_and_its_measurements() {
 }
 
 #[test]
+fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let w = world(40, &mut rng);
+    let seen: Vec<usize> = (0..30).collect();
+    let mut frame = our_frame(&w, &seen, &mut rng);
+    frame.camera = Some(CameraEstimate {
+        rot: forward(),
+        pos: Vector3::new(0.8, -0.3, 0.0),
+        cov: nalgebra::SMatrix::<f64, 6, 6>::identity() * 1e-6,
+    });
+    frame.sigma_normalized = 1.0 / 460.0;
+    let opts = CooperationOptions {
+        align_peer_frames: true,
+        alignment_confirmations: 1,
+        ..options()
+    };
+    let mut coop = Cooperation::new(opts, builtin_vocabulary(), 460.0);
+    let in_frame = |epoch: u64, rng: &mut ChaCha8Rng| -> Peers {
+        let mut h = peer_history_in(&w, rng, epoch);
+        h.clear_recent();
+        [(3u32, h)].into_iter().collect()
+    };
+    let before = in_frame(5, &mut rng);
+    coop.match_frame(&frame, &before, 1);
+    assert!(coop.frame_of(3, 5).is_some_and(|a| a.is_some()));
+    let linked: Vec<u64> = (1..=30u64)
+        .filter(|id| !coop.links_of(*id).is_empty())
+        .collect();
+    assert!(linked.len() >= 20, "{} of 30 linked", linked.len());
+    assert_eq!(coop.evidence(&linked[..1], &[], &before).vio.len(), 1);
+    // The peer started again: the same window now says it is in frame 6,
+    // which we know nothing of yet, so it is not used ...
+    let after = in_frame(6, &mut rng);
+    assert!(coop.frame_of(3, 6).is_none());
+    assert!(coop.evidence(&linked[..1], &[], &after).vio.is_empty());
+    // ... until a loop closure to it aligns that frame too, a second later
+    // (the old one is kept for the windows of before).
+    frame.t_s += 1.0;
+    coop.match_frame(&frame, &after, 2);
+    assert!(coop.frame_of(3, 6).is_some_and(|a| a.is_some()));
+    assert!(coop.frame_of(3, 5).is_some_and(|a| a.is_some()));
+    assert_eq!(coop.evidence(&linked[..1], &[], &after).vio.len(), 1);
+    let frames = coop.peer_frames();
+    assert_eq!(frames[&3].keys().copied().collect::<Vec<_>>(), vec![5, 6]);
+    for f in frames[&3].values() {
+        let a = f.alignment().expect("aligned");
+        assert!(a.yaw_rad.abs() < 0.01, "yaw {}", a.yaw_rad);
+        assert!(a.t_m.norm() < 0.05, "t {:?}", a.t_m);
+    }
+}
+
+#[test]
 fn a_frame_of_another_place_makes_no_link() {
     let mut rng = ChaCha8Rng::seed_from_u64(13);
     let w = world(40, &mut rng);
@@ -305,6 +365,7 @@ fn one_clone_keyframe(k: u64) -> StateSnapshot {
         frame_index: k,
         t_s: t,
         keyframe: true,
+        frame_epoch: 0,
         camera: CameraModelWire::default(),
         covariance: PackedCovariance::from_dmatrix(&(DMatrix::identity(6, 6) * 1e-4))
             .unwrap_or_default(),

@@ -191,6 +191,13 @@ pub struct StateSnapshot {
     pub t_s: f64,
     /// Whether that frame is a keyframe (receivers keep keyframe windows as history).
     pub keyframe: bool,
+    /// Which world frame the poses are in. 0: the fleet's one frame (every
+    /// robot was given its start pose in it). Otherwise the frame its start
+    /// defined (`align_peer_frames`), named by that start: an agent started
+    /// again where the frame cannot be the same (live sensors) sends a new
+    /// one, so a receiver aligns it anew and keeps using the windows of
+    /// before the restart through the alignment it had.
+    pub frame_epoch: u64,
     /// The sender's current camera model, to interpret its pixel tracks.
     pub camera: CameraModelWire,
     /// Camera poses of the clones in the window, oldest first.

@@ -21,8 +21,9 @@ pub const MAGIC: [u8; 4] = *b"FVIO";
 /// Version 4: a history answer lists the windows it was made of, so a
 /// requester can tell which replays it lost. Version 5: a request lists the
 /// windows held short of some parts, and a replay may carry only those parts;
-/// heartbeats may say `Settled`.
-pub const WIRE_VERSION: u16 = 5;
+/// heartbeats may say `Settled`. Version 6: a snapshot names the world frame
+/// its poses are in (`frame_epoch`).
+pub const WIRE_VERSION: u16 = 6;
 
 /// The wire versions this build reads.
 pub const SUPPORTED_VERSIONS: &[u16] = &[WIRE_VERSION];

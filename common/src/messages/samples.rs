@@ -178,6 +178,9 @@ fn snapshot_body(
         frame_index,
         t_s: frame_time(frame_index),
         keyframe,
+        // A live robot in a frame of its own names it by its start's wall
+        // clock in ns: the largest varint a snapshot's epoch takes.
+        frame_epoch: 1_764_460_800_000_000_000,
         camera: CameraModelWire::from(&CameraModel::euroc_cam0()),
         clones: poses,
         covariance,
