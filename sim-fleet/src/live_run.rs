@@ -4,7 +4,10 @@
 //! publish-euroc`, and run by its own `agent --config` with `input.source:
 //! live`, the agents talking over Zenoh on loopback. Each agent is given its
 //! start pose from the truth, optionally moved by a seeded draw of its σ; the
-//! estimates are scored against the truth without alignment.
+//! estimates are scored against the truth without alignment. With
+//! `--own-frames` no agent is told where it is: each starts at the origin of
+//! a frame of its own, finds its peers' frames from its loop closures, and is
+//! scored in its frame (its alignments against the true ones).
 
 use anyhow::{bail, Context, Result};
 use common::metrics::{associate, ate, nees, Alignment, DEFAULT_MAX_DT_S};
@@ -49,8 +52,14 @@ pub struct LiveRunArgs {
     /// Move each start from the truth by a draw of those σ (position on each
     /// axis, heading about the vertical), seeded by the seed and the robot:
     /// robots set down on spots known that well.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "own_frames")]
     pub perturb_start: bool,
+    /// Each robot in a frame of its own: its agent starts at the origin with
+    /// heading 0 (position σ 1 mm: the start defines the frame) and aligns
+    /// its peers' frames from its loop closures (`estimator.align_peer_frames`,
+    /// which needs `--variant dc-full-history`); it is scored in that frame.
+    #[arg(long)]
+    pub own_frames: bool,
     /// Where the rendered sequences are kept (`seq<r>/`), and reused when they
     /// were made of the same scenario, seed and duration (default:
     /// `OUT/sequences`).
@@ -103,6 +112,44 @@ pub struct LiveRobot {
     /// The agent's `sensors:` line: samples received, undecodable, dropped,
     /// and how long after its image each estimate came.
     pub sensors: String,
+    /// With `--own-frames`: the peers' frames it aligned, against the true
+    /// ones.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub peer_frames: Option<LivePeerFrames>,
+}
+
+/// How well one agent found its peers' frames (`--own-frames`).
+#[derive(Debug, Serialize)]
+pub struct LivePeerFrames {
+    /// Peer frames aligned (a peer started again counts once per start).
+    pub aligned: usize,
+    /// Of the peers, how many it found a frame of.
+    pub peers_aligned: usize,
+    /// Its peers.
+    pub peers: usize,
+    /// Largest yaw error of an alignment, deg.
+    pub max_yaw_err_deg: Option<f64>,
+    /// Largest translation error of an alignment, m.
+    pub max_pos_err_m: Option<f64>,
+}
+
+/// Where a robot's own frame is in the world: the truth at its first
+/// sample, `(position m, heading of the start's axis rad)`.
+type OwnFrame = (Vector3<f64>, f64);
+
+/// `pose` (in the world) in the frame `frame`.
+fn in_own_frame(pose: &StampedPose, frame: &OwnFrame) -> StampedPose {
+    let back = rot_z(-frame.1);
+    StampedPose {
+        t: pose.t,
+        rot: back * pose.rot,
+        pos: back * (pose.pos - frame.0),
+    }
+}
+
+/// A rotation about the vertical.
+fn rot_z(yaw: f64) -> nalgebra::Matrix3<f64> {
+    *nalgebra::Rotation3::from_axis_angle(&Vector3::z_axis(), yaw).matrix()
 }
 
 /// The heading of the IMU axis `axis_i` of `pose`, rad.
@@ -175,6 +222,14 @@ fn config(
         .map(|&q| format!("tcp/127.0.0.1:{}", ports[q]))
         .collect();
     let (p, yaw_deg) = start;
+    let sigma_pos = match args.own_frames {
+        true => 0.001,
+        false => args.start_sigma_pos_m,
+    };
+    let align = match args.own_frames {
+        true => "\n  align_peer_frames: true",
+        false => "",
+    };
     format!(
         "# Written by sim-fleet live-run.
 robot_id: {r}
@@ -204,7 +259,7 @@ input:
       sigma_pos_m: {sigma_pos}
     idle_timeout_s: 3
 estimator:
-  variant: {variant}
+  variant: {variant}{align}
 clock:
   mode: realtime
   peers: {peers:?}
@@ -219,7 +274,6 @@ clock:
         sensors = ports[n + r],
         axis = args.heading_axis,
         sigma_ori = args.start_sigma_ori_deg,
-        sigma_pos = args.start_sigma_pos_m,
         variant = args.variant,
     )
 }
@@ -294,13 +348,16 @@ pub fn run_live(args: &LiveRunArgs) -> Result<()> {
     let mut truths = Vec::with_capacity(n);
     let mut agents = Vec::with_capacity(n);
     let mut offsets = Vec::with_capacity(n);
+    let mut frames: Vec<OwnFrame> = Vec::with_capacity(n);
     for r in 0..n {
         let seq = sequences.join(format!("seq{r}"));
         sequence(&fleet, r, &made, &seq)?;
         let seq = seq.canonicalize()?;
         let gt = read_euroc_csv(seq.join("mav0/state_groundtruth_estimate0/data.csv"))?;
         let first = *gt.first().context("an empty ground truth")?;
-        let (mut pos, mut yaw) = (first.pos, heading(&first, &axis_i).to_degrees());
+        let frame = (first.pos, heading(&first, &axis_i));
+        frames.push(frame);
+        let (mut pos, mut yaw) = (first.pos, frame.1.to_degrees());
         if args.perturb_start {
             // The error a robot's start is given with: its own stream.
             let mut rng = stream_rng(seed, Stream::InitialState(r));
@@ -318,7 +375,20 @@ pub fn run_live(args: &LiveRunArgs) -> Result<()> {
         }
         std::fs::create_dir_all(&dir)?;
         let cfg = dir.join("config.yaml");
-        let text = config(args, r, n, &seq, &dir, &ports, (&pos, yaw), &fleet_id);
+        let start = match args.own_frames {
+            true => (Vector3::zeros(), 0.0),
+            false => (pos, yaw),
+        };
+        let text = config(
+            args,
+            r,
+            n,
+            &seq,
+            &dir,
+            &ports,
+            (&start.0, start.1),
+            &fleet_id,
+        );
         std::fs::write(&cfg, text)?;
         let child = Command::new(&bin)
             .arg("--config")
@@ -328,6 +398,10 @@ pub fn run_live(args: &LiveRunArgs) -> Result<()> {
             .spawn()
             .with_context(|| format!("starting {}", bin.display()))?;
         agents.push(child);
+        let gt = match args.own_frames {
+            true => gt.iter().map(|p| in_own_frame(p, &frame)).collect(),
+            false => gt,
+        };
         truths.push((seq, gt));
     }
     let publishers: Vec<Child> = (0..n)
@@ -366,13 +440,17 @@ pub fn run_live(args: &LiveRunArgs) -> Result<()> {
     }
     let robots = (0..n)
         .map(|r| {
-            score(
+            let mut robot = score(
                 &out,
                 r,
                 &truths[r].1,
                 fleet.scenario.robot_name(r),
                 offsets[r],
-            )
+            )?;
+            if args.own_frames {
+                robot.peer_frames = Some(score_peer_frames(&out, r, &frames)?);
+            }
+            Ok(robot)
         })
         .collect::<Result<Vec<_>>>()?;
     print_table(&robots, args);
@@ -382,6 +460,7 @@ pub fn run_live(args: &LiveRunArgs) -> Result<()> {
         "variant": args.variant,
         "speed": args.speed,
         "perturb_start": args.perturb_start,
+        "own_frames": args.own_frames,
         "robots": robots,
     });
     std::fs::write(
@@ -432,7 +511,51 @@ fn score(
         bytes_per_s_sent: m["bytes_per_s_sent"].as_f64(),
         start_offset,
         sensors,
+        peer_frames: None,
     })
+}
+
+/// Robot `r`'s alignments of its peers' frames (its `transport_stats.json`)
+/// against the true ones: peer `q`'s frame in `r`'s is `p_r = R_z(ψ_q − ψ_r)
+/// p_q + R_z(−ψ_r) (o_q − o_r)`, `(o, ψ)` each frame in the world.
+fn score_peer_frames(out: &Path, r: usize, frames: &[OwnFrame]) -> Result<LivePeerFrames> {
+    let path = out.join(format!("robot{r}/transport_stats.json"));
+    let stats: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?,
+    )
+    .with_context(|| format!("parsing {}", path.display()))?;
+    let mut out = LivePeerFrames {
+        aligned: 0,
+        peers_aligned: 0,
+        peers: frames.len().saturating_sub(1),
+        max_yaw_err_deg: None,
+        max_pos_err_m: None,
+    };
+    let (o_r, psi_r) = frames[r];
+    for (q, &(o_q, psi_q)) in frames.iter().enumerate().filter(|(q, _)| *q != r) {
+        let list = stats["peer_frames"][q.to_string()].as_array().cloned();
+        let mut found = false;
+        for f in list.unwrap_or_default() {
+            let (Some(yaw_deg), Some(t)) = (f["yaw_deg"].as_f64(), f["t_m"].as_array()) else {
+                continue;
+            };
+            let t: Vec<f64> = t.iter().filter_map(serde_json::Value::as_f64).collect();
+            let [x, y, z] = t[..] else { continue };
+            let yaw_true = psi_q - psi_r;
+            let t_true = rot_z(-psi_r) * (o_q - o_r);
+            let dyaw = (yaw_deg.to_radians() - yaw_true + std::f64::consts::PI)
+                .rem_euclid(std::f64::consts::TAU)
+                - std::f64::consts::PI;
+            let dpos = (Vector3::new(x, y, z) - t_true).norm();
+            out.aligned += 1;
+            found = true;
+            let max = |m: Option<f64>, v: f64| Some(m.map_or(v, |m: f64| m.max(v)));
+            out.max_yaw_err_deg = max(out.max_yaw_err_deg, dyaw.abs().to_degrees());
+            out.max_pos_err_m = max(out.max_pos_err_m, dpos);
+        }
+        out.peers_aligned += usize::from(found);
+    }
+    Ok(out)
 }
 
 fn print_table(robots: &[LiveRobot], args: &LiveRunArgs) {
@@ -441,9 +564,10 @@ fn print_table(robots: &[LiveRobot], args: &LiveRunArgs) {
         "{} at {}x real time, starts {}:",
         args.variant,
         args.speed,
-        match args.perturb_start {
-            true => "moved from the truth by a draw of their sigma",
-            false => "at the truth",
+        match (args.own_frames, args.perturb_start) {
+            (true, _) => "each in a frame of its own",
+            (false, true) => "moved from the truth by a draw of their sigma",
+            (false, false) => "at the truth",
         }
     );
     println!(
@@ -474,6 +598,16 @@ fn print_table(robots: &[LiveRobot], args: &LiveRunArgs) {
             r.start_offset.0
         );
         println!("      sensors: {}", r.sensors);
+        if let Some(f) = &r.peer_frames {
+            let opt3 = |v: Option<f64>| v.map_or("-".to_owned(), |v| format!("{v:.3}"));
+            println!(
+                "      peer frames: {} of {} peers aligned, at most {} deg and {} m off",
+                f.peers_aligned,
+                f.peers,
+                opt3(f.max_yaw_err_deg),
+                opt3(f.max_pos_err_m)
+            );
+        }
     }
     let n = robots.len().max(1) as f64;
     println!(
