@@ -333,6 +333,13 @@ pub struct StartPose {
     /// Standard deviation of the start's orientation, deg (each axis).
     #[serde(default = "default_start_sigma_ori_deg")]
     pub sigma_ori_deg: f64,
+    /// Standard deviation of the start's heading alone, deg, when it is known
+    /// better than the tilt (absent: `sigma_ori_deg`). A robot whose start
+    /// defines its own frame (`estimator.align_peer_frames`) knows its
+    /// heading exactly: a small value (0.05) keeps the peers' alignments
+    /// from carrying a heading doubt it does not have.
+    #[serde(default)]
+    pub sigma_yaw_deg: Option<f64>,
     /// Standard deviation of the start's position, m (each axis).
     #[serde(default = "default_start_sigma_pos_m")]
     pub sigma_pos_m: f64,
@@ -1040,6 +1047,10 @@ impl LiveInputConfig {
         for (name, v) in [
             ("input.live.start.sigma_ori_deg", s.sigma_ori_deg),
             ("input.live.start.sigma_pos_m", s.sigma_pos_m),
+            (
+                "input.live.start.sigma_yaw_deg",
+                s.sigma_yaw_deg.unwrap_or(1.0),
+            ),
             ("input.live.wait_s", self.wait_s),
             ("input.live.idle_timeout_s", self.idle_timeout_s),
             (
@@ -1170,6 +1181,11 @@ mod tests {
         let e = refused(&live.replace("yaw_deg: 30.0", "yaw_deg: 30.0, sigma_pos_m: 0"));
         assert!(
             e.contains("input.live.start.sigma_pos_m must be a number > 0"),
+            "{e}"
+        );
+        let e = refused(&live.replace("yaw_deg: 30.0", "yaw_deg: 30.0, sigma_yaw_deg: -1"));
+        assert!(
+            e.contains("input.live.start.sigma_yaw_deg must be a number > 0"),
             "{e}"
         );
         let e = refused(

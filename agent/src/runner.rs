@@ -351,6 +351,7 @@ pub fn initial_state(fleet: &Fleet, robot: usize, truth: &TruthState) -> Initial
         bias_gyro: truth.biases.gyro + err.bias_gyro,
         bias_accel: truth.biases.accel + err.bias_accel,
         sigma_ori_rad: spec.init_sigma_ori_rad,
+        sigma_yaw_rad: None,
         sigma_pos_m: spec.init_sigma_pos_m,
         sigma_vel_mps: spec.init_sigma_vel_mps,
         sigma_bias_gyro: spec.init_sigma_bias,

@@ -76,6 +76,7 @@ fn initial_state() -> InitialState {
         bias_gyro: Vector3::zeros(),
         bias_accel: Vector3::zeros(),
         sigma_ori_rad: 0.017,
+        sigma_yaw_rad: None,
         sigma_pos_m: 0.05,
         sigma_vel_mps: 0.01,
         sigma_bias_gyro: 0.02,

@@ -55,7 +55,8 @@ pub struct LiveRunArgs {
     #[arg(long, conflicts_with = "own_frames")]
     pub perturb_start: bool,
     /// Each robot in a frame of its own: its agent starts at the origin with
-    /// heading 0 (position σ 1 mm: the start defines the frame) and aligns
+    /// heading 0 (position σ 1 mm and heading σ 0.05 deg: the start defines
+    /// the frame; the tilt keeps `--start-sigma-ori-deg`) and aligns
     /// its peers' frames from its loop closures (`estimator.align_peer_frames`,
     /// which needs `--variant dc-full-history`); it is scored in that frame.
     #[arg(long)]
@@ -222,9 +223,9 @@ fn config(
         .map(|&q| format!("tcp/127.0.0.1:{}", ports[q]))
         .collect();
     let (p, yaw_deg) = start;
-    let sigma_pos = match args.own_frames {
-        true => 0.001,
-        false => args.start_sigma_pos_m,
+    let (sigma_pos, sigma_yaw) = match args.own_frames {
+        true => (0.001, "\n      sigma_yaw_deg: 0.05"),
+        false => (args.start_sigma_pos_m, ""),
     };
     let align = match args.own_frames {
         true => "\n  align_peer_frames: true",
@@ -255,7 +256,7 @@ input:
       position_m: [{}, {}, {}]
       yaw_deg: {yaw_deg}
       heading_axis: {axis}
-      sigma_ori_deg: {sigma_ori}
+      sigma_ori_deg: {sigma_ori}{sigma_yaw}
       sigma_pos_m: {sigma_pos}
     idle_timeout_s: 3
 estimator:
@@ -317,6 +318,7 @@ pub fn run_live(args: &LiveRunArgs) -> Result<()> {
         yaw_deg: 0.0,
         heading_axis: args.heading_axis.clone(),
         sigma_ori_deg: 1.0,
+        sigma_yaw_deg: None,
         sigma_pos_m: 1.0,
     }
     .heading_axis_i()
@@ -448,7 +450,7 @@ pub fn run_live(args: &LiveRunArgs) -> Result<()> {
                 offsets[r],
             )?;
             if args.own_frames {
-                robot.peer_frames = Some(score_peer_frames(&out, r, &frames)?);
+                robot.peer_frames = score_peer_frames(&out, r, &frames)?;
             }
             Ok(robot)
         })
@@ -517,13 +519,17 @@ fn score(
 
 /// Robot `r`'s alignments of its peers' frames (its `transport_stats.json`)
 /// against the true ones: peer `q`'s frame in `r`'s is `p_r = R_z(ψ_q − ψ_r)
-/// p_q + R_z(−ψ_r) (o_q − o_r)`, `(o, ψ)` each frame in the world.
-fn score_peer_frames(out: &Path, r: usize, frames: &[OwnFrame]) -> Result<LivePeerFrames> {
+/// p_q + R_z(−ψ_r) (o_q − o_r)`, `(o, ψ)` each frame in the world. `None`
+/// when its variant does not align frames (it works alone).
+fn score_peer_frames(out: &Path, r: usize, frames: &[OwnFrame]) -> Result<Option<LivePeerFrames>> {
     let path = out.join(format!("robot{r}/transport_stats.json"));
     let stats: serde_json::Value = serde_json::from_slice(
         &std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?,
     )
     .with_context(|| format!("parsing {}", path.display()))?;
+    if stats["peer_frames"].is_null() {
+        return Ok(None);
+    }
     let mut out = LivePeerFrames {
         aligned: 0,
         peers_aligned: 0,
@@ -555,7 +561,7 @@ fn score_peer_frames(out: &Path, r: usize, frames: &[OwnFrame]) -> Result<LivePe
         }
         out.peers_aligned += usize::from(found);
     }
-    Ok(out)
+    Ok(Some(out))
 }
 
 fn print_table(robots: &[LiveRobot], args: &LiveRunArgs) {

@@ -76,6 +76,7 @@ pub fn static_start_sigmas() -> InitialState {
         bias_gyro: Vector3::zeros(),
         bias_accel: Vector3::zeros(),
         sigma_ori_rad: 0.017,
+        sigma_yaw_rad: None,
         sigma_pos_m: 0.001,
         sigma_vel_mps: 0.01,
         // The gyroscope's bias is the mean reading at rest; the accelerometer's

@@ -54,8 +54,13 @@ pub struct InitialState {
     pub bias_gyro: Vector3<f64>,
     /// Accelerometer bias, m/s².
     pub bias_accel: Vector3<f64>,
-    /// Orientation σ, rad.
+    /// Orientation σ, rad (each axis).
     pub sigma_ori_rad: f64,
+    /// σ of the heading alone (about the vertical), rad, when it is known
+    /// better or worse than the tilt: a robot whose start defines its frame
+    /// knows its heading exactly, while gravity gives its tilt only so well.
+    /// `None`: `sigma_ori_rad`.
+    pub sigma_yaw_rad: Option<f64>,
     /// Position σ, m.
     pub sigma_pos_m: f64,
     /// Velocity σ, m/s.
@@ -539,6 +544,14 @@ pub(crate) fn initial_blocks(
             cov[(3 * b + i, 3 * b + i)] = s * s;
         }
     }
+    if let Some(yaw) = init.sigma_yaw_rad {
+        // The σ are of the global axes, the error is local (R = R̂ Exp(δθ):
+        // δθ_G = R̂ δθ), so the block is R̂ᵀ diag(σ², σ², σ_ψ²) R̂.
+        let s2 = init.sigma_ori_rad.powi(2);
+        let global = Matrix3::from_diagonal(&Vector3::new(s2, s2, yaw * yaw));
+        let local = init.rot.transpose() * global * init.rot;
+        cov.view_mut((0, 0), (3, 3)).copy_from(&local);
+    }
     let mut blocks = vec![(Var::Imu, cov)];
     let p = &opts.calib_prior;
     if opts.calib_time_offset {
@@ -644,5 +657,39 @@ pub(crate) fn augment_clone<F: Filter + ?Sized>(
                 pos_fej: state.imu.pos,
             },
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_heading_sigma_of_its_own_holds_in_the_global_axes() {
+        // A tilted, turned IMU: its local axes are none of the global ones.
+        let rot = *nalgebra::Rotation3::from_euler_angles(0.3, -0.2, 1.1).matrix();
+        let init = InitialState {
+            rot,
+            sigma_ori_rad: 0.01,
+            sigma_yaw_rad: Some(0.001),
+            ..crate::estimator::static_init::static_start_sigmas()
+        };
+        let blocks = initial_blocks(&EstimatorOptions::default(), &init);
+        let imu = &blocks[0].1;
+        let local: Matrix3<f64> = imu.fixed_view::<3, 3>(0, 0).into_owned();
+        // δθ_G = R δθ: the global covariance is R P Rᵀ.
+        let global = rot * local * rot.transpose();
+        let want = Matrix3::from_diagonal(&Vector3::new(1e-4, 1e-4, 1e-6));
+        assert!((global - want).norm() < 1e-15, "{global}");
+        // Without it, every axis has sigma_ori_rad.
+        let plain = initial_blocks(
+            &EstimatorOptions::default(),
+            &InitialState {
+                sigma_yaw_rad: None,
+                ..init
+            },
+        );
+        let local: Matrix3<f64> = plain[0].1.fixed_view::<3, 3>(0, 0).into_owned();
+        assert!((local - Matrix3::identity() * 1e-4).norm() < 1e-15);
     }
 }

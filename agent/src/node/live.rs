@@ -104,6 +104,7 @@ impl LiveSetup {
     fn start_sigmas(&self) -> InitialState {
         InitialState {
             sigma_ori_rad: self.live.start.sigma_ori_deg.to_radians(),
+            sigma_yaw_rad: self.live.start.sigma_yaw_deg.map(f64::to_radians),
             sigma_pos_m: self.live.start.sigma_pos_m,
             ..static_start_sigmas()
         }
