@@ -175,11 +175,11 @@ impl Cooperation {
     }
 
     /// Each peer's frames as we know them, by epoch: the confirmed alignment
-    /// (if any), and the measurements taken and refused.
+    /// (if any), and the measurements taken and refused (none yet: a peer
+    /// we have closed no loop to).
     pub fn peer_frames(&self) -> BTreeMap<u32, BTreeMap<u64, PeerFrame>> {
         self.peers
             .iter()
-            .filter(|(_, s)| !s.frames.is_empty())
             .map(|(p, s)| (*p, s.frames.clone()))
             .collect()
     }
