@@ -9,6 +9,7 @@
 //! a frame of its own, finds its peers' frames from its loop closures, and is
 //! scored in its frame (its alignments against the true ones).
 
+use agent::estimator::frame_alignment::{rot_z, FrameAlignment};
 use anyhow::{bail, Context, Result};
 use common::metrics::{associate, ate, nees, Alignment, DEFAULT_MAX_DT_S};
 use common::trajectory::{read_covariances, read_euroc_csv, read_tum, StampedPose};
@@ -148,11 +149,6 @@ fn in_own_frame(pose: &StampedPose, frame: &OwnFrame) -> StampedPose {
     }
 }
 
-/// A rotation about the vertical.
-fn rot_z(yaw: f64) -> nalgebra::Matrix3<f64> {
-    *nalgebra::Rotation3::from_axis_angle(&Vector3::z_axis(), yaw).matrix()
-}
-
 /// The heading of the IMU axis `axis_i` of `pose`, rad.
 fn heading(pose: &StampedPose, axis_i: &Vector3<f64>) -> f64 {
     let a = pose.rot * axis_i;
@@ -223,13 +219,15 @@ fn config(
         .map(|&q| format!("tcp/127.0.0.1:{}", ports[q]))
         .collect();
     let (p, yaw_deg) = start;
-    let (sigma_pos, sigma_yaw) = match args.own_frames {
-        true => (0.001, "\n      sigma_yaw_deg: 0.05"),
-        false => (args.start_sigma_pos_m, ""),
-    };
-    let align = match args.own_frames {
-        true => "\n  align_peer_frames: true",
-        false => "",
+    // In a frame of its own the start defines the frame: its position and
+    // heading are known exactly, and the peers' frames must be found.
+    let (sigma_pos, sigma_yaw, align) = match args.own_frames {
+        true => (
+            0.001,
+            "\n      sigma_yaw_deg: 0.05",
+            "\n  align_peer_frames: true",
+        ),
+        false => (args.start_sigma_pos_m, "", ""),
     };
     format!(
         "# Written by sim-fleet live-run.
@@ -538,7 +536,13 @@ fn score_peer_frames(out: &Path, r: usize, frames: &[OwnFrame]) -> Result<Option
         max_pos_err_m: None,
     };
     let (o_r, psi_r) = frames[r];
+    let alignment = |yaw_rad: f64, t_m: Vector3<f64>| FrameAlignment {
+        yaw_rad,
+        t_m,
+        cov: nalgebra::Matrix4::zeros(),
+    };
     for (q, &(o_q, psi_q)) in frames.iter().enumerate().filter(|(q, _)| *q != r) {
+        let truth = alignment(psi_q - psi_r, rot_z(-psi_r) * (o_q - o_r));
         let list = stats["peer_frames"][q.to_string()].as_array().cloned();
         let mut found = false;
         for f in list.unwrap_or_default() {
@@ -547,17 +551,12 @@ fn score_peer_frames(out: &Path, r: usize, frames: &[OwnFrame]) -> Result<Option
             };
             let t: Vec<f64> = t.iter().filter_map(serde_json::Value::as_f64).collect();
             let [x, y, z] = t[..] else { continue };
-            let yaw_true = psi_q - psi_r;
-            let t_true = rot_z(-psi_r) * (o_q - o_r);
-            let dyaw = (yaw_deg.to_radians() - yaw_true + std::f64::consts::PI)
-                .rem_euclid(std::f64::consts::TAU)
-                - std::f64::consts::PI;
-            let dpos = (Vector3::new(x, y, z) - t_true).norm();
+            let e = truth.difference(&alignment(yaw_deg.to_radians(), Vector3::new(x, y, z)));
             out.aligned += 1;
             found = true;
             let max = |m: Option<f64>, v: f64| Some(m.map_or(v, |m: f64| m.max(v)));
-            out.max_yaw_err_deg = max(out.max_yaw_err_deg, dyaw.abs().to_degrees());
-            out.max_pos_err_m = max(out.max_pos_err_m, dpos);
+            out.max_yaw_err_deg = max(out.max_yaw_err_deg, e[0].abs().to_degrees());
+            out.max_pos_err_m = max(out.max_pos_err_m, e.fixed_rows::<3>(1).norm());
         }
         out.peers_aligned += usize::from(found);
     }
