@@ -3,7 +3,7 @@
 
 use super::loop_closure::{describe, detect, FrameFeatures, KeyframeDb, LoopClosure, LoopParams};
 use super::matcher::{epipolar_inliers, match_descriptors, MatchRules};
-use super::peer_frames::{alignment_options, measure};
+use super::peer_frames::{alignment_options, frame_entry, measure};
 use super::{Cooperation, Link, LinkSource, Peers};
 use crate::peer_history::PeerHistory;
 use common::descriptor::Descriptor;
@@ -184,7 +184,7 @@ impl Cooperation {
             };
             // Each of the peer's frames is measured on its own windows only.
             let epoch = kf.snapshot.frame_epoch;
-            let peer_frame = state.frames.entry(epoch).or_default();
+            let peer_frame = frame_entry(&mut state.frames, epoch);
             if !peer_frame.wants_measurement(frame.t_s) {
                 continue;
             }

@@ -25,7 +25,7 @@ use crate::estimator::triangulation::{triangulate, CameraObservation, Triangulat
 use crate::peer_history::KeyframeWindow;
 use common::estimator_options::CooperationOptions;
 use nalgebra::{Matrix3, SMatrix, Vector2};
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// χ²(4) at 99.9 %: two measurements of one alignment agree.
 const AGREEMENT_GATE: f64 = 18.47;
@@ -36,6 +36,26 @@ const REFINE_PERIOD_S: f64 = 1.0;
 
 /// Unconfirmed candidates kept per peer.
 const MAX_CANDIDATES: usize = 8;
+
+/// Frames (starts) kept per peer: the epoch comes from the network, and a
+/// peer that names a new one in every snapshot must not grow our memory.
+pub const MAX_FRAMES_PER_PEER: usize = 8;
+
+/// Peer frame `epoch` in `frames`, made when new; at most
+/// [`MAX_FRAMES_PER_PEER`] are kept, a new one replacing first a frame never
+/// confirmed, else the oldest start (the smallest epoch).
+pub fn frame_entry(frames: &mut BTreeMap<u64, PeerFrame>, epoch: u64) -> &mut PeerFrame {
+    if !frames.contains_key(&epoch) && frames.len() >= MAX_FRAMES_PER_PEER {
+        let unconfirmed = frames.iter().find(|(_, f)| f.aligned.is_none());
+        let evict = unconfirmed
+            .or_else(|| frames.iter().next())
+            .map(|(e, _)| *e);
+        if let Some(e) = evict {
+            frames.remove(&e);
+        }
+    }
+    frames.entry(epoch).or_default()
+}
 
 /// A candidate frame: fused measurements and the keyframe windows they came from.
 #[derive(Clone, Debug, PartialEq)]
@@ -245,7 +265,7 @@ pub struct FrameScore {
 /// simulated robot started again starts from the same pose, so its frames
 /// share one truth).
 pub fn score(
-    frames: &std::collections::BTreeMap<u32, std::collections::BTreeMap<u64, PeerFrame>>,
+    frames: &BTreeMap<u32, BTreeMap<u64, PeerFrame>>,
     truth: impl Fn(u32) -> Option<(f64, nalgebra::Vector3<f64>)>,
 ) -> FrameScore {
     let mut out = FrameScore::default();
@@ -324,14 +344,11 @@ mod tests {
 
     #[test]
     fn a_score_compares_the_aligned_frames_with_the_truth() {
-        let mut frames = std::collections::BTreeMap::new();
+        let mut frames = BTreeMap::new();
         let mut f = PeerFrame::default();
         f.add(alignment(0.51, 1.1), 7, 12.0, 1);
-        frames.insert(2, std::collections::BTreeMap::from([(1, f)]));
-        frames.insert(
-            3,
-            std::collections::BTreeMap::from([(1, PeerFrame::default())]),
-        );
+        frames.insert(2, BTreeMap::from([(1, f)]));
+        frames.insert(3, BTreeMap::from([(1, PeerFrame::default())]));
         let s = score(&frames, |p| {
             (p == 2).then(|| (0.5, Vector3::new(1.0, 0.0, 0.0)))
         });
@@ -341,6 +358,20 @@ mod tests {
         // (0.01² / 1e-4 + 0.1² / 1e-2) = 2.
         assert!((s.nees.expect("scored") - 2.0).abs() < 1e-9);
         assert_eq!(s.first_aligned_at_s, Some(12.0));
+    }
+
+    #[test]
+    fn a_peer_naming_new_frames_without_end_keeps_a_bounded_few() {
+        let mut frames = BTreeMap::new();
+        // Its real frame, confirmed.
+        frame_entry(&mut frames, 5).add(alignment(0.5, 1.0), 7, 10.0, 1);
+        for epoch in 100..1000 {
+            frame_entry(&mut frames, epoch).failures += 1;
+            assert!(frames.len() <= MAX_FRAMES_PER_PEER);
+        }
+        // The unconfirmed ones made room; the confirmed one stays.
+        assert!(frames[&5].alignment().is_some());
+        assert!(frames.contains_key(&999));
     }
 
     #[test]
