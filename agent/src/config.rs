@@ -468,6 +468,11 @@ pub struct EstimatorSection {
     /// `zupt_max_disparity`).
     #[serde(default)]
     pub zupt_max_disparity_px: Option<f64>,
+    /// Pixel noise of the SLAM features' updates, px (OpenVINS's
+    /// `up_slam_sigma_px`; default 2 on camera images, where it keeps 50
+    /// SLAM features consistent, and the pixel noise in simulation).
+    #[serde(default)]
+    pub up_slam_sigma_px: Option<f64>,
     /// SLAM feature representation: `global`, `anchored` or
     /// `anchored_inverse_depth`.
     #[serde(default)]
@@ -563,6 +568,9 @@ impl EstimatorSection {
         if let Some(v) = self.zupt_max_disparity_px {
             o.zupt_max_disparity_px = v;
         }
+        if let Some(v) = self.up_slam_sigma_px {
+            o.slam_pixel_sigma_px = Some(v);
+        }
         if let Some(v) = self.feat_rep_slam {
             o.feature_representation = v;
         }
@@ -628,6 +636,7 @@ impl Default for EstimatorSection {
             calib_cam_timeoffset: None,
             try_zupt: None,
             zupt_max_disparity_px: None,
+            up_slam_sigma_px: None,
             feat_rep_slam: None,
             fi_max_cond_number: None,
             fi_min_dist: None,

@@ -44,14 +44,14 @@ pub struct DatasetArgs {
 }
 
 /// The estimator's options for a sequence and its variant: the defaults
-/// (EuRoC's IMU datasheet), the IMU noise of `imu0/sensor.yaml` when it gives
+/// for tracked images (EuRoC's IMU datasheet), the IMU noise of `imu0/sensor.yaml` when it gives
 /// one, then the overrides of `estimator` (a file with the keys of an agent
 /// configuration's `estimator:` block).
 pub fn dataset_options(
     imu_noise: Option<ImuNoiseSpec>,
     estimator: Option<&Path>,
 ) -> Result<(EstimatorOptions, Variant)> {
-    let mut o = EstimatorOptions::default();
+    let mut o = EstimatorOptions::for_tracked_images();
     if let Some(n) = imu_noise {
         n.apply(&mut o);
     }

@@ -152,11 +152,13 @@ fn the_dataset_takes_the_imu_noise_of_its_sensor_file_and_the_estimator_override
         (1.0e-3, 2.0e-2)
     );
     assert_eq!(o.imu.accel_random_walk, 4.0e-3);
+    // Tracked images: the SLAM updates at 2 px, the rest at the pixel noise.
+    assert_eq!((o.pixel_sigma_px, o.slam_sigma_px()), (1.0, 2.0));
 
     let yaml = dir.path().join("estimator.yaml");
     std::fs::write(
         &yaml,
-        "variant: indp\nzupt_max_disparity_px: 0.5\nmax_clones: 8\n",
+        "variant: indp\nzupt_max_disparity_px: 0.5\nmax_clones: 8\nup_slam_sigma_px: 1.5\n",
     )
     .unwrap();
     let (o, v) = dataset_options(ds.imu_noise, Some(&yaml)).expect("options");
@@ -165,6 +167,12 @@ fn the_dataset_takes_the_imu_noise_of_its_sensor_file_and_the_estimator_override
         ("indp", 0, 8)
     );
     assert_eq!(o.zupt_max_disparity_px, 0.5);
+    assert_eq!(o.slam_sigma_px(), 1.5);
+    std::fs::write(&yaml, "up_slam_sigma_px: 0\n").unwrap();
+    let e = dataset_options(ds.imu_noise, Some(&yaml))
+        .expect_err("a zero pixel noise")
+        .to_string();
+    assert!(e.contains("slam_pixel_sigma_px"), "{e}");
     assert_eq!(
         o.imu.gyro_noise_density, 1.0e-3,
         "the sensor file's noise stays"

@@ -138,7 +138,7 @@ pub fn update<F: Filter + ?Sized>(
         res[2 * i] = row.res[0];
         res[2 * i + 1] = row.res[1];
     }
-    let r = DMatrix::identity(m, m) * opts.pixel_sigma_px.powi(2);
+    let r = DMatrix::identity(m, m) * opts.slam_sigma_px().powi(2);
     let threshold = opts.chi2_multiplier * chi2.get(2);
     match state.gated_ekf_update(&cols.vars, &h, &res, &r, 2, threshold) {
         Ok(accepted) => {

@@ -83,7 +83,7 @@ impl LiveSetup {
             ))
             .into());
         }
-        let mut opts = EstimatorOptions::default();
+        let mut opts = EstimatorOptions::for_tracked_images();
         if let Some(n) = sensors.imu_noise {
             n.apply(&mut opts);
         }
