@@ -43,10 +43,11 @@ pub struct DatasetArgs {
     pub estimator: Option<PathBuf>,
 }
 
-/// The estimator's options for a sequence and its variant: the defaults
-/// for tracked images (EuRoC's IMU datasheet), the IMU noise of `imu0/sensor.yaml` when it gives
-/// one, then the overrides of `estimator` (a file with the keys of an agent
-/// configuration's `estimator:` block).
+/// The estimator's options for a sequence and its variant: the defaults for
+/// tracked images (EuRoC's IMU datasheet, SLAM updates at 2 px), the IMU
+/// noise of `imu0/sensor.yaml` when it gives one, then the overrides of
+/// `estimator` (a file with the keys of an agent configuration's
+/// `estimator:` block).
 pub fn dataset_options(
     imu_noise: Option<ImuNoiseSpec>,
     estimator: Option<&Path>,
