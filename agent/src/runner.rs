@@ -4,6 +4,7 @@
 
 use crate::estimator::frame_output::{BodyTwist, StampedTwist};
 use crate::estimator::{Estimator, EstimatorOptions, FrameOutput, FrameRecord, InitialState};
+use common::estimator_options::TRACKED_SLAM_SIGMA_PX;
 use common::measurement::FeatureFrame;
 use common::metrics::{ate, nees, rpe, Alignment, PosePair, DEFAULT_RPE_SEGMENTS_M};
 use common::so3::exp_so3;
@@ -141,8 +142,16 @@ pub enum RunError {
 /// With `start_frame: own` the distributed cooperative variants align their
 /// peers' frames (`align_peer_frames`), which needs loop closures: of those,
 /// only `dc-full-history` passes [`EstimatorOptions::validate`].
+///
+/// A fleet that renders images makes its features with the image frontend,
+/// so unless the scenario sets `slam_pixel_sigma_px` its SLAM updates take the
+/// camera-image default ([`TRACKED_SLAM_SIGMA_PX`]), as `agent dataset` and
+/// live sensors do.
 pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> EstimatorOptions {
     let mut o = spec.options(&fleet.scenario.sensors);
+    if fleet.renderer.is_some() && o.slam_pixel_sigma_px.is_none() {
+        o.slam_pixel_sigma_px = Some(TRACKED_SLAM_SIGMA_PX);
+    }
     variant.apply(&mut o);
     if spec.start_frame == StartFrame::Own && variant.cooperative() && !variant.centralized() {
         o.cooperation.align_peer_frames = true;

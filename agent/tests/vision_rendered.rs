@@ -22,10 +22,20 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
         .metrics();
     sc.render.enabled = true;
     let rendered_fleet = Fleet::build(&sc, seed).expect("rendered fleet");
+    // KLT tracks: the SLAM updates take 2 px unless the scenario says otherwise.
+    let rendered_opts = options_for(&sc.estimator, &rendered_fleet, Variant::IndpSlam);
+    assert_eq!(
+        (opts.slam_sigma_px(), rendered_opts.slam_sigma_px()),
+        (1.0, 2.0)
+    );
+    let mut set = sc.estimator.clone();
+    set.slam_pixel_sigma_px = Some(1.5);
+    let set_opts = options_for(&set, &rendered_fleet, Variant::IndpSlam);
+    assert_eq!(set_opts.slam_sigma_px(), 1.5);
     let r = run_robot_rendered(
         &rendered_fleet,
         0,
-        opts,
+        rendered_opts,
         FrontendOptions::default(),
         |_, _| {},
     )

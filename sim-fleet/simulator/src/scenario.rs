@@ -399,6 +399,11 @@ pub struct EstimatorSpec {
     /// `sensors.camera.pixel_noise_px`. Set it to run noise-free measurements
     /// (pixel noise 0) through a filter that still weighs them.
     pub pixel_sigma_px: Option<f64>,
+    /// The pixel noise of the updates of the SLAM features in the state, px
+    /// (`EstimatorOptions::slam_pixel_sigma_px`); unset: the filter's pixel
+    /// noise on simulated features, and `TRACKED_SLAM_SIGMA_PX` (2) on rendered
+    /// images, whose KLT tracks err along a track rather than afresh per image.
+    pub slam_pixel_sigma_px: Option<f64>,
     /// First-Estimates Jacobians on.
     pub use_fej: bool,
     /// Online calibration of the camera-IMU extrinsics.
@@ -465,6 +470,7 @@ impl EstimatorSpec {
             calib_time_offset: self.calib_time_offset,
             zero_velocity_update: self.zero_velocity_update,
             pixel_sigma_px: self.filter_pixel_sigma_px(sensors.camera.pixel_noise_px),
+            slam_pixel_sigma_px: self.slam_pixel_sigma_px,
             imu: ImuNoise {
                 gyro_noise_density: imu.gyro_noise_density,
                 gyro_random_walk: imu.gyro_random_walk,
@@ -503,6 +509,7 @@ impl Default for EstimatorSpec {
             feature_representation: o.feature_representation,
             max_msckf_in_update: o.max_msckf_in_update,
             pixel_sigma_px: None,
+            slam_pixel_sigma_px: None,
             use_fej: o.use_fej,
             calib_extrinsics: o.calib_extrinsics,
             calib_intrinsics: o.calib_intrinsics,
