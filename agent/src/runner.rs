@@ -124,6 +124,9 @@ pub enum RunError {
     /// A centralized variant asked to run robots in their own frames.
     #[error("{0} keeps every robot in one joint state: it needs `estimator.start_frame: fleet`")]
     NeedsFleetFrame(&'static str),
+    /// The scenario renders images, and this run takes simulated features.
+    #[error("the scenario renders images (render.enabled), and {0} takes simulated features: {1}")]
+    RendersImages(&'static str, &'static str),
     /// The robot never moved enough to start.
     #[error("robot {0} has no camera frame after its start time")]
     NeverStarted(usize),
@@ -263,12 +266,10 @@ pub fn run_robot(
 /// would be empty.
 pub fn require_features(fleet: &Fleet) -> Result<(), RunError> {
     if fleet.renderer.is_some() {
-        return Err(RunError::Frames {
-            t: f64::NAN,
-            reason: "the scenario renders images: run it through the image frontend \
-                     (`agent run --render`, cargo feature `vision`)"
-                .into(),
-        });
+        return Err(RunError::RendersImages(
+            "this run",
+            "run it through the image frontend (`agent run --render`, cargo feature `vision`)",
+        ));
     }
     Ok(())
 }

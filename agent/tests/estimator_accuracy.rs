@@ -629,3 +629,24 @@ fn inverse_depth_slam_features_keep_a_noise_free_slow_start_on_its_path() {
     );
     assert!(inv_nees < 3.0, "inverse depth: position NEES {inv_nees:.2}");
 }
+
+/// The centralized estimator has no image frontend: a scenario that renders
+/// images is refused with the reason, not run on the IMUs alone.
+#[test]
+fn the_centralized_estimator_refuses_rendered_images() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    write_walk_from(&dir.path().join("a.txt"), 0.0);
+    write_walk_from(&dir.path().join("b.txt"), std::f64::consts::PI);
+    let path = dir.path().join("rendered.yaml");
+    let yaml = "name: rendered\nrobots:\n  - trajectory: a.txt\n  - trajectory: b.txt\nrender:\n  enabled: true\n";
+    std::fs::write(&path, yaml).expect("write scenario");
+    let sc = Scenario::load(&path).expect("load scenario");
+    let fleet = Fleet::build(&sc, 1).expect("build fleet");
+    let e = run_central(&fleet, Variant::CeCmsckfCslam)
+        .expect_err("a rendered fleet must be refused")
+        .to_string();
+    assert!(
+        e.contains("renders images") && e.contains("ce-cmsckf-cslam"),
+        "{e}"
+    );
+}

@@ -28,6 +28,14 @@ pub fn run_central(fleet: &Fleet, variant: Variant) -> Result<Vec<RobotRun>, Run
     if spec.start_frame != StartFrame::Fleet {
         return Err(RunError::NeedsFleetFrame(variant.name()));
     }
+    // Rendered frames carry images and no features: the joint filter would
+    // fly on the IMUs alone, and say nothing.
+    if fleet.renderer.is_some() {
+        return Err(RunError::RendersImages(
+            variant.name(),
+            "it has no image frontend; run the agents' variants, or set render.enabled: false",
+        ));
+    }
     let opts = options_for(spec, fleet, variant);
     let calibs = (0..n).map(|r| fleet.initial_calibration(r)).collect();
     let mut est = CentralEstimator::new(opts, calibs);
