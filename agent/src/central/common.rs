@@ -192,7 +192,8 @@ pub fn common_slam(ce: &mut CentralEstimator, r: usize, coop: &mut CoopFrameStat
     let Some(view) = ce.joint.view(rid) else {
         return;
     };
-    let sigma2 = ce.opts.pixel_sigma_px.powi(2);
+    // A SLAM feature's update, whoever observed it (`updater_slam`).
+    let sigma2 = ce.opts.slam_sigma_px().powi(2);
     let mut blocks = Vec::new();
     let mut consumed: Vec<(u16, u64, u64)> = Vec::new();
     for (&id, f) in &view.means().features {
