@@ -661,13 +661,15 @@ fn flood_round(k: u64) -> Vec<(common::messages::MessageKind, common::messages::
 const LOG_IMAGE_EVERY: usize = 5;
 
 /// A rendered run through the image frontend, with the tracks' accuracy
-/// printed and every 5th image logged.
+/// printed, their error per image in `OUT/track_errors.csv`, and every 5th
+/// image logged.
 #[cfg(feature = "vision")]
 fn rendered(
     fleet: &Fleet,
     robot: usize,
     opts: agent::estimator::EstimatorOptions,
     log: &mut AgentLog,
+    out: &std::path::Path,
 ) -> Result<agent::runner::RobotRun> {
     let mut k = 0usize;
     let r = agent::image_runner::run_robot_rendered(
@@ -697,6 +699,14 @@ fn rendered(
         100.0 * q.outlier_fraction,
         q.observations
     );
+    let csv = out.join("track_errors.csv");
+    let mut text = String::from(agent::image_runner::FrameTrackError::CSV_HEADER);
+    for f in &r.per_frame {
+        text.push('\n');
+        text.push_str(&f.csv_row());
+    }
+    text.push('\n');
+    std::fs::write(&csv, text).with_context(|| format!("writing {}", csv.display()))?;
     Ok(r.run)
 }
 
@@ -706,6 +716,7 @@ fn rendered(
     _: usize,
     _: agent::estimator::EstimatorOptions,
     _: &mut AgentLog,
+    _: &std::path::Path,
 ) -> Result<agent::runner::RobotRun> {
     anyhow::bail!("rendered images need the image frontend: build with `--features agent/vision`")
 }
@@ -728,7 +739,7 @@ fn run(args: &RunArgs) -> Result<()> {
         let biases = args.real_imu_biases.clone().or(default_biases);
         agent::hybrid::run_robot_hybrid(&fleet, args.robot, opts, imu, biases.as_deref())?
     } else if fleet.renderer.is_some() {
-        rendered(&fleet, args.robot, opts, &mut log)?
+        rendered(&fleet, args.robot, opts, &mut log, out)?
     } else {
         run_robot(&fleet, args.robot, opts)?
     };

@@ -67,4 +67,25 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
     assert!(q.features_per_frame > 150.0, "{q:?}");
     assert!(q.reprojection_median_px < 1.0, "{q:?}");
     assert!(q.outlier_fraction < 0.1, "{q:?}");
+    // The per-image series adds up to the summary.
+    let per = &r.per_frame;
+    let n: usize = per.iter().map(|f| f.observations).sum();
+    assert_eq!(n, q.observations);
+    let mean = per
+        .iter()
+        .map(|f| f.mean_px * f.observations as f64)
+        .sum::<f64>()
+        / n as f64;
+    assert!(
+        (mean - q.reprojection_mean_px).abs() < 1e-9,
+        "{mean} vs {q:?}"
+    );
+    let over: usize = per.iter().map(|f| f.over_3px).sum();
+    assert!((over as f64 / n as f64 - q.outlier_fraction).abs() < 1e-12);
+    assert!(per.windows(2).all(|w| w[0].t_s < w[1].t_s));
+    let worst = per
+        .iter()
+        .map(|f| f.common_px[0].hypot(f.common_px[1]))
+        .fold(0.0, f64::max);
+    println!("largest common shift of one image: {worst:.3} px");
 }
