@@ -44,7 +44,7 @@ pub struct TrackQuality {
 /// The common part, the mean of the error vectors, is what a whole image
 /// shifted by drift looks like: the filter reads it as a rotation, where
 /// errors in all directions average out (on rendered V1_01 seed 2 a common
-/// -0.14 px along x over 50-60 s moved the yaw by 0.4 deg).
+/// -0.14 px along x over 50-60 s came with a 0.4 deg move of the yaw).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct FrameTrackError {
     /// Camera time of the image, s.
