@@ -41,6 +41,27 @@ pub struct DatasetArgs {
     /// IMU noise of `imu0/sensor.yaml`.
     #[arg(long, value_name = "YAML")]
     pub estimator: Option<PathBuf>,
+    /// Image frontend settings (YAML): the keys of an agent configuration's
+    /// `images.frontend:` block (`num_features`, `histogram: none | equalize
+    /// | clahe`, `klt_window_px`, ...), over the defaults.
+    #[arg(long, value_name = "YAML")]
+    pub frontend: Option<PathBuf>,
+}
+
+/// The image frontend's options: the defaults, or those of `frontend` (a
+/// file with the keys of an agent configuration's `images.frontend:` block;
+/// an unknown key or a value out of range is an error naming it).
+pub fn frontend_options(frontend: Option<&Path>) -> Result<FrontendOptions> {
+    let Some(path) = frontend else {
+        return Ok(FrontendOptions::default());
+    };
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let o: FrontendOptions = serde_yaml::from_str(&text)
+        .with_context(|| format!("{}: not an `images.frontend:` block", path.display()))?;
+    o.validate()
+        .map_err(|e| anyhow!("{}: frontend settings: {e}", path.display()))?;
+    Ok(o)
 }
 
 /// The estimator's options for a sequence and its variant: the defaults for
@@ -84,6 +105,7 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
     let ds = EurocDataset::open(&args.euroc, args.groundtruth.as_deref())
         .with_context(|| format!("opening {}", args.euroc.display()))?;
     let (opts, variant) = dataset_options(ds.imu_noise, args.estimator.as_deref())?;
+    let frontend = frontend_options(args.frontend.as_deref())?;
     tracing::info!(
         "{}: IMU noise {} {:?}",
         variant.name(),
@@ -104,6 +126,7 @@ pub fn run_dataset_command(args: &DatasetArgs) -> Result<()> {
         sensors,
         opts,
         variant,
+        frontend,
         mcap_image_every: args.mcap_image_every,
         wall,
     };
@@ -124,6 +147,8 @@ pub struct StreamRun<'a> {
     pub opts: EstimatorOptions,
     /// Estimator variant (`indp` or `indp-slam`).
     pub variant: Variant,
+    /// Image frontend settings.
+    pub frontend: FrontendOptions,
     /// Log every this many images (with their tracks) to `agent.mcap`.
     pub mcap_image_every: usize,
     /// When the command started.
@@ -162,7 +187,7 @@ impl StreamRun<'_> {
             &self.sensors,
             events,
             self.opts,
-            FrontendOptions::default(),
+            self.frontend,
             &StaticInitOptions::default(),
             |c, fo| {
                 if k % every == 0 {
@@ -277,4 +302,36 @@ fn sequence_name(mav0: &std::path::Path) -> String {
     named
         .file_name()
         .map_or_else(|| "dataset".into(), |n| n.to_string_lossy().into_owned())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frontend::Histogram;
+
+    #[test]
+    fn a_frontend_file_overrides_the_defaults_and_a_bad_one_is_refused_by_name() {
+        assert_eq!(
+            frontend_options(None).ok(),
+            Some(FrontendOptions::default())
+        );
+        let dir = tempfile::tempdir().expect("tempdir");
+        let yaml = dir.path().join("frontend.yaml");
+        std::fs::write(&yaml, "histogram: none\nnum_features: 150\n").expect("write");
+        let o = frontend_options(Some(&yaml)).expect("options");
+        assert_eq!((o.histogram, o.num_features), (Histogram::None, 150));
+        assert_eq!(o.klt_window_px, FrontendOptions::default().klt_window_px);
+        std::fs::write(&yaml, "num_feature: 150\n").expect("write");
+        let e = format!(
+            "{:#}",
+            frontend_options(Some(&yaml)).expect_err("unknown key")
+        );
+        assert!(e.contains("num_feature"), "{e}");
+        std::fs::write(&yaml, "klt_window_px: 16\n").expect("write");
+        let e = format!(
+            "{:#}",
+            frontend_options(Some(&yaml)).expect_err("even window")
+        );
+        assert!(e.contains("klt_window_px"), "{e}");
+    }
 }

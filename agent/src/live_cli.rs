@@ -5,7 +5,7 @@
 //! (`cam0/sensor.yaml`, `imu0/sensor.yaml`).
 
 use crate::dataset::{mav0_root, SensorSetup};
-use crate::dataset_cli::{dataset_options, StreamRun};
+use crate::dataset_cli::{dataset_options, frontend_options, StreamRun};
 use crate::dataset_run::StreamSensors;
 use crate::ros_input::{EstimateLatency, LiveLimits, LiveSensors, ZenohArgs};
 use anyhow::{bail, Context, Result};
@@ -31,6 +31,9 @@ pub struct LiveArgs {
     /// Estimator settings (YAML), as for `agent dataset`.
     #[arg(long, value_name = "YAML")]
     pub estimator: Option<PathBuf>,
+    /// Image frontend settings (YAML), as for `agent dataset`.
+    #[arg(long, value_name = "YAML")]
+    pub frontend: Option<PathBuf>,
     /// Output folder.
     #[arg(long, default_value = "out/live")]
     pub out: PathBuf,
@@ -84,6 +87,7 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
         .transpose()
         .context("reading the ground truth")?;
     let (opts, variant) = dataset_options(setup.imu_noise, args.estimator.as_deref())?;
+    let frontend = frontend_options(args.frontend.as_deref())?;
     let limits = LiveLimits {
         wait_first: seconds("wait-s", args.wait_s)?,
         idle: seconds("idle-timeout-s", args.idle_timeout_s)?,
@@ -124,6 +128,7 @@ pub fn run_live_command(args: &LiveArgs, stop: Arc<AtomicBool>) -> Result<()> {
         },
         opts,
         variant,
+        frontend,
         mcap_image_every: args.mcap_image_every,
         wall,
     };
