@@ -41,7 +41,7 @@ enum Command {
     /// (`zenoh-bridge-ros2dds`, `rmw_zenoh`): images through the frontend, IMU
     /// into the estimator, static start; ends when the sensors stop.
     #[cfg(feature = "vision")]
-    Live(agent::live_cli::LiveArgs),
+    Live(Box<agent::live_cli::LiveArgs>),
     /// Publish a sequence in the EuRoC ASL layout as ROS 2 IMU and image
     /// topics over Zenoh, paced as recorded: live sensors for `agent live`.
     PublishEuroc(PublishEurocArgs),

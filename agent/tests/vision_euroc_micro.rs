@@ -72,6 +72,7 @@ fn the_dataset_command_writes_the_outputs_of_every_agent_run() {
         out: out.path().to_path_buf(),
         mcap_image_every: 20,
         estimator: None,
+        frontend: None,
     };
     for _ in 0..2 {
         agent::dataset_cli::run_dataset_command(&args).expect("run");
