@@ -48,6 +48,15 @@ pub struct DatasetArgs {
     pub frontend: Option<PathBuf>,
 }
 
+/// A YAML file with the keys of one block of an agent configuration
+/// (`block`, named in the error when it does not parse).
+fn read_block<T: serde::de::DeserializeOwned>(path: &Path, block: &str) -> Result<T> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_yaml::from_str(&text)
+        .with_context(|| format!("{}: not an `{block}:` block", path.display()))
+}
+
 /// The image frontend's options: the defaults, or those of `frontend` (a
 /// file with the keys of an agent configuration's `images.frontend:` block;
 /// an unknown key or a value out of range is an error naming it).
@@ -55,10 +64,7 @@ pub fn frontend_options(frontend: Option<&Path>) -> Result<FrontendOptions> {
     let Some(path) = frontend else {
         return Ok(FrontendOptions::default());
     };
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let o: FrontendOptions = serde_yaml::from_str(&text)
-        .with_context(|| format!("{}: not an `images.frontend:` block", path.display()))?;
+    let o: FrontendOptions = read_block(path, "images.frontend")?;
     o.validate()
         .map_err(|e| anyhow!("{}: frontend settings: {e}", path.display()))?;
     Ok(o)
@@ -79,10 +85,7 @@ pub fn dataset_options(
     }
     let mut variant = Variant::IndpSlam;
     if let Some(path) = estimator {
-        let text =
-            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-        let section: EstimatorSection = serde_yaml::from_str(&text)
-            .with_context(|| format!("{}: not an `estimator:` block", path.display()))?;
+        let section: EstimatorSection = read_block(path, "estimator")?;
         variant = section.variant.parse()?;
         if variant.cooperative() || variant.centralized() {
             bail!(
