@@ -211,7 +211,8 @@ pub fn try_update<F: Filter + ?Sized>(
         return false;
     }
     let motion = images();
-    let still = match standstill_test(state, readings, opts, chi2, false) {
+    let datasheet = build(state.means(), readings, opts, false);
+    let still = match standstill_test(state, &datasheet, readings.len(), opts, chi2, false) {
         // The images, when they tell, must not have seen motion: once a
         // standstill is taken no clone is made and no visual update runs, so
         // a creep the IMU cannot feel would otherwise be held still for as
@@ -224,13 +225,14 @@ pub fn try_update<F: Filter + ?Sized>(
         },
         Err(Refusal::Readings) => match motion {
             Some(m) if m.mean_px < opts.zupt_max_disparity_px => {
-                match standstill_test(state, readings, opts, chi2, true) {
+                let own = build(state.means(), readings, opts, true);
+                match standstill_test(state, &own, readings.len(), opts, chi2, true) {
                     // Not rest even by their own scatter: a wobble slower
                     // than the readings' span (a vehicle rocking on its
                     // legs before take-off; the readings' mean is then not
                     // gravity). The images still say the camera stood: its
                     // velocity is what they tell, the readings nothing.
-                    Err(Refusal::Readings) => velocity_only(state, readings, opts, chi2),
+                    Err(Refusal::Readings) => velocity_only(state, &own, opts, chi2),
                     other => other,
                 }
             }
@@ -258,6 +260,9 @@ pub fn try_update<F: Filter + ?Sized>(
 
 /// A zero-velocity update: `(H, r, R)`.
 type ZuptUpdate = (DMatrix<f64>, DVector<f64>, DMatrix<f64>);
+
+/// What [`build`] gives: the update and the readings' scatter term.
+type Built = (DMatrix<f64>, DVector<f64>, DMatrix<f64>, f64);
 
 /// Why a frame was not taken for a standstill.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -287,12 +292,13 @@ enum Refusal {
 /// velocity the filter knows to be nonzero refuses it.
 fn standstill_test<F: Filter + ?Sized>(
     state: &F,
-    readings: &[ImuSample],
+    built: &Built,
+    readings: usize,
     opts: &EstimatorOptions,
     chi2: &Chi2Table,
     own_scatter: bool,
 ) -> Result<ZuptUpdate, Refusal> {
-    let (h, res, r, scatter) = build(state.means(), readings, opts, own_scatter);
+    let (h, res, r, scatter) = built;
     // The IMU rows (0..6) and the velocity rows (6..9), each on its own.
     let rows = |first: usize, n: usize| {
         let d2 = state.mahalanobis(
@@ -308,7 +314,7 @@ fn standstill_test<F: Filter + ?Sized>(
     let readings_at_rest = if own_scatter {
         gate(imu_d2, 6)
     } else {
-        gate(imu_d2 + scatter, 6 * readings.len())
+        gate(imu_d2 + scatter, 6 * readings)
     };
     if !readings_at_rest {
         return Err(Refusal::Readings);
@@ -316,18 +322,18 @@ fn standstill_test<F: Filter + ?Sized>(
     if !gate(rows(6, 3)?, 3) {
         return Err(Refusal::Velocity);
     }
-    Ok((h, res, r))
+    Ok((h.clone(), res.clone(), r.clone()))
 }
 
-/// The zero-velocity rows of [`build`] alone, if the filter's velocity
-/// agrees with zero.
+/// The zero-velocity rows of `built` alone, if the filter's velocity agrees
+/// with zero.
 fn velocity_only<F: Filter + ?Sized>(
     state: &F,
-    readings: &[ImuSample],
+    built: &Built,
     opts: &EstimatorOptions,
     chi2: &Chi2Table,
 ) -> Result<ZuptUpdate, Refusal> {
-    let (h, res, r, _) = build(state.means(), readings, opts, true);
+    let (h, res, r, _) = built;
     let h = h.rows(6, 3).into_owned();
     let res = res.rows(6, 3).into_owned();
     let r = r.view((6, 6), (3, 3)).into_owned();
