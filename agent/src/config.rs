@@ -516,6 +516,11 @@ pub struct EstimatorSection {
     /// the loop closures of `dc-full-history`).
     #[serde(default)]
     pub align_peer_frames: Option<bool>,
+    /// How long each confirmed peer frame is held as 4 states of the filter
+    /// before it becomes a fixed alignment, s; 0: fixed from the start
+    /// (`cooperation.peer_frame_state_s`).
+    #[serde(default)]
+    pub peer_frame_state_s: Option<f64>,
     /// Vocabulary file for historical loop closures (`vocab train` output);
     /// without it, a vocabulary for random binary descriptors (the simulator's)
     /// is built in memory.
@@ -596,6 +601,9 @@ impl EstimatorSection {
         if let Some(w) = self.ci_peer_weight {
             c.ci_peer_weight = w;
         }
+        if let Some(s) = self.peer_frame_state_s {
+            c.peer_frame_state_s = s;
+        }
     }
 }
 
@@ -650,6 +658,7 @@ impl Default for EstimatorSection {
             ci_weighting: None,
             ci_peer_weight: None,
             align_peer_frames: None,
+            peer_frame_state_s: None,
             vocabulary: None,
         }
     }

@@ -282,6 +282,16 @@ pub struct CooperationOptions {
     /// from loop closures to its keyframe windows, and its windows are used
     /// only once that is confirmed. Needs `historical`.
     pub align_peer_frames: bool,
+    /// With `align_peer_frames` (no effect without): how long each
+    /// confirmed peer frame is held as 4 states of our filter (yaw and
+    /// translation), s. It joins the state with its cross-covariance to our
+    /// camera pose of the loop closure that confirmed it, and every update
+    /// with the peer's windows corrects it; then it becomes a fixed alignment
+    /// with the state's estimate, refined by later loop closures. 0: a fixed
+    /// alignment from the start, its covariance folded into each of the
+    /// peer's windows. Held for ever, frame and pose drift together under
+    /// CI's inflation (README, "Robots in their own frames").
+    pub peer_frame_state_s: f64,
     /// Fewest loop-closure points that must agree on an alignment.
     pub min_alignment_inliers: usize,
     /// Loop closures to different keyframe windows of a peer that must agree
@@ -325,6 +335,7 @@ impl Default for CooperationOptions {
             max_ci_participants: 2,
             max_common_per_frame: 3,
             align_peer_frames: false,
+            peer_frame_state_s: 0.0,
             min_alignment_inliers: 12,
             alignment_confirmations: 2,
             max_alignment_yaw_sigma_deg: 2.0,
@@ -404,6 +415,12 @@ impl CooperationOptions {
                  the peers' frames are measured from loop closures to their keyframe windows"
                     .into(),
             );
+        }
+        if !(self.peer_frame_state_s.is_finite() && self.peer_frame_state_s >= 0.0) {
+            return Err(format!(
+                "cooperation.peer_frame_state_s must be finite and at least 0, not {}",
+                self.peer_frame_state_s
+            ));
         }
         if self.min_alignment_inliers < 3 || self.alignment_confirmations == 0 {
             return Err(format!(
@@ -699,6 +716,8 @@ mod tests {
         })
         .contains("needs historical"));
         assert!(bad(|o| o.cooperation.alignment_confirmations = 0).contains("confirmations"));
+        assert!(bad(|o| o.cooperation.peer_frame_state_s = -1.0).contains("peer_frame_state_s"));
+        assert!(bad(|o| o.cooperation.peer_frame_state_s = f64::NAN).contains("peer_frame_state_s"));
         assert!(bad(|o| o.cooperation.max_alignment_yaw_sigma_deg = 0.0).contains("yaw_sigma"));
         assert!(bad(|o| o.cooperation.max_ci_participants = 0).contains("max_ci_participants"));
         assert!(bad(|o| o.cooperation.max_peers_matched_per_frame = 0)

@@ -3,8 +3,7 @@
 //! participants) they belong to, and the peers' SLAM landmarks for constraints.
 
 use super::window_cache::WindowCache;
-use super::{Cooperation, Link, LinkSource, Peers, CONSTRAINT_FLAG};
-use crate::estimator::frame_alignment::FrameAlignment;
+use super::{Cooperation, FrameUse, Link, LinkSource, Peers, CONSTRAINT_FLAG};
 use crate::estimator::peer_window::PeerWindow;
 use crate::estimator::updater_common::{CommonTrack, PeerObservation};
 use crate::estimator::updater_common_slam::SlamConstraint;
@@ -77,7 +76,7 @@ impl Cooperation {
                 };
                 let Some(p) = *index.entry((link.peer, link.source)).or_insert_with(|| {
                     let frame = self.frame_of(link.peer, link_snapshot(h, link)?.frame_epoch)?;
-                    participant(&mut ev, &mut self.windows, link, h, frame.as_ref())
+                    participant(&mut ev, &mut self.windows, link, h, frame)
                 }) else {
                     continue;
                 };
@@ -306,7 +305,7 @@ fn participant(
     cache: &mut WindowCache,
     link: &Link,
     h: &PeerHistory,
-    frame: Option<&FrameAlignment>,
+    frame: FrameUse,
 ) -> Option<usize> {
     let snap = link_snapshot(h, link)?;
     let historical = matches!(link.source, LinkSource::Keyframe(_));

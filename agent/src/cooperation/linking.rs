@@ -5,6 +5,7 @@ use super::loop_closure::{describe, detect, FrameFeatures, KeyframeDb, LoopClosu
 use super::matcher::{epipolar_inliers, match_descriptors, MatchRules};
 use super::peer_frames::{alignment_options, frame_entry, measure};
 use super::{Cooperation, Link, LinkSource, Peers};
+use crate::estimator::peer_frame_states::FrameSeed;
 use crate::peer_history::PeerHistory;
 use common::descriptor::Descriptor;
 use common::epipolar::{fundamental_eight_point, sampson_distance};
@@ -170,6 +171,7 @@ impl Cooperation {
         h: &PeerHistory,
         frame: &FrameFeatures,
         found: &[LoopClosure],
+        seq: u64,
     ) {
         let Some(camera) = frame.camera.as_ref() else {
             return;
@@ -177,23 +179,36 @@ impl Cooperation {
         let opts = alignment_options(&self.opts, frame.sigma_normalized);
         let confirmations = self.opts.alignment_confirmations;
         let focal = self.focal_px;
-        let state = self.peers.entry(peer).or_default();
         for lc in found {
             let Some(kf) = h.keyframes.get(&lc.keyframe) else {
                 continue;
             };
             // Each of the peer's frames is measured on its own windows only.
             let epoch = kf.snapshot.frame_epoch;
-            let peer_frame = frame_entry(&mut state.frames, epoch);
-            if !peer_frame.wants_measurement(frame.t_s) {
+            // A frame our state holds is corrected by the updates themselves.
+            let in_state = self.holds_in_state(peer, epoch);
+            let peer_frame = frame_entry(&mut self.peers.entry(peer).or_default().frames, epoch);
+            if (in_state && peer_frame.alignment().is_some())
+                || !peer_frame.wants_measurement(frame.t_s)
+            {
                 continue;
             }
             match measure(lc, kf, frame, camera, focal, &opts) {
                 Some(m) => {
                     let was = peer_frame.alignment().is_some();
-                    peer_frame.add(m, lc.keyframe, frame.t_s, confirmations);
+                    peer_frame.add(m.alignment, lc.keyframe, frame.t_s, confirmations);
                     if !was {
                         if let Some(a) = peer_frame.alignment() {
+                            if in_state {
+                                // The confirming measurement alone: its
+                                // dependence on our pose is known.
+                                self.seeds.push(FrameSeed {
+                                    peer,
+                                    epoch,
+                                    clone: seq,
+                                    measurement: m.clone(),
+                                });
+                            }
                             tracing::info!(
                                 peer,
                                 epoch,
@@ -247,7 +262,7 @@ impl Cooperation {
             self.stats.loop_closures += verified as u64;
             self.stats.loop_rejected += candidates.saturating_sub(verified) as u64;
             if self.opts.align_peer_frames {
-                self.measure_frame(peer, h, frame, &found);
+                self.measure_frame(peer, h, frame, &found, seq);
             }
             for lc in found {
                 for (ours, theirs) in lc.pairs {

@@ -24,6 +24,8 @@ mod window_cache;
 pub use evidence::Evidence;
 
 use crate::estimator::frame_alignment::FrameAlignment;
+use crate::estimator::peer_frame_states::{frame_var, FrameSeed};
+use crate::estimator::state::{PeerFrameMean, Var};
 use crate::peer_history::PeerHistory;
 use common::estimator_options::CooperationOptions;
 use loop_closure::KeyframeDb;
@@ -105,6 +107,17 @@ struct PeerState {
 /// Marks a used constraint in [`PeerState::used`] (the track id with the top bit set).
 const CONSTRAINT_FLAG: u64 = 1 << 63;
 
+/// How a peer's windows are taken into our frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum FrameUse {
+    /// As they are: one fleet frame.
+    Same,
+    /// Through its confirmed alignment, whose covariance each window takes in.
+    Fused(FrameAlignment),
+    /// Through the frame our state holds (`peer_frame_state_s`), at its mean.
+    InState(Var, PeerFrameMean),
+}
+
 /// The cooperation state of one robot.
 #[derive(Debug)]
 pub struct Cooperation {
@@ -121,6 +134,14 @@ pub struct Cooperation {
     focal_px: f64,
     /// The peer windows of recent frames' updates.
     windows: WindowCache,
+    /// Peer frames confirmed since the estimator last took them
+    /// (`peer_frame_state_s`).
+    seeds: Vec<FrameSeed>,
+    /// Frames the state held and let go: used as fixed alignments since.
+    frozen: BTreeSet<(u32, u64)>,
+    /// The peer frames our state holds, with their marginal covariances, as
+    /// of the estimator's last [`Cooperation::set_state_frames`].
+    state_frames: BTreeMap<(u32, u64), FrameAlignment>,
 }
 
 impl Cooperation {
@@ -139,7 +160,70 @@ impl Cooperation {
             stats: CooperationStats::default(),
             focal_px: focal_px.max(1.0),
             windows: WindowCache::default(),
+            seeds: Vec::new(),
+            frozen: BTreeSet::new(),
+            state_frames: BTreeMap::new(),
         }
+    }
+
+    /// The peer frames confirmed since the last call, for the estimator to
+    /// take into its state (`peer_frame_state_s`).
+    pub fn take_frame_seeds(&mut self) -> Vec<FrameSeed> {
+        std::mem::take(&mut self.seeds)
+    }
+
+    /// Whether peer `peer`'s frame `epoch`, once confirmed, is held by the
+    /// state (`peer_frame_state_s`), not yet let go.
+    pub(crate) fn holds_in_state(&self, peer: u32, epoch: u64) -> bool {
+        self.opts.peer_frame_state_s > 0.0 && !self.frozen.contains(&(peer, epoch))
+    }
+
+    /// When peer `peer`'s frame `epoch` was confirmed (fleet clock), s.
+    pub fn frame_aligned_at(&self, peer: u32, epoch: u64) -> Option<f64> {
+        self.peers
+            .get(&peer)
+            .and_then(|s| s.frames.get(&epoch))
+            .and_then(|f| f.aligned_at_s)
+    }
+
+    /// The state let go of peer `peer`'s frame `epoch` with estimate `a` (its
+    /// marginal): from now on a fixed alignment, refined by loop closures.
+    pub fn freeze_frame(&mut self, peer: u32, epoch: u64, a: FrameAlignment) {
+        if let Some(f) = self
+            .peers
+            .get_mut(&peer)
+            .and_then(|s| s.frames.get_mut(&epoch))
+        {
+            *f = f.clone().with_alignment(a);
+            self.frozen.insert((peer, epoch));
+        }
+        // Frames dropped since (at most 8 a peer are kept) are forgotten here
+        // too: the epochs come from the network.
+        let peers = &self.peers;
+        self.frozen
+            .retain(|(p, e)| peers.get(p).is_some_and(|s| s.frames.contains_key(e)));
+    }
+
+    /// Whether peer `peer`'s frame `epoch` is still kept (a frame the state
+    /// holds is marginalized once the cooperation dropped it).
+    pub fn keeps_frame(&self, peer: u32, epoch: u64) -> bool {
+        self.peers
+            .get(&peer)
+            .is_some_and(|s| s.frames.contains_key(&epoch))
+    }
+
+    /// Forgets peer `peer`'s frame `epoch` (one the state could not take):
+    /// the next loop closures measure it anew.
+    pub fn forget_frame(&mut self, peer: u32, epoch: u64) {
+        if let Some(s) = self.peers.get_mut(&peer) {
+            s.frames.remove(&epoch);
+        }
+    }
+
+    /// The peer frames our state holds now: the windows of this frame are
+    /// taken into our frame at these means.
+    pub fn set_state_frames(&mut self, frames: BTreeMap<(u32, u64), FrameAlignment>) {
+        self.state_frames = frames;
     }
 
     /// Each peer's keyframe database (historical loop closures): approximate
@@ -161,17 +245,27 @@ impl Cooperation {
     }
 
     /// How peer `peer`'s windows in its frame `epoch` are taken into our
-    /// frame: `Some(None)` as they are (one fleet frame), `Some(Some(a))`
-    /// through its confirmed alignment, `None` not at all (not aligned yet).
-    pub(crate) fn frame_of(&self, peer: u32, epoch: u64) -> Option<Option<FrameAlignment>> {
+    /// frame; `None`: not at all (not aligned yet).
+    pub(crate) fn frame_of(&self, peer: u32, epoch: u64) -> Option<FrameUse> {
         if !self.opts.align_peer_frames {
-            return Some(None);
+            return Some(FrameUse::Same);
+        }
+        if self.holds_in_state(peer, epoch) {
+            return self.state_frames.get(&(peer, epoch)).map(|a| {
+                FrameUse::InState(
+                    frame_var(peer, epoch),
+                    PeerFrameMean {
+                        yaw_rad: a.yaw_rad,
+                        t_m: a.t_m,
+                    },
+                )
+            });
         }
         self.peers
             .get(&peer)
             .and_then(|s| s.frames.get(&epoch))
             .and_then(PeerFrame::alignment)
-            .map(|a| Some(*a))
+            .map(|a| FrameUse::Fused(*a))
     }
 
     /// Each peer's frames as we know them, by epoch: the confirmed alignment
@@ -180,7 +274,21 @@ impl Cooperation {
     pub fn peer_frames(&self) -> BTreeMap<u32, BTreeMap<u64, PeerFrame>> {
         self.peers
             .iter()
-            .map(|(p, s)| (*p, s.frames.clone()))
+            .map(|(p, s)| {
+                let frames = s
+                    .frames
+                    .iter()
+                    .map(|(e, f)| {
+                        // A frame our state holds: its estimate is the state's.
+                        let f = match self.state_frames.get(&(*p, *e)) {
+                            Some(a) => f.clone().with_alignment(*a),
+                            None => f.clone(),
+                        };
+                        (*e, f)
+                    })
+                    .collect();
+                (*p, frames)
+            })
             .collect()
     }
 

@@ -18,8 +18,8 @@
 
 use super::loop_closure::{FrameFeatures, LoopClosure};
 use crate::estimator::frame_alignment::{
-    estimate_alignment, point_covariance, AlignmentOptions, AlignmentPoint, CameraEstimate,
-    FrameAlignment,
+    estimate_alignment, point_covariance, AlignmentMeasurement, AlignmentOptions, AlignmentPoint,
+    CameraEstimate, FrameAlignment,
 };
 use crate::estimator::triangulation::{triangulate, CameraObservation, TriangulationOptions};
 use crate::peer_history::KeyframeWindow;
@@ -86,6 +86,13 @@ impl PeerFrame {
     /// The peer's frame in ours, once confirmed.
     pub fn alignment(&self) -> Option<&FrameAlignment> {
         self.aligned.as_ref()
+    }
+
+    /// The same record with `a` as the frame's estimate (the one our
+    /// state holds).
+    pub(crate) fn with_alignment(mut self, a: FrameAlignment) -> Self {
+        self.aligned = Some(a);
+        self
     }
 
     /// Whether a loop closure at `t_s` should be measured.
@@ -187,7 +194,7 @@ pub fn measure(
     camera: &CameraEstimate,
     our_focal_px: f64,
     opts: &AlignmentOptions,
-) -> Option<FrameAlignment> {
+) -> Option<AlignmentMeasurement> {
     let anchor = anchor_of(kf)?;
     // The peer's measurements are normalized with its own intrinsics; its
     // pixel noise is taken to be ours, over its focal length.
@@ -240,9 +247,7 @@ pub fn measure(
             xy: *xy,
         });
     }
-    estimate_alignment(camera, &anchor, &points, opts)
-        .ok()
-        .map(|m| m.alignment)
+    estimate_alignment(camera, &anchor, &points, opts).ok()
 }
 
 /// How well the peers' frames were aligned, against their true places.

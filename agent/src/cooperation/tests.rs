@@ -267,7 +267,9 @@ fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
     };
     let before = in_frame(5, &mut rng);
     coop.match_frame(&frame, &before, 1);
-    assert!(coop.frame_of(3, 5).is_some_and(|a| a.is_some()));
+    assert!(coop
+        .frame_of(3, 5)
+        .is_some_and(|a| matches!(a, super::FrameUse::Fused(_))));
     let linked: Vec<u64> = (1..=30u64)
         .filter(|id| !coop.links_of(*id).is_empty())
         .collect();
@@ -282,8 +284,12 @@ fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
     // (the old one is kept for the windows of before).
     frame.t_s += 1.0;
     coop.match_frame(&frame, &after, 2);
-    assert!(coop.frame_of(3, 6).is_some_and(|a| a.is_some()));
-    assert!(coop.frame_of(3, 5).is_some_and(|a| a.is_some()));
+    assert!(coop
+        .frame_of(3, 6)
+        .is_some_and(|a| matches!(a, super::FrameUse::Fused(_))));
+    assert!(coop
+        .frame_of(3, 5)
+        .is_some_and(|a| matches!(a, super::FrameUse::Fused(_))));
     assert_eq!(coop.evidence(&linked[..1], &[], &after).vio.len(), 1);
     let frames = coop.peer_frames();
     assert_eq!(frames[&3].keys().copied().collect::<Vec<_>>(), vec![5, 6]);
@@ -292,6 +298,85 @@ fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
         assert!(a.yaw_rad.abs() < 0.01, "yaw {}", a.yaw_rad);
         assert!(a.t_m.norm() < 0.05, "t {:?}", a.t_m);
     }
+}
+
+/// With `peer_frame_state_s` a confirmed frame is handed to the estimator
+/// (a seed), its windows wait for the state to hold it, are then taken into
+/// our frame at the state's mean with their Jacobian w.r.t. it, and further
+/// loop closures do not measure it, until the state lets it go: a fixed
+/// alignment then, refined by them.
+#[test]
+fn a_frame_for_the_state_is_seeded_once_and_used_at_the_states_mean() {
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let w = world(40, &mut rng);
+    let seen: Vec<usize> = (0..30).collect();
+    let mut frame = our_frame(&w, &seen, &mut rng);
+    frame.camera = Some(CameraEstimate {
+        rot: forward(),
+        pos: Vector3::new(0.8, -0.3, 0.0),
+        cov: nalgebra::SMatrix::<f64, 6, 6>::identity() * 1e-6,
+    });
+    frame.sigma_normalized = 1.0 / 460.0;
+    let opts = CooperationOptions {
+        align_peer_frames: true,
+        peer_frame_state_s: 60.0,
+        alignment_confirmations: 1,
+        ..options()
+    };
+    let mut coop = Cooperation::new(opts, builtin_vocabulary(), 460.0);
+    let mut h = peer_history_in(&w, &mut rng, 5);
+    h.clear_recent();
+    let peers: Peers = [(3u32, h)].into_iter().collect();
+    coop.match_frame(&frame, &peers, 4);
+    let seeds = coop.take_frame_seeds();
+    assert_eq!(seeds.len(), 1);
+    assert_eq!((seeds[0].peer, seeds[0].epoch, seeds[0].clone), (3, 5, 4));
+    assert!(seeds[0].measurement.alignment.yaw_rad.abs() < 0.01);
+    assert!(coop.take_frame_seeds().is_empty(), "taken once");
+    assert!(coop.keeps_frame(3, 5) && !coop.keeps_frame(3, 6));
+    let linked: Vec<u64> = (1..=30u64)
+        .filter(|id| !coop.links_of(*id).is_empty())
+        .collect();
+    assert!(!linked.is_empty());
+    // Not in the state yet: not used.
+    assert!(coop.frame_of(3, 5).is_none());
+    assert!(coop.evidence(&linked[..1], &[], &peers).vio.is_empty());
+    let held = crate::estimator::frame_alignment::FrameAlignment {
+        yaw_rad: 0.001,
+        t_m: Vector3::new(0.01, 0.0, 0.0),
+        cov: nalgebra::Matrix4::identity() * 1e-4,
+    };
+    coop.set_state_frames([((3, 5), held)].into_iter().collect());
+    assert!(matches!(
+        coop.frame_of(3, 5),
+        Some(super::FrameUse::InState(..))
+    ));
+    let ev = coop.evidence(&linked[..1], &[], &peers);
+    assert_eq!(ev.vio.len(), 1);
+    let link = ev.participants[0]
+        .frame
+        .as_ref()
+        .expect("the frame's Jacobians");
+    assert_eq!(link.at.yaw_rad, 0.001);
+    assert_eq!(coop.peer_frames()[&3][&5].alignment(), Some(&held));
+    // Held by the state: a later loop closure measures it no more.
+    let measured = coop.peer_frames()[&3][&5].measurements;
+    frame.t_s += 2.0;
+    coop.match_frame(&frame, &peers, 5);
+    assert_eq!(coop.peer_frames()[&3][&5].measurements, measured);
+    assert!(coop.take_frame_seeds().is_empty());
+    // Let go: a fixed alignment, used through its covariance and refined.
+    let confirmed_at = frame.t_s - 2.0;
+    assert!(coop
+        .frame_aligned_at(3, 5)
+        .is_some_and(|t| (t - confirmed_at).abs() < 1e-9));
+    coop.freeze_frame(3, 5, held);
+    coop.set_state_frames(BTreeMap::new());
+    assert!(matches!(coop.frame_of(3, 5), Some(super::FrameUse::Fused(a)) if a == held));
+    frame.t_s += 2.0;
+    coop.match_frame(&frame, &peers, 6);
+    assert_eq!(coop.peer_frames()[&3][&5].measurements, measured + 1);
+    assert!(coop.take_frame_seeds().is_empty());
 }
 
 #[test]

@@ -11,7 +11,8 @@
 //! estimates stay bit for bit the same), and a peer that sends a different
 //! snapshot under the same key gets its new one.
 
-use crate::estimator::frame_alignment::{window_in_frame, FrameAlignment};
+use super::FrameUse;
+use crate::estimator::frame_alignment::{window_in_frame, window_in_state_frame};
 use crate::estimator::peer_window::PeerWindow;
 use common::messages::StateSnapshot;
 
@@ -26,8 +27,8 @@ struct Entry {
     key: u64,
     historical: bool,
     snapshot: StateSnapshot,
-    /// The alignment the window was taken into our frame with.
-    frame: Option<FrameAlignment>,
+    /// How the window was taken into our frame.
+    frame: FrameUse,
     window: Option<PeerWindow>,
     last_used: u64,
 }
@@ -41,16 +42,17 @@ pub(super) struct WindowCache {
 
 impl WindowCache {
     /// Peer `peer`'s window `key` from `snap` (`historical` when it is a stored
-    /// keyframe window), in our frame through `frame` when the peer's is not
-    /// ours: the cached one when `snap` and `frame` are what it was built
-    /// from, else built now (and kept in place of the least recently used).
+    /// keyframe window), taken into our frame as `frame` says: the cached one
+    /// when `snap` and `frame` are what it was built from (a frame our state
+    /// holds moves with every update: its windows are built again), else
+    /// built now (and kept in place of the least recently used).
     pub(super) fn window(
         &mut self,
         peer: u32,
         key: u64,
         historical: bool,
         snap: &StateSnapshot,
-        frame: Option<&FrameAlignment>,
+        frame: FrameUse,
     ) -> Option<PeerWindow> {
         self.clock += 1;
         let clock = self.clock;
@@ -58,22 +60,23 @@ impl WindowCache {
             e.peer == peer
                 && e.key == key
                 && e.historical == historical
-                && e.frame.as_ref() == frame
+                && e.frame == frame
                 && e.snapshot == *snap
         }) {
             e.last_used = clock;
             return e.window.clone();
         }
-        let window = PeerWindow::from_snapshot(peer, key, snap).map(|w| match frame {
-            Some(a) => window_in_frame(&w, a),
-            None => w,
+        let window = PeerWindow::from_snapshot(peer, key, snap).map(|w| match &frame {
+            FrameUse::Same => w,
+            FrameUse::Fused(a) => window_in_frame(&w, a),
+            FrameUse::InState(var, a) => window_in_state_frame(&w, a, *var),
         });
         let entry = Entry {
             peer,
             key,
             historical,
             snapshot: snap.clone(),
-            frame: frame.copied(),
+            frame,
             window: window.clone(),
             last_used: clock,
         };
@@ -125,8 +128,8 @@ mod tests {
         let snap = snapshot_for_tests(3, 40);
         let built = PeerWindow::from_snapshot(2, 7, &snap);
         assert!(built.is_some());
-        assert_eq!(cache.window(2, 7, false, &snap, None), built);
-        assert_eq!(cache.window(2, 7, false, &snap, None), built);
+        assert_eq!(cache.window(2, 7, false, &snap, FrameUse::Same), built);
+        assert_eq!(cache.window(2, 7, false, &snap, FrameUse::Same), built);
         assert_eq!(cache.len(), 1);
     }
 
@@ -136,10 +139,10 @@ mod tests {
         let first = snapshot_for_tests(3, 40);
         let second = snapshot_for_tests(3, 41);
         assert_eq!(
-            cache.window(2, 7, false, &first, None),
+            cache.window(2, 7, false, &first, FrameUse::Same),
             PeerWindow::from_snapshot(2, 7, &first)
         );
-        let again = cache.window(2, 7, false, &second, None);
+        let again = cache.window(2, 7, false, &second, FrameUse::Same);
         assert_eq!(again, PeerWindow::from_snapshot(2, 7, &second));
         assert_ne!(again, PeerWindow::from_snapshot(2, 7, &first));
         assert_eq!(cache.len(), 1, "the new content replaces the old entry");
@@ -150,19 +153,22 @@ mod tests {
         let mut cache = WindowCache::default();
         let snap = snapshot_for_tests(3, 40);
         let raw = PeerWindow::from_snapshot(2, 7, &snap).expect("usable");
-        let a = FrameAlignment {
+        let a = crate::estimator::frame_alignment::FrameAlignment {
             yaw_rad: 0.3,
             t_m: nalgebra::Vector3::new(1.0, 2.0, 0.0),
             cov: nalgebra::Matrix4::identity() * 1e-4,
         };
-        assert_eq!(cache.window(2, 7, false, &snap, None), Some(raw.clone()));
-        let moved = cache.window(2, 7, false, &snap, Some(&a));
+        assert_eq!(
+            cache.window(2, 7, false, &snap, FrameUse::Same),
+            Some(raw.clone())
+        );
+        let moved = cache.window(2, 7, false, &snap, FrameUse::Fused(a));
         assert_eq!(moved, Some(window_in_frame(&raw, &a)));
         assert_eq!(cache.len(), 1);
         let mut b = a;
         b.yaw_rad = 0.31;
         assert_eq!(
-            cache.window(2, 7, false, &snap, Some(&b)),
+            cache.window(2, 7, false, &snap, FrameUse::Fused(b)),
             Some(window_in_frame(&raw, &b))
         );
     }
@@ -172,8 +178,8 @@ mod tests {
         let mut cache = WindowCache::default();
         let snap = snapshot_for_tests(2, 40);
         for key in 0..(CAPACITY as u64 + 5) {
-            let _ = cache.window(1, key, true, &snap, None);
-            let _ = cache.window(1, 0, true, &snap, None);
+            let _ = cache.window(1, key, true, &snap, FrameUse::Same);
+            let _ = cache.window(1, 0, true, &snap, FrameUse::Same);
         }
         assert_eq!(cache.len(), CAPACITY);
         assert!(

@@ -117,6 +117,21 @@ pub fn camera_window(state: &State, with_landmarks: bool) -> CameraWindow {
     }
 }
 
+/// The Jacobian of clone `key`'s camera pose error `[δθ_C, δp_C]` w.r.t.
+/// the state variables it depends on: the clone, and the extrinsic when
+/// estimated (each 6 x 6). `None` without that clone.
+pub fn camera_pose_jacobian(state: &State, key: u64) -> Option<Vec<(Var, DMatrix<f64>)>> {
+    let clone = state.clones.get(&key)?;
+    let has_ext = state.has(Var::Extrinsic);
+    let mut jac = DMatrix::zeros(6, if has_ext { 12 } else { 6 });
+    fill_camera_jacobian(&mut jac, 0, 0, has_ext.then_some(6), &state.calib, clone);
+    let mut out = vec![(Var::Clone(key), jac.columns(0, 6).into_owned())];
+    if has_ext {
+        out.push((Var::Extrinsic, jac.columns(6, 6).into_owned()));
+    }
+    Some(out)
+}
+
 /// Rows `row..row + 6` of the map from the clone's error (columns `col..col +
 /// 6`) and the extrinsic's (at `ext`, when estimated) to the camera pose's.
 fn fill_camera_jacobian(

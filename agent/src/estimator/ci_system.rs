@@ -15,7 +15,7 @@
 use super::feature_system::Columns;
 use super::linalg::compress_in_place;
 use super::peer_window::PeerWindow;
-use super::state::{State, StateError, Var};
+use super::state::{wrap_yaw, State, StateError, Var};
 use super::updater_ci::{self, CiOutcome, CiWeights, PeerTerm};
 use common::estimator_options::CooperationOptions;
 use nalgebra::{DMatrix, DVector};
@@ -75,6 +75,111 @@ pub struct CiRows {
     pub res: DVector<f64>,
     /// The participants' Jacobians.
     pub peers: Vec<PeerRows>,
+}
+
+/// The columns a block's Jacobian `h_p` over `items` of participant `part`
+/// gives our peer frame, when the window was taken into our frame through a
+/// frame our state holds: `h_p G` (m x 4), `G` the items' rows of the
+/// window's Jacobian w.r.t. the frame. `None` for any other window.
+pub fn frame_columns(
+    part: Part,
+    items: &[usize],
+    h_p: &DMatrix<f64>,
+    participants: &[PeerWindow],
+) -> Option<(Var, DMatrix<f64>)> {
+    let (w, link) = match part {
+        Part::Poses(w) | Part::Landmarks(w) => {
+            let win = participants.get(w)?;
+            (win, win.frame.as_ref()?)
+        }
+    };
+    let (offsets, total) = part.layout(items, participants);
+    if h_p.ncols() != total {
+        return None;
+    }
+    let mut out = DMatrix::zeros(h_p.nrows(), 4);
+    for (item, c) in items.iter().zip(offsets) {
+        let size = part.item_size(*item, participants);
+        let cols = h_p.columns(c, size);
+        match part {
+            // A pose's 6 rows of `G` (the intrinsics do not move with the frame).
+            Part::Poses(_) if *item < w.poses.len() => {
+                out += cols * link.poses.rows(6 * item, 6);
+            }
+            Part::Poses(_) => {}
+            Part::Landmarks(_) => out += cols * link.landmarks.get(*item)?,
+        }
+    }
+    Some((link.var, out))
+}
+
+/// Adds to our block `(vars, h)` the columns of the peer frames its
+/// participants depend on ([`frame_columns`]), so that gating and the CI-EKF
+/// update see the frame's uncertainty through our covariance, and the update
+/// corrects the frame. A window taken into our frame at a mean the state has
+/// since moved from (this frame's own updates came after the evidence) has
+/// its residuals moved to the current mean, to first order: `r −= H_a δa`.
+pub fn add_frame_columns<'a>(
+    state: &State,
+    vars: &mut Vec<Var>,
+    h: &mut DMatrix<f64>,
+    res: &mut DVector<f64>,
+    peers: impl IntoIterator<Item = (Part, &'a [usize], &'a DMatrix<f64>)>,
+    participants: &[PeerWindow],
+) {
+    for (part, items, h_p) in peers {
+        let Some((var, cols)) = frame_columns(part, items, h_p, participants) else {
+            continue;
+        };
+        let link = match part {
+            Part::Poses(w) | Part::Landmarks(w) => participants[w].frame.as_ref(),
+        };
+        if let (Some(link), Var::PeerFrame { peer, epoch }) = (link, var) {
+            if let Some(now) = state.peer_frames.get(&(peer, epoch)) {
+                let d = now.t_m - link.at.t_m;
+                let moved = DVector::from_column_slice(&[
+                    wrap_yaw(now.yaw_rad - link.at.yaw_rad),
+                    d.x,
+                    d.y,
+                    d.z,
+                ]);
+                if moved.iter().any(|v| *v != 0.0) {
+                    *res -= &cols * moved;
+                }
+            }
+        }
+        let at = match Columns::of(vars.clone()).col(var) {
+            Some(c) => c,
+            None => {
+                let c = h.ncols();
+                let m = h.nrows();
+                let old = std::mem::replace(h, DMatrix::zeros(m, c + 4));
+                h.columns_mut(0, c).copy_from(&old);
+                vars.push(var);
+                c
+            }
+        };
+        let mut dst = h.columns_mut(at, 4);
+        dst += cols;
+    }
+}
+
+/// [`add_frame_columns`] for a block whose participants' Jacobians are its own.
+pub fn add_block_frame_columns(state: &State, rows: &mut CiRows, participants: &[PeerWindow]) {
+    let mut vars = std::mem::take(&mut rows.vars);
+    let mut h = std::mem::replace(&mut rows.h, DMatrix::zeros(0, 0));
+    add_frame_columns(
+        state,
+        &mut vars,
+        &mut h,
+        &mut rows.res,
+        rows.peers
+            .iter()
+            .map(|p| (p.part, p.items.as_slice(), &p.h)),
+        participants,
+    );
+    rows.vars = vars;
+    rows.h = h;
 }
 
 /// Moves the residuals of blocks linearized before an update that applied `dx`
@@ -195,7 +300,14 @@ pub fn update(
             }),
         })
         .collect();
-    let weights = match opts.ci_weighting {
+    let weights = weights_of(opts);
+    let eye = DMatrix::identity(res.len(), res.len());
+    updater_ci::update(state, &cols.vars, &h, &res, &eye, &terms, &weights).map(Some)
+}
+
+/// How the options choose the CI weights.
+pub fn weights_of(opts: &CooperationOptions) -> CiWeights {
+    match opts.ci_weighting {
         common::estimator_options::CiWeighting::FixedPeer => {
             CiWeights::FixedPeer(opts.ci_peer_weight)
         }
@@ -206,9 +318,7 @@ pub fn update(
         common::estimator_options::CiWeighting::MinPoseFeaturesDeterminant => {
             CiWeights::MinPoseFeaturesDeterminant
         }
-    };
-    let eye = DMatrix::identity(res.len(), res.len());
-    updater_ci::update(state, &cols.vars, &h, &res, &eye, &terms, &weights).map(Some)
+    }
 }
 
 /// Compresses `[H | H_1 | ... | H_L], r` when it has more rows than columns

@@ -21,7 +21,9 @@
 //!   alignment holds our own pose estimate; CI is consistent whatever the
 //!   correlation between a participant and our state, this one included.
 
-use super::peer_window::{project_normalized, PeerLandmark, PeerPose, PeerWindow};
+use super::peer_window::{project_normalized, FrameLink, PeerLandmark, PeerPose, PeerWindow};
+use super::state::wrap_yaw as wrap;
+use super::state::{PeerFrameMean, Var};
 use common::so3::skew;
 use nalgebra::{
     DMatrix, Matrix2, Matrix2x3, Matrix3, Matrix4, SMatrix, Vector2, Vector3, Vector4, Vector5,
@@ -43,16 +45,6 @@ pub struct FrameAlignment {
 pub fn rot_z(yaw: f64) -> Matrix3<f64> {
     let (s, c) = yaw.sin_cos();
     Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0)
-}
-
-/// `yaw` wrapped into `(−π, π]`.
-fn wrap(yaw: f64) -> f64 {
-    let w = yaw.rem_euclid(std::f64::consts::TAU);
-    if w > std::f64::consts::PI {
-        w - std::f64::consts::TAU
-    } else {
-        w
-    }
 }
 
 /// `∂(R_z(ψ) p)/∂ψ = e_z × R_z(ψ) p`.
@@ -156,6 +148,45 @@ impl FrameAlignment {
 /// the alignment's error, so they become correlated through it. The
 /// intrinsics (when sent) are unchanged. Landmarks keep marginal covariances.
 pub fn window_in_frame(w: &PeerWindow, a: &FrameAlignment) -> PeerWindow {
+    let (mut out, g, gl) = transformed(w, a);
+    let cov = out.cov.as_ref() + &g * a.cov * g.transpose();
+    // (`transformed` leaves `J P Jᵀ` unsymmetrized: one rounding, as before
+    // the in-state frames were written.)
+    out.cov = Arc::new((&cov + cov.transpose()) * 0.5);
+    for (l, g) in out.landmarks.iter_mut().zip(&gl) {
+        l.cov += g * a.cov * g.transpose();
+    }
+    out
+}
+
+/// A peer's window expressed in our frame through the peer frame `var` our
+/// state holds, at its mean `a`: the window's covariance only rotated, and
+/// its Jacobians w.r.t. the frame's error kept beside it (`PeerWindow::frame`)
+/// for the updates to put in our columns of `var`.
+pub fn window_in_state_frame(w: &PeerWindow, a: &PeerFrameMean, var: Var) -> PeerWindow {
+    let alignment = FrameAlignment {
+        yaw_rad: a.yaw_rad,
+        t_m: a.t_m,
+        cov: Matrix4::zeros(),
+    };
+    let (mut out, poses, landmarks) = transformed(w, &alignment);
+    out.cov = Arc::new(out.cov.as_ref() * 0.5 + out.cov.transpose() * 0.5);
+    out.frame = Some(Arc::new(FrameLink {
+        var,
+        at: *a,
+        poses,
+        landmarks,
+    }));
+    out
+}
+
+/// The window through `a` with its own covariance moved into our frame
+/// (`J P Jᵀ`, not yet symmetrized), its Jacobian w.r.t. the alignment's error (dim x 4) and each
+/// landmark's (3 x 4).
+fn transformed(
+    w: &PeerWindow,
+    a: &FrameAlignment,
+) -> (PeerWindow, DMatrix<f64>, Vec<SMatrix<f64, 3, 4>>) {
     let rz = a.rot();
     let n = w.poses.len();
     let dim = w.cov.nrows();
@@ -175,27 +206,30 @@ pub fn window_in_frame(w: &PeerWindow, a: &FrameAlignment) -> PeerWindow {
             pos: a.point(&p.pos),
         });
     }
-    let cov = &j * w.cov.as_ref() * j.transpose() + &g * a.cov * g.transpose();
+    let cov = &j * w.cov.as_ref() * j.transpose();
+    let mut gl = Vec::with_capacity(w.landmarks.len());
     let landmarks = w
         .landmarks
         .iter()
         .map(|l| {
-            let gl = a.point_jacobian(&l.pos);
+            gl.push(a.point_jacobian(&l.pos));
             PeerLandmark {
                 id: l.id,
                 pos: a.point(&l.pos),
-                cov: rz * l.cov * rz.transpose() + gl * a.cov * gl.transpose(),
+                cov: rz * l.cov * rz.transpose(),
             }
         })
         .collect();
-    PeerWindow {
+    let out = PeerWindow {
         peer: w.peer,
         key: w.key,
         poses,
-        cov: Arc::new((&cov + cov.transpose()) * 0.5),
+        cov: Arc::new(cov),
         camera: w.camera.clone(),
         landmarks,
-    }
+        frame: None,
+    };
+    (out, g, gl)
 }
 
 /// A camera pose estimate: `(R_CtoX, p_CinX)` in some world frame `X`, and the
@@ -291,6 +325,14 @@ pub struct AlignmentMeasurement {
     pub inliers: Vec<bool>,
     /// Root mean square reprojection error of the inliers, normalized units.
     pub rms_normalized: f64,
+    /// `∂[ψ̂, t̂]/∂ξ`: how the fitted alignment moves with an error `ξ` of our
+    /// camera pose estimate `[δθ, δp]` (4x6), so that `δa = D ξ + n` with `ξ`
+    /// the error of our camera: an alignment held in the filter state is
+    /// augmented with this cross-covariance to our pose.
+    pub our_pose_jacobian: SMatrix<f64, 4, 6>,
+    /// Covariance of `n`: the pixel noise and the triangulation and anchor
+    /// errors (the covariance without our camera's share), rad², m².
+    pub noise_cov: Matrix4<f64>,
 }
 
 /// Gate on a point's whitened squared residual: χ²(2) at 99 %.
@@ -556,7 +598,9 @@ pub fn estimate_alignment(
     // (the sign does not matter to the covariance).
     let b_o = n_inv * to_ours;
     let b_a = n_inv * to_anchor;
-    let cov = n_inv + b_o * ours.cov * b_o.transpose() + b_a * anchor.cov * b_a.transpose();
+    let noise = n_inv + b_a * anchor.cov * b_a.transpose();
+    let noise_cov = (noise + noise.transpose()) * 0.5;
+    let cov = noise_cov + b_o * ours.cov * b_o.transpose();
     let cov = (cov + cov.transpose()) * 0.5;
     if !cov.iter().all(|v| v.is_finite()) || cov.cholesky().is_none() {
         return Err(AlignmentError::Degenerate);
@@ -577,6 +621,11 @@ pub fn estimate_alignment(
         alignment,
         inliers,
         rms_normalized: (sq / found as f64).sqrt(),
+        // At the optimum `H_aᵀ W r = 0`: fitted from our true pose `x̂ ⊞ ξ`
+        // the alignment would be `â − N⁻¹ H_aᵀ W H_o ξ`, so its error is
+        // `δa = −B_o ξ + n`.
+        our_pose_jacobian: -b_o,
+        noise_cov,
     })
 }
 

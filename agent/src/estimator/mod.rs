@@ -21,6 +21,7 @@ pub mod inputs;
 pub mod linalg;
 pub mod observability;
 pub mod options;
+pub mod peer_frame_states;
 pub mod peer_window;
 pub mod projection;
 pub mod propagator;

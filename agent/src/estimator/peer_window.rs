@@ -10,6 +10,7 @@
 //! ordered `[δθ, δp]`. A peer's window is never updated by us (Eq. 5.16 only
 //! changes our own state); historical windows are used exactly as stored.
 
+use super::state::{PeerFrameMean, Var};
 use common::camera::CameraModel;
 use common::messages::{cover_f32_rounding, StateSnapshot, INTRINSICS_DIM};
 use common::so3::skew;
@@ -57,6 +58,26 @@ pub struct PeerWindow {
     pub camera: CameraModel,
     /// SLAM landmarks of the window (keyframe snapshots carry them).
     pub landmarks: Vec<PeerLandmark>,
+    /// The peer frame in our state this window was taken into our frame
+    /// through (`cooperation.peer_frame_state_s`), with the Jacobians of the
+    /// window w.r.t. it; `None` for a window in our frame as it is or with
+    /// the alignment's covariance folded into `cov`.
+    pub frame: Option<Arc<FrameLink>>,
+}
+
+/// How a window taken into our frame through a peer frame held in our state
+/// depends on that frame's error `[δψ, δt]`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameLink {
+    /// The state variable (`Var::PeerFrame`).
+    pub var: Var,
+    /// The frame's mean the window was taken into our frame at.
+    pub at: PeerFrameMean,
+    /// `∂(window error)/∂[δψ, δt]`, rows as the window's covariance (the
+    /// intrinsics' rows zero).
+    pub poses: DMatrix<f64>,
+    /// `∂p_FinG/∂[δψ, δt]` of each landmark.
+    pub landmarks: Vec<SMatrix<f64, 3, 4>>,
 }
 
 impl PeerWindow {
@@ -110,6 +131,7 @@ impl PeerWindow {
                     })
                 })
                 .collect(),
+            frame: None,
         })
     }
 
@@ -312,6 +334,7 @@ mod tests {
             cov: Arc::new(DMatrix::identity(14, 14)),
             camera: estimate,
             landmarks: Vec::new(),
+            frame: None,
         };
         assert_eq!(w.intrinsics_item(), Some(1));
         let m = peer_measurement(&w, 0, &xy, &p_f, &p_f, 1.0).unwrap();
@@ -343,6 +366,7 @@ mod tests {
             cov: Arc::new(DMatrix::identity(14, 14)),
             camera,
             landmarks: Vec::new(),
+            frame: None,
         };
         let p_f = Vector3::new(1.2, -0.7, 3.0);
         let xy = Vector2::new(p_f.x / p_f.z, p_f.y / p_f.z);

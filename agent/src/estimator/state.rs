@@ -31,6 +31,15 @@ pub enum Var {
     Clone(u64),
     /// A SLAM feature in global 3-D, keyed by track id (3).
     Feature(u64),
+    /// Where a peer's world frame is in ours, `[δψ, δt]` (4): peer `peer`'s
+    /// frame `epoch` (`cooperation.peer_frame_state_s`, see
+    /// `frame_alignment`).
+    PeerFrame {
+        /// The peer's robot id.
+        peer: u32,
+        /// Its frame (`StateSnapshot::frame_epoch`).
+        epoch: u64,
+    },
 }
 
 impl Var {
@@ -42,6 +51,7 @@ impl Var {
             Var::Extrinsic | Var::Clone(_) => 6,
             Var::Intrinsics => 8,
             Var::Feature(_) => 3,
+            Var::PeerFrame { .. } => 4,
         }
     }
 }
@@ -132,8 +142,27 @@ pub struct SlamFeature {
     pub inverse_depth: bool,
 }
 
+/// The mean of a peer frame held in the state: `p_G = R_z(ψ) p_H + t`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PeerFrameMean {
+    /// `ψ`, rad, in `(−π, π]`.
+    pub yaw_rad: f64,
+    /// `t`, m.
+    pub t_m: Vector3<f64>,
+}
+
+/// `yaw` wrapped into `(−π, π]`.
+pub fn wrap_yaw(yaw: f64) -> f64 {
+    let w = yaw.rem_euclid(std::f64::consts::TAU);
+    if w > std::f64::consts::PI {
+        w - std::f64::consts::TAU
+    } else {
+        w
+    }
+}
+
 /// One robot's means: its time, IMU state and first estimates, calibration,
-/// clones and SLAM features (everything but the covariance).
+/// clones, SLAM features and peer frames (everything but the covariance).
 #[derive(Clone, Debug)]
 pub struct Means {
     /// IMU time of the IMU state, s.
@@ -148,6 +177,8 @@ pub struct Means {
     pub clones: BTreeMap<u64, ClonePose>,
     /// SLAM features by track id.
     pub features: BTreeMap<u64, SlamFeature>,
+    /// Peers' frames by `(peer, epoch)` (`cooperation.peer_frame_state_s`).
+    pub peer_frames: BTreeMap<(u32, u64), PeerFrameMean>,
 }
 
 impl Means {
@@ -160,6 +191,7 @@ impl Means {
             calib,
             clones: BTreeMap::new(),
             features: BTreeMap::new(),
+            peer_frames: BTreeMap::new(),
         }
     }
 
@@ -208,6 +240,12 @@ impl Means {
                     f.pos += d(0);
                 }
             }
+            Var::PeerFrame { peer, epoch } => {
+                if let Some(a) = self.peer_frames.get_mut(&(peer, epoch)) {
+                    a.yaw_rad = wrap_yaw(a.yaw_rad + dx[o]);
+                    a.t_m += d(1);
+                }
+            }
         }
     }
 
@@ -254,6 +292,14 @@ impl Means {
                         put(0, a.pos - b.pos);
                     }
                 }
+                Var::PeerFrame { peer, epoch } => {
+                    let k = (*peer, *epoch);
+                    if let (Some(a), Some(b)) = (self.peer_frames.get(&k), base.peer_frames.get(&k))
+                    {
+                        put(1, a.t_m - b.t_m);
+                        d[o] = wrap_yaw(a.yaw_rad - b.yaw_rad);
+                    }
+                }
             }
             o += v.size();
         }
@@ -268,6 +314,9 @@ impl Means {
             }
             Var::Feature(id) => {
                 self.features.remove(&id);
+            }
+            Var::PeerFrame { peer, epoch } => {
+                self.peer_frames.remove(&(peer, epoch));
             }
             _ => {}
         }

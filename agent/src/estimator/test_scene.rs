@@ -116,6 +116,7 @@ pub fn scene(n: usize, n_landmarks: usize, clone_var: f64, peer_var: f64) -> Sce
         poses,
         camera: calib.camera.clone(),
         landmarks: Vec::new(),
+        frame: None,
     };
     Scene {
         state,

@@ -86,7 +86,10 @@ struct PeerPart {
 
 /// A feature's projected, whitened rows.
 struct FeatureRows {
+    /// Our variables of the own rows.
     our_vars: Vec<Var>,
+    /// Those and the peer frames of the CI rows, the columns of `h_i`.
+    ci_vars: Vec<Var>,
     h_i: DMatrix<f64>,
     peers: Vec<PeerPart>,
     res: DVector<f64>,
@@ -294,11 +297,26 @@ fn feature_rows(
         });
         c0 += c;
     }
+    // Peers taken into our frame through a frame our state holds depend on
+    // it: its columns join ours (the own rows do not involve it).
+    let mut ci_vars = our_vars.clone();
+    let mut h_i = h_i;
+    let mut res = res;
+    ci_system::add_frame_columns(
+        state,
+        &mut ci_vars,
+        &mut h_i,
+        &mut res,
+        peers
+            .iter()
+            .map(|p| (Part::Poses(p.participant), p.poses.as_slice(), &p.h)),
+        participants,
+    );
     // Gate with the innovation covariance the correlations would give if they
     // were zero (the CI one, inflated by 1/ω, would let wrong matches through).
     let mut s = state
         .covariance()
-        .projected(&our_vars, &h_i)
+        .projected(&ci_vars, &h_i)
         .map_err(|_| false)?
         + DMatrix::identity(m, m);
     for part in &peers {
@@ -320,6 +338,7 @@ fn feature_rows(
     }
     Ok(FeatureRows {
         our_vars,
+        ci_vars,
         h_i,
         peers,
         res,
@@ -376,7 +395,7 @@ pub fn rows(
                     own_blocks.push((r.our_vars.clone(), h, v));
                 }
                 out.ci.push(CiRows {
-                    vars: r.our_vars,
+                    vars: r.ci_vars,
                     h: r.h_i,
                     res: r.res,
                     peers: r

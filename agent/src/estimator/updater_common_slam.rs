@@ -210,7 +210,11 @@ fn gated<T>(
     let mut out = CommonOutcome::default();
     let mut rows = Vec::with_capacity(items.len());
     for item in items {
-        match build(item) {
+        let built = build(item).map(|mut r| {
+            ci_system::add_block_frame_columns(state, &mut r, participants);
+            r
+        });
+        match built {
             Some(r) if passes_gate(state, &r, participants, opts, chi2) => {
                 out.used.push(id_of(item));
                 out.stats.ci_rows += r.res.len();

@@ -13,6 +13,7 @@ pub use super::frame_output::{FrameOutput, FrameRecord, FrameTiming};
 pub use super::inputs::InputError;
 use super::inputs::{check_frame, check_imu};
 use super::options::EstimatorOptions;
+use super::peer_frame_states;
 use super::propagator::{gyro_at_frame, propagate, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
 use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
@@ -383,6 +384,7 @@ impl Estimator {
                 ours.sigma_normalized = updater_msckf::ray_noise_rad(state, &opts);
             }
             c.match_frame(&ours, peers, key);
+            peer_frame_states::take_from(state, c, &opts.cooperation);
         }
         coop.matching_ms = ms(t);
         if !opts.window_ready(state.clones.len()) {
@@ -406,7 +408,10 @@ impl Estimator {
         let ev = self
             .coop
             .as_mut()
-            .map(|c| c.evidence(msckf_ids, &slam_ids, peers))
+            .map(|c| {
+                c.set_state_frames(peer_frame_states::held(state));
+                c.evidence(msckf_ids, &slam_ids, peers)
+            })
             .unwrap_or_default();
         coop.evidence_ms = ms(t);
 

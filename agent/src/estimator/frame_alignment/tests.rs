@@ -70,6 +70,7 @@ fn the_window_in_our_frame_has_the_jacobians_of_numerical_differentiation() {
             pos: Vector3::new(3.0, 1.0, 2.0),
             cov: Matrix3::identity() * 1e-2,
         }],
+        frame: None,
     };
     let out = window_in_frame(&w, &a);
     // The map from [pose errors in H (12), alignment error (4)] to the pose
@@ -346,6 +347,67 @@ fn the_alignment_covariance_is_consistent_over_monte_carlo_draws() {
         let d = a.t_m - s.truth.t_m;
         let e = Vector4::new(wrap(a.yaw_rad - s.truth.yaw_rad), d.x, d.y, d.z);
         sum += e.dot(&(a.cov.try_inverse().expect("invertible") * e));
+        runs += 1;
+    }
+    assert!(runs >= 290, "{runs} aligned");
+    let nees = sum / f64::from(runs);
+    assert!((3.3..5.0).contains(&nees), "NEES {nees}");
+}
+
+/// `our_pose_jacobian` is how the fitted alignment follows our camera's
+/// estimate (numerical differentiation of the whole fit on exact points),
+/// and `noise_cov` covers what is left once our camera's error is taken out
+/// (NEES over Monte-Carlo draws).
+#[test]
+fn the_alignment_follows_our_pose_by_its_jacobian_and_the_rest_is_its_noise() {
+    let sigma = 1.0 / 458.0;
+    let opts = AlignmentOptions {
+        sigma_normalized: sigma,
+        max_translation_sigma_m: 10.0,
+        max_yaw_sigma_rad: 1.0,
+        ..AlignmentOptions::default()
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let s = scene(&mut rng, 30, 0.0);
+    let fit = |ours: &CameraEstimate| {
+        estimate_alignment(ours, &s.anchor, &s.points, &opts).expect("aligned")
+    };
+    let d = fit(&s.ours).our_pose_jacobian;
+    let h = 1e-6;
+    for k in 0..6 {
+        let moved = |sign: f64| {
+            let mut e = Vector6::zeros();
+            e[k] = sign * h;
+            let mut o = s.ours;
+            o.rot *= exp_so3(&Vector3::new(e[0], e[1], e[2]));
+            o.pos += Vector3::new(e[3], e[4], e[5]);
+            fit(&o).alignment
+        };
+        let (plus, minus) = (moved(1.0), moved(-1.0));
+        let num = minus.difference(&plus) / (2.0 * h);
+        let col: Vector4<f64> = d.column(k).into();
+        assert!((num - col).abs().max() < 1e-5, "column {k}: {num} vs {col}");
+    }
+    let (mut sum, mut runs) = (0.0, 0);
+    for _ in 0..300 {
+        let mut s = scene(&mut rng, 30, sigma);
+        let mut ours_error = Vector6::zeros();
+        for (i, cam) in [&mut s.ours, &mut s.anchor].into_iter().enumerate() {
+            let e: Vector6<f64> = sample(&mut rng, &cam.cov);
+            cam.rot *= exp_so3(&-Vector3::new(e[0], e[1], e[2]));
+            cam.pos -= Vector3::new(e[3], e[4], e[5]);
+            if i == 0 {
+                ours_error = e;
+            }
+        }
+        for p in &mut s.points {
+            p.in_anchor += sample(&mut rng, &p.cov_in_anchor);
+        }
+        let Ok(m) = estimate_alignment(&s.ours, &s.anchor, &s.points, &opts) else {
+            continue;
+        };
+        let e = m.alignment.difference(&s.truth) - m.our_pose_jacobian * ours_error;
+        sum += e.dot(&(m.noise_cov.try_inverse().expect("invertible") * e));
         runs += 1;
     }
     assert!(runs >= 290, "{runs} aligned");
