@@ -242,18 +242,25 @@ fn a_loop_closure_finds_the_keyframe_and_its_measurements() {
     assert_eq!(after.vio[0].id, linked[1]);
 }
 
-#[test]
-fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
-    let mut rng = ChaCha8Rng::seed_from_u64(12);
-    let w = world(40, &mut rng);
+/// A world of 40 landmarks and our frame seeing 30 of them, with our
+/// camera's pose (what measuring a peer's frame needs).
+fn world_and_posed_frame(rng: &mut ChaCha8Rng) -> (World, FrameFeatures) {
+    let w = world(40, rng);
     let seen: Vec<usize> = (0..30).collect();
-    let mut frame = our_frame(&w, &seen, &mut rng);
+    let mut frame = our_frame(&w, &seen, rng);
     frame.camera = Some(CameraEstimate {
         rot: forward(),
         pos: Vector3::new(0.8, -0.3, 0.0),
         cov: nalgebra::SMatrix::<f64, 6, 6>::identity() * 1e-6,
     });
     frame.sigma_normalized = 1.0 / 460.0;
+    (w, frame)
+}
+
+#[test]
+fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let (w, mut frame) = world_and_posed_frame(&mut rng);
     let opts = CooperationOptions {
         align_peer_frames: true,
         alignment_confirmations: 1,
@@ -308,15 +315,7 @@ fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
 #[test]
 fn a_frame_for_the_state_is_seeded_once_and_used_at_the_states_mean() {
     let mut rng = ChaCha8Rng::seed_from_u64(12);
-    let w = world(40, &mut rng);
-    let seen: Vec<usize> = (0..30).collect();
-    let mut frame = our_frame(&w, &seen, &mut rng);
-    frame.camera = Some(CameraEstimate {
-        rot: forward(),
-        pos: Vector3::new(0.8, -0.3, 0.0),
-        cov: nalgebra::SMatrix::<f64, 6, 6>::identity() * 1e-6,
-    });
-    frame.sigma_normalized = 1.0 / 460.0;
+    let (w, mut frame) = world_and_posed_frame(&mut rng);
     let opts = CooperationOptions {
         align_peer_frames: true,
         peer_frame_state_s: 60.0,

@@ -315,6 +315,25 @@ fn too_few_points_or_too_little_certainty_give_no_alignment() {
     ));
 }
 
+/// Draws the errors of both cameras' poses and of the points from their
+/// covariances into `s` (estimates = truth minus their errors: `R = R̂
+/// Exp(δθ)`, `p = p̂ + δp`); returns our camera's error `ξ`.
+fn draw_errors(rng: &mut ChaCha8Rng, s: &mut Scene) -> Vector6<f64> {
+    let mut ours = Vector6::zeros();
+    for (i, cam) in [&mut s.ours, &mut s.anchor].into_iter().enumerate() {
+        let e: Vector6<f64> = sample(rng, &cam.cov);
+        cam.rot *= exp_so3(&-Vector3::new(e[0], e[1], e[2]));
+        cam.pos -= Vector3::new(e[3], e[4], e[5]);
+        if i == 0 {
+            ours = e;
+        }
+    }
+    for p in &mut s.points {
+        p.in_anchor += sample(rng, &p.cov_in_anchor);
+    }
+    ours
+}
+
 /// The covariance is consistent: with both cameras' poses, the points and
 /// the pixels drawn from their covariances, the alignment's NEES over 300
 /// draws averages its dimension, 4.
@@ -331,15 +350,7 @@ fn the_alignment_covariance_is_consistent_over_monte_carlo_draws() {
     let (mut sum, mut runs) = (0.0, 0);
     for _ in 0..300 {
         let mut s = scene(&mut rng, 30, sigma);
-        // Estimates = truth minus their errors (R = R̂ Exp(δθ), p = p̂ + δp).
-        for cam in [&mut s.ours, &mut s.anchor] {
-            let e: Vector6<f64> = sample(&mut rng, &cam.cov);
-            cam.rot *= exp_so3(&-Vector3::new(e[0], e[1], e[2]));
-            cam.pos -= Vector3::new(e[3], e[4], e[5]);
-        }
-        for p in &mut s.points {
-            p.in_anchor += sample(&mut rng, &p.cov_in_anchor);
-        }
+        draw_errors(&mut rng, &mut s);
         let Ok(m) = estimate_alignment(&s.ours, &s.anchor, &s.points, &opts) else {
             continue;
         };
@@ -391,18 +402,7 @@ fn the_alignment_follows_our_pose_by_its_jacobian_and_the_rest_is_its_noise() {
     let (mut sum, mut runs) = (0.0, 0);
     for _ in 0..300 {
         let mut s = scene(&mut rng, 30, sigma);
-        let mut ours_error = Vector6::zeros();
-        for (i, cam) in [&mut s.ours, &mut s.anchor].into_iter().enumerate() {
-            let e: Vector6<f64> = sample(&mut rng, &cam.cov);
-            cam.rot *= exp_so3(&-Vector3::new(e[0], e[1], e[2]));
-            cam.pos -= Vector3::new(e[3], e[4], e[5]);
-            if i == 0 {
-                ours_error = e;
-            }
-        }
-        for p in &mut s.points {
-            p.in_anchor += sample(&mut rng, &p.cov_in_anchor);
-        }
+        let ours_error = draw_errors(&mut rng, &mut s);
         let Ok(m) = estimate_alignment(&s.ours, &s.anchor, &s.points, &opts) else {
             continue;
         };
