@@ -14,7 +14,7 @@
 
 use super::feature_system::Columns;
 use super::linalg::compress_in_place;
-use super::peer_window::PeerWindow;
+use super::peer_window::{FrameLink, PeerWindow};
 use super::state::{wrap_yaw, State, StateError, Var};
 use super::updater_ci::{self, CiOutcome, CiWeights, PeerTerm};
 use common::estimator_options::CooperationOptions;
@@ -80,13 +80,14 @@ pub struct CiRows {
 /// The columns a block's Jacobian `h_p` over `items` of participant `part`
 /// gives our peer frame, when the window was taken into our frame through a
 /// frame our state holds: `h_p G` (m x 4), `G` the items' rows of the
-/// window's Jacobian w.r.t. the frame. `None` for any other window.
-pub fn frame_columns(
+/// window's Jacobian w.r.t. the frame, with the window's link to the frame.
+/// `None` for any other window.
+pub fn frame_columns<'w>(
     part: Part,
     items: &[usize],
     h_p: &DMatrix<f64>,
-    participants: &[PeerWindow],
-) -> Option<(Var, DMatrix<f64>)> {
+    participants: &'w [PeerWindow],
+) -> Option<(&'w FrameLink, DMatrix<f64>)> {
     let (w, link) = match part {
         Part::Poses(w) | Part::Landmarks(w) => {
             let win = participants.get(w)?;
@@ -110,7 +111,7 @@ pub fn frame_columns(
             Part::Landmarks(_) => out += cols * link.landmarks.get(*item)?,
         }
     }
-    Some((link.var, out))
+    Some((link.as_ref(), out))
 }
 
 /// Adds to our block `(vars, h)` the columns of the peer frames its
@@ -128,13 +129,11 @@ pub fn add_frame_columns<'a>(
     participants: &[PeerWindow],
 ) {
     for (part, items, h_p) in peers {
-        let Some((var, cols)) = frame_columns(part, items, h_p, participants) else {
+        let Some((link, cols)) = frame_columns(part, items, h_p, participants) else {
             continue;
         };
-        let link = match part {
-            Part::Poses(w) | Part::Landmarks(w) => participants[w].frame.as_ref(),
-        };
-        if let (Some(link), Var::PeerFrame { peer, epoch }) = (link, var) {
+        let var = link.var;
+        if let Var::PeerFrame { peer, epoch } = var {
             if let Some(now) = state.peer_frames.get(&(peer, epoch)) {
                 let d = now.t_m - link.at.t_m;
                 let moved = DVector::from_column_slice(&[
@@ -148,8 +147,8 @@ pub fn add_frame_columns<'a>(
                 }
             }
         }
-        let at = match Columns::of(vars.clone()).col(var) {
-            Some(c) => c,
+        let at = match vars.iter().position(|v| *v == var) {
+            Some(i) => vars[..i].iter().map(|v| v.size()).sum(),
             None => {
                 let c = h.ncols();
                 let m = h.nrows();

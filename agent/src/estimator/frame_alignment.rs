@@ -598,10 +598,11 @@ pub fn estimate_alignment(
     // (the sign does not matter to the covariance).
     let b_o = n_inv * to_ours;
     let b_a = n_inv * to_anchor;
-    let noise = n_inv + b_a * anchor.cov * b_a.transpose();
-    let noise_cov = (noise + noise.transpose()) * 0.5;
-    let cov = noise_cov + b_o * ours.cov * b_o.transpose();
+    let p_anchor = b_a * anchor.cov * b_a.transpose();
+    let cov = n_inv + b_o * ours.cov * b_o.transpose() + p_anchor;
     let cov = (cov + cov.transpose()) * 0.5;
+    let noise = n_inv + p_anchor;
+    let noise_cov = (noise + noise.transpose()) * 0.5;
     if !cov.iter().all(|v| v.is_finite()) || cov.cholesky().is_none() {
         return Err(AlignmentError::Degenerate);
     }

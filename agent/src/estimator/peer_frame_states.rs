@@ -255,9 +255,9 @@ mod tests {
             .expect("in view")
             .h_pose;
         let h_p = DMatrix::from_iterator(2, 6, h_pose.iter().copied());
-        let (v, cols) = frame_columns(Part::Poses(0), &[1], &h_p, std::slice::from_ref(&w))
+        let (link, cols) = frame_columns(Part::Poses(0), &[1], &h_p, std::slice::from_ref(&w))
             .expect("a frame window");
-        assert_eq!(v, var);
+        assert_eq!(link.var, var);
         let h = 1e-6;
         for k in 0..4 {
             let moved = |sign: f64| {
