@@ -521,6 +521,12 @@ pub struct EstimatorSection {
     /// (`cooperation.peer_frame_state_s`).
     #[serde(default)]
     pub peer_frame_state_s: Option<f64>,
+    /// While peer frames are held in the state, leave our covariance along
+    /// our world's yaw and translation (which no peer measurement through
+    /// them observes) out of CI's inflation
+    /// (`cooperation.split_unobservable`).
+    #[serde(default)]
+    pub split_unobservable: Option<bool>,
     /// Vocabulary file for historical loop closures (`vocab train` output);
     /// without it, a vocabulary for random binary descriptors (the simulator's)
     /// is built in memory.
@@ -604,6 +610,9 @@ impl EstimatorSection {
         if let Some(s) = self.peer_frame_state_s {
             c.peer_frame_state_s = s;
         }
+        if let Some(s) = self.split_unobservable {
+            c.split_unobservable = s;
+        }
     }
 }
 
@@ -659,6 +668,7 @@ impl Default for EstimatorSection {
             ci_peer_weight: None,
             align_peer_frames: None,
             peer_frame_state_s: None,
+            split_unobservable: None,
             vocabulary: None,
         }
     }

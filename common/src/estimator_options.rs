@@ -292,6 +292,14 @@ pub struct CooperationOptions {
     /// peer's windows. Held for ever, frame and pose drift together under
     /// CI's inflation (README, "Robots in their own frames").
     pub peer_frame_state_s: f64,
+    /// Split CI over the four directions no peer measurement observes (our
+    /// world frame's yaw and translation, which move our pose, clones,
+    /// features and the peer frames held in our state together): in a CI
+    /// update whose participants all come through frames held in our state,
+    /// our covariance along those directions (conditioned on the rest) is not
+    /// inflated by `1/ω`. Our own measurements alone make that part, and the
+    /// peers' windows, in their own frames, cannot carry it.
+    pub split_unobservable: bool,
     /// Fewest loop-closure points that must agree on an alignment.
     pub min_alignment_inliers: usize,
     /// Loop closures to different keyframe windows of a peer that must agree
@@ -336,6 +344,7 @@ impl Default for CooperationOptions {
             max_common_per_frame: 3,
             align_peer_frames: false,
             peer_frame_state_s: 0.0,
+            split_unobservable: false,
             min_alignment_inliers: 12,
             alignment_confirmations: 2,
             max_alignment_yaw_sigma_deg: 2.0,

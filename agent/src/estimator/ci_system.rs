@@ -12,6 +12,7 @@
 //! cross-correlations are unknown too: `k` landmarks of one window are bounded
 //! together by CI with equal weights, `Diag(k P_1, ..., k P_k)`.
 
+use super::ci_split;
 use super::feature_system::Columns;
 use super::linalg::compress_in_place;
 use super::peer_window::{FrameLink, PeerWindow};
@@ -301,7 +302,28 @@ pub fn update(
         .collect();
     let weights = weights_of(opts);
     let eye = DMatrix::identity(res.len(), res.len());
-    updater_ci::update(state, &cols.vars, &h, &res, &eye, &terms, &weights).map(Some)
+    // Split CI only when no participant sees our frame's yaw and translation:
+    // each came into our frame through a peer frame our state holds.
+    let through_held_frames = parts.iter().all(|(p, _)| {
+        let w = match p {
+            Part::Poses(w) | Part::Landmarks(w) => *w,
+        };
+        participants.get(w).is_some_and(|pw| pw.frame.is_some())
+    });
+    let unobserved = (opts.split_unobservable && through_held_frames)
+        .then(|| ci_split::unobserved_factor(state))
+        .flatten();
+    updater_ci::update(
+        state,
+        &cols.vars,
+        &h,
+        &res,
+        &eye,
+        &terms,
+        &weights,
+        unobserved.as_ref(),
+    )
+    .map(Some)
 }
 
 /// How the options choose the CI weights.

@@ -359,7 +359,7 @@ impl<K: StateVar> Covariance<K> {
             return Err(StateError::Dimension("residual length".into()));
         }
         let (s, pht) = self.innovation(vars, h, r)?;
-        self.kalman_update(s, &pht, res, 1.0)
+        self.kalman_update(s, &pht, res, 1.0, None)
     }
 
     /// CI-EKF update (thesis Eqs. 5.15-5.17): the prior covariance is inflated to
@@ -386,19 +386,24 @@ impl<K: StateVar> Covariance<K> {
         let zero = DMatrix::zeros(h.nrows(), h.nrows());
         let (hph, pht) = self.innovation(vars, h, &zero)?;
         let s = hph / omega + r_others;
-        self.kalman_update(s, &(pht / omega), res, omega)
+        self.kalman_update(s, &(pht / omega), res, omega, None)
     }
 
     /// The common tail of the updates: with `S = L Lᵀ` and
     /// `W = L⁻¹ (P' Hᵀ)ᵀ` for the prior `P' = P / ω`: `P ← P' − Wᵀ W`,
     /// `δx = Wᵀ L⁻¹ r`. `L⁻¹` is small (m x m); forming it makes `W` one dense
     /// product.
+    ///
+    /// With `unobserved = Some(Bᵀ)` the prior is `P / ω − (1/ω − 1) B Bᵀ`
+    /// instead (split CI, `updater_ci`): the part `B Bᵀ` of `P` is not
+    /// inflated. `pht` and `s` must already be that prior's.
     pub(crate) fn kalman_update(
         &mut self,
         s: DMatrix<f64>,
         pht: &DMatrix<f64>,
         res: &DVector<f64>,
         omega: f64,
+        unobserved: Option<&DMatrix<f64>>,
     ) -> Result<DVector<f64>, StateError<K>> {
         let chol = s.cholesky().ok_or(StateError::NotPositiveDefinite)?;
         let l_inv = lower_triangular_inverse(&chol.l());
@@ -407,6 +412,9 @@ impl<K: StateVar> Covariance<K> {
         let dx = w.tr_mul(&lr);
         if omega != 1.0 {
             self.cov /= omega;
+            if let Some(b_t) = unobserved {
+                self.subtract_gram_lower(&(b_t * (1.0 / omega - 1.0).sqrt()));
+            }
         }
         self.subtract_gram_lower(&w);
         self.cov.fill_upper_triangle_with_lower_triangle();

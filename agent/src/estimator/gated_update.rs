@@ -63,12 +63,12 @@ impl<K: StateVar> Covariance<K> {
             return Ok(GatedUpdate { dx: None, accepted });
         }
         let dx = if rows.len() == m {
-            self.kalman_update(s, &pht, res, 1.0)?
+            self.kalman_update(s, &pht, res, 1.0, None)?
         } else {
             let s_acc = s.select_rows(&rows).select_columns(&rows);
             let pht_acc = pht.select_columns(&rows);
             let res_acc = res.select_rows(&rows);
-            self.kalman_update(s_acc, &pht_acc, &res_acc, 1.0)?
+            self.kalman_update(s_acc, &pht_acc, &res_acc, 1.0, None)?
         };
         Ok(GatedUpdate {
             dx: Some(dx),

@@ -20,11 +20,14 @@ use super::state::{Means, Var};
 use nalgebra::{DMatrix, Vector3};
 
 /// The unobservable directions over the columns `cols` (one per column of the
-/// result: x, y, z translation, then yaw), at the first estimates of the clones
-/// and of global SLAM features. Orientation errors are local
+/// result: x, y, z translation, then yaw), at the first estimates of the IMU
+/// state, the clones and global SLAM features, and at the mean of peer frames
+/// held in the state. Orientation errors are local
 /// (`R_ItoG ← R_ItoG Exp(δθ)`): a yaw `ψ` about the world z axis is
-/// `δθ = R_ItoGᵀ e_z ψ`, `δp = ψ e_z × p`. Calibration, anchored features and
-/// other variables do not move.
+/// `δθ = R_ItoGᵀ e_z ψ`, `δp = ψ e_z × p`, `δv = ψ e_z × v`. A peer frame
+/// (`p_G = R_z(ψ_a) p_H + t_a`) turns with the world: `δψ_a = ψ`,
+/// `δt_a = ψ e_z × t_a` plus the translation. Calibration, biases, anchored
+/// features and the time offset do not move.
 pub fn unobservable_directions(cols: &Columns, means: &Means) -> DMatrix<f64> {
     let ez = Vector3::z();
     let mut n = DMatrix::zeros(cols.dim, 4);
@@ -53,6 +56,22 @@ pub fn unobservable_directions(cols: &Columns, means: &Means) -> DMatrix<f64> {
             Var::Feature(id) => {
                 if let Some(f) = means.features.get(id).filter(|f| f.anchor.is_none()) {
                     put_point(&mut n, o, &f.pos_fej);
+                }
+            }
+            Var::Imu => {
+                let fej = &means.imu_fej;
+                let th = fej.rot.transpose() * ez;
+                let dv = ez.cross(&fej.vel);
+                for a in 0..3 {
+                    n[(o + a, 3)] = th[a];
+                    n[(o + 6 + a, 3)] = dv[a];
+                }
+                put_point(&mut n, o + 3, &fej.pos);
+            }
+            Var::PeerFrame { peer, epoch } => {
+                if let Some(f) = means.peer_frames.get(&(*peer, *epoch)) {
+                    n[(o, 3)] = 1.0;
+                    put_point(&mut n, o + 1, &f.t_m);
                 }
             }
             _ => {}

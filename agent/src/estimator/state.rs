@@ -524,15 +524,19 @@ impl State {
     }
 
     /// The tail of a CI-EKF update whose pieces are already computed: innovation
-    /// covariance `s` (with the `1/ω` inflation) and `P Hᵀ / ω`.
+    /// covariance `s` (with the `1/ω` inflation) and `P Hᵀ / ω`; with
+    /// `unobserved = Some(Bᵀ)`, of the split prior `P / ω − (1/ω − 1) B Bᵀ`.
     pub(crate) fn ci_apply(
         &mut self,
         s: DMatrix<f64>,
         pht_over_omega: &DMatrix<f64>,
         res: &DVector<f64>,
         omega: f64,
+        unobserved: Option<&DMatrix<f64>>,
     ) -> Result<(), StateError> {
-        let dx = self.cov.kalman_update(s, pht_over_omega, res, omega)?;
+        let dx = self
+            .cov
+            .kalman_update(s, pht_over_omega, res, omega, unobserved)?;
         self.apply_correction(&dx);
         Ok(())
     }

@@ -163,6 +163,12 @@ fn ln_det(c: &Cholesky<f64, Dyn>) -> f64 {
 /// Updates `state` with residual `res` (`m`), this robot's Jacobian `h` over
 /// `vars`, the peers' terms and noise `r`, with CI weights chosen by `weights`.
 /// With no peer the update is the standard EKF (`ω_i = 1`).
+///
+/// `unobserved`: `B` (`n x k`) of a part `B Bᵀ` of our covariance that is
+/// independent of every participant (split CI: the prior is
+/// `(P − B Bᵀ) / ω + B Bᵀ`, see [`super::ci_split`]); the weight search
+/// weighs the inflated part.
+#[allow(clippy::too_many_arguments)]
 pub fn update(
     state: &mut State,
     vars: &[Var],
@@ -171,13 +177,29 @@ pub fn update(
     r: &DMatrix<f64>,
     peers: &[PeerTerm],
     weights: &CiWeights,
+    unobserved: Option<&DMatrix<f64>>,
 ) -> Result<CiOutcome, StateError> {
     let m = h.nrows();
     if res.len() != m || r.shape() != (m, m) || peers.iter().any(|p| p.h.nrows() != m) {
         return Err(StateError::Dimension("CI update sizes".into()));
     }
+    if unobserved.is_some_and(|b| b.nrows() != state.dim()) {
+        return Err(StateError::Dimension("CI split factor rows".into()));
+    }
     let zero = DMatrix::zeros(m, m);
     let (hph, pht) = state.innovation(vars, h, &zero)?;
+    // Split CI: `H P Hᵀ` and `P Hᵀ` of the inflated part `P − B Bᵀ`, and the
+    // part that is not inflated, `H B (H B)ᵀ` (with the noise) and `B (H B)ᵀ`.
+    let split = unobserved.map(|b| {
+        let hb = jacobian_times(state, vars, h, b);
+        let pht_i = b * hb.transpose();
+        let hph_i = &hb * hb.transpose();
+        (hph_i, pht_i)
+    });
+    let (hph, pht, r_split) = match &split {
+        Some((hph_i, pht_i)) => (hph - hph_i, pht - pht_i, r + hph_i),
+        None => (hph, pht, r.clone()),
+    };
     // The rows whose trace `MinPoseTrace` minimizes (all with `MinTrace`).
     let traced = match weights {
         CiWeights::MinPoseTrace => state.offset(Var::Imu).map(|o| (o, POSE_ROWS)),
@@ -251,11 +273,12 @@ pub fn update(
         peers: peer_terms,
         peers_at_unit_share,
         nominal,
-        r: r.clone(),
+        r: r_split,
         n: state.dim(),
     };
+    // The inflated part's trace over the traced rows.
     let trace_p: f64 = (traced.0..traced.0 + traced.1)
-        .map(|i| state.cov()[(i, i)])
+        .map(|i| state.cov()[(i, i)] - unobserved.map_or(0.0, |b| b.row(i).norm_squared()))
         .sum();
     let omega = if peers.is_empty() {
         1.0
@@ -284,12 +307,32 @@ pub fn update(
         .cholesky()
         .ok_or(StateError::NotPositiveDefinite)?;
     let mahalanobis = res.dot(&chol.solve(res));
-    state.ci_apply(s, &(pht / omega), res, omega)?;
+    match (&split, unobserved) {
+        (Some((_, pht_i)), Some(b)) => {
+            let pht = pht / omega + pht_i;
+            state.ci_apply(s, &pht, res, omega, Some(&b.transpose()))?
+        }
+        _ => state.ci_apply(s, &(pht / omega), res, omega, None)?,
+    }
     Ok(CiOutcome {
         omega_own: omega,
         omega_peers: pieces.peer_weights(omega),
         mahalanobis,
     })
+}
+
+/// `H B` for `H` over `vars` and `B` over the whole state (`n x k`).
+fn jacobian_times(state: &State, vars: &[Var], h: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
+    let mut hb = DMatrix::zeros(h.nrows(), b.ncols());
+    let mut c = 0;
+    for v in vars {
+        let k = v.size();
+        if let Some(o) = state.offset(*v) {
+            hb.gemm(1.0, &h.columns(c, k), &b.rows(o, k), 1.0);
+        }
+        c += k;
+    }
+    hb
 }
 
 #[cfg(test)]
@@ -327,11 +370,60 @@ mod tests {
         let r = DMatrix::identity(4, 4) * 0.5;
         let mut a = state_with(&p);
         let mut b = state_with(&p);
-        let out = update(&mut a, &[Var::Imu], &h, &res, &r, &[], &CiWeights::MinTrace).unwrap();
+        let out = update(
+            &mut a,
+            &[Var::Imu],
+            &h,
+            &res,
+            &r,
+            &[],
+            &CiWeights::MinTrace,
+            None,
+        )
+        .unwrap();
         b.ekf_update(&[Var::Imu], &h, &res, &r).unwrap();
         assert_eq!(out.omega_own, 1.0);
         assert!((a.cov() - b.cov()).abs().max() < 1e-12);
         assert!((a.imu.pos - b.imu.pos).norm() < 1e-12);
+    }
+
+    /// Split CI: with `B` the prior is `(P − B Bᵀ) / ω + B Bᵀ`, and the update
+    /// is the Kalman update from that prior (checked against the dense
+    /// formulas).
+    #[test]
+    fn a_split_update_inflates_only_the_rest() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let p = random_spd(15, &mut rng);
+        // B Bᵀ ≤ P: a part of P's own square root.
+        let root = p.clone().cholesky().unwrap().l();
+        let b = root.columns(0, 4).into_owned() * 0.7;
+        let h = DMatrix::from_fn(4, 15, |_, _| rng.random_range(-1.0..1.0));
+        let res = DVector::from_fn(4, |_, _| rng.random_range(-0.1..0.1));
+        let r = DMatrix::identity(4, 4) * 0.5;
+        let peer = [PeerTerm {
+            h: DMatrix::from_fn(4, 6, |_, _| rng.random_range(-1.0..1.0)),
+            cov: random_spd(6, &mut rng),
+            weight: None,
+        }];
+        let omega = 0.7;
+        let mut s = state_with(&p);
+        let w = CiWeights::FixedOwn(omega);
+        let out = update(&mut s, &[Var::Imu], &h, &res, &r, &peer, &w, Some(&b)).unwrap();
+        assert_eq!(out.omega_own, omega);
+        let bbt = &b * b.transpose();
+        let prior = (&p - &bbt) / omega + &bbt;
+        let r_o = &r + &peer[0].h * &peer[0].cov * peer[0].h.transpose() / (1.0 - omega);
+        let s_mat = &h * &prior * h.transpose() + r_o;
+        let k = &prior * h.transpose() * s_mat.clone().try_inverse().unwrap();
+        let want = &prior - &k * s_mat * k.transpose();
+        assert!((s.cov() - &want).abs().max() < 1e-10 * want.abs().max());
+        let dx = &k * &res;
+        let moved = s.imu.pos - ImuState::default().pos;
+        assert!((moved - dx.fixed_rows::<3>(3)).norm() < 1e-12);
+        // Without B the same weight inflates everything.
+        let mut plain = state_with(&p);
+        update(&mut plain, &[Var::Imu], &h, &res, &r, &peer, &w, None).unwrap();
+        assert!(plain.cov().trace() > s.cov().trace());
     }
 
     /// Covariance of the actual error after an update of robot i alone with gain
@@ -397,6 +489,7 @@ mod tests {
                 &self.r,
                 &peer,
                 weights,
+                None,
             )
             .unwrap();
             (s, out)
@@ -482,7 +575,17 @@ mod tests {
             }];
             let run = |w: &CiWeights| {
                 let mut s = state_with(&p_i);
-                update(&mut s, &[Var::Imu], &h_i, &DVector::zeros(m), &r, &peer, w).unwrap();
+                update(
+                    &mut s,
+                    &[Var::Imu],
+                    &h_i,
+                    &DVector::zeros(m),
+                    &r,
+                    &peer,
+                    w,
+                    None,
+                )
+                .unwrap();
                 s.cov().clone()
             };
             let best_trace = run(&CiWeights::MinTrace).trace();
@@ -570,8 +673,17 @@ mod tests {
                     ],
                 );
                 s.set_cov(p_i.clone()).unwrap();
-                let out =
-                    update(&mut s, &measured, &h_meas, &DVector::zeros(m), &r, &peer, w).unwrap();
+                let out = update(
+                    &mut s,
+                    &measured,
+                    &h_meas,
+                    &DVector::zeros(m),
+                    &r,
+                    &peer,
+                    w,
+                    None,
+                )
+                .unwrap();
                 (s, out)
             };
             // The block: orientation and position (rows 0-5), feature 0 (15-17).
@@ -625,6 +737,7 @@ mod tests {
             &r,
             &peers,
             &CiWeights::FixedPeer(0.2),
+            None,
         )
         .unwrap();
         // Ten peers at 0.2 would ask for 2.0: we keep the floor, and the peers
