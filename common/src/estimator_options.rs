@@ -289,8 +289,8 @@ pub struct CooperationOptions {
     /// with the peer's windows corrects it; then it becomes a fixed alignment
     /// with the state's estimate, refined by later loop closures. 0: a fixed
     /// alignment from the start, its covariance folded into each of the
-    /// peer's windows. Held for ever, frame and pose drift together under
-    /// CI's inflation (README, "Robots in their own frames").
+    /// peer's windows. Default 60 (with `split_unobservable`; README,
+    /// "Robots in their own frames").
     pub peer_frame_state_s: f64,
     /// Split CI over the four directions no peer measurement observes (our
     /// world frame's yaw and translation, which move our pose, clones,
@@ -298,7 +298,8 @@ pub struct CooperationOptions {
     /// update whose participants all come through frames held in our state,
     /// our covariance along those directions (conditioned on the rest) is not
     /// inflated by `1/ω`. Our own measurements alone make that part, and the
-    /// peers' windows, in their own frames, cannot carry it.
+    /// peers' windows, in their own frames, cannot carry it. Without it a
+    /// frame and our pose drift together under the inflation.
     pub split_unobservable: bool,
     /// Fewest loop-closure points that must agree on an alignment.
     pub min_alignment_inliers: usize,
@@ -343,8 +344,8 @@ impl Default for CooperationOptions {
             max_ci_participants: 2,
             max_common_per_frame: 3,
             align_peer_frames: false,
-            peer_frame_state_s: 0.0,
-            split_unobservable: false,
+            peer_frame_state_s: 60.0,
+            split_unobservable: true,
             min_alignment_inliers: 12,
             alignment_confirmations: 2,
             max_alignment_yaw_sigma_deg: 2.0,

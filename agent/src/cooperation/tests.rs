@@ -261,9 +261,11 @@ fn world_and_posed_frame(rng: &mut ChaCha8Rng) -> (World, FrameFeatures) {
 fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
     let mut rng = ChaCha8Rng::seed_from_u64(12);
     let (w, mut frame) = world_and_posed_frame(&mut rng);
+    // Fixed alignments (no estimator here to hold the frames in its state).
     let opts = CooperationOptions {
         align_peer_frames: true,
         alignment_confirmations: 1,
+        peer_frame_state_s: 0.0,
         ..options()
     };
     let mut coop = Cooperation::new(opts, builtin_vocabulary(), 460.0);

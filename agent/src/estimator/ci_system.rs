@@ -304,12 +304,13 @@ pub fn update(
     let eye = DMatrix::identity(res.len(), res.len());
     // Split CI only when no participant sees our frame's yaw and translation:
     // each came into our frame through a peer frame our state holds.
-    let through_held_frames = parts.iter().all(|(p, _)| {
-        let w = match p {
-            Part::Poses(w) | Part::Landmarks(w) => *w,
-        };
-        participants.get(w).is_some_and(|pw| pw.frame.is_some())
-    });
+    let through_held_frames = !parts.is_empty()
+        && parts.iter().all(|(p, _)| {
+            let w = match p {
+                Part::Poses(w) | Part::Landmarks(w) => *w,
+            };
+            participants.get(w).is_some_and(|pw| pw.frame.is_some())
+        });
     let unobserved = (opts.split_unobservable && through_held_frames)
         .then(|| ci_split::unobserved_factor(state))
         .flatten();

@@ -17,12 +17,13 @@
 //! that peer entered our state, but for what reached us through a third
 //! robot that had fused it.
 //!
-//! Not for ever: the peers' windows constrain the frame relative to our pose
-//! only, so frame and pose can move together, and every CI update inflates
-//! that direction by `1/ω` (held for an hour, the frames' NEES fell to
-//! 0.01-0.04 and the robots drifted). After `peer_frame_state_s` the frame
-//! leaves the state as a fixed alignment at its marginal, which the updates
-//! do not inflate and later loop closures refine.
+//! The peers' windows constrain the frame relative to our pose only, so
+//! frame and pose can move together, and a plain CI update inflates that
+//! direction by `1/ω` (held for an hour so, the frames' NEES fell to
+//! 0.01-0.04 and the robots drifted). `cooperation.split_unobservable` (the
+//! default, `ci_split`) leaves it out of the inflation. After
+//! `peer_frame_state_s` the frame leaves the state as a fixed alignment at
+//! its marginal, which later loop closures refine.
 
 use super::camera_window::camera_pose_jacobian;
 use super::frame_alignment::{AlignmentMeasurement, FrameAlignment};
