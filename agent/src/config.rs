@@ -517,10 +517,15 @@ pub struct EstimatorSection {
     #[serde(default)]
     pub align_peer_frames: Option<bool>,
     /// How long each confirmed peer frame is held as 4 states of the filter
-    /// before it becomes a fixed alignment, s; 0: fixed from the start
+    /// before it becomes a fixed alignment, s; 0: fixed from the start,
+    /// `.inf`: the whole flight; unset: by the weighting
     /// (`cooperation.peer_frame_state_s`).
     #[serde(default)]
     pub peer_frame_state_s: Option<f64>,
+    /// Most peer frames held in the filter at once; beyond it the longest
+    /// held becomes a fixed alignment (`cooperation.max_held_peer_frames`).
+    #[serde(default)]
+    pub max_held_peer_frames: Option<usize>,
     /// While peer frames are held in the state, leave our covariance along
     /// our world's yaw and translation (which no peer measurement through
     /// them observes) out of CI's inflation
@@ -608,7 +613,10 @@ impl EstimatorSection {
             c.ci_peer_weight = w;
         }
         if let Some(s) = self.peer_frame_state_s {
-            c.peer_frame_state_s = s;
+            c.peer_frame_state_s = Some(s);
+        }
+        if let Some(n) = self.max_held_peer_frames {
+            c.max_held_peer_frames = n;
         }
         if let Some(s) = self.split_unobservable {
             c.split_unobservable = s;
@@ -668,6 +676,7 @@ impl Default for EstimatorSection {
             ci_peer_weight: None,
             align_peer_frames: None,
             peer_frame_state_s: None,
+            max_held_peer_frames: None,
             split_unobservable: None,
             vocabulary: None,
         }

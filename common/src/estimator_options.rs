@@ -289,9 +289,14 @@ pub struct CooperationOptions {
     /// with the peer's windows corrects it; then it becomes a fixed alignment
     /// with the state's estimate, refined by later loop closures. 0: a fixed
     /// alignment from the start, its covariance folded into each of the
-    /// peer's windows. Default 60 (with `split_unobservable`; README,
-    /// "Robots in their own frames").
-    pub peer_frame_state_s: f64,
+    /// peer's windows; `.inf`: the whole flight. `None` (the default): by
+    /// the weighting ([`CooperationOptions::peer_frame_hold_s`]).
+    pub peer_frame_state_s: Option<f64>,
+    /// Most peer frames held in our state at once (with
+    /// `peer_frame_state_s`); beyond it the longest held becomes a fixed
+    /// alignment. Each adds 4 states to every update, and a peer that starts
+    /// again brings a new frame. At least 1.
+    pub max_held_peer_frames: usize,
     /// Split CI over the four directions no peer measurement observes (our
     /// world frame's yaw and translation, which move our pose, clones,
     /// features and the peer frames held in our state together): in a CI
@@ -344,7 +349,8 @@ impl Default for CooperationOptions {
             max_ci_participants: 2,
             max_common_per_frame: 3,
             align_peer_frames: false,
-            peer_frame_state_s: 60.0,
+            peer_frame_state_s: None,
+            max_held_peer_frames: 16,
             split_unobservable: true,
             min_alignment_inliers: 12,
             alignment_confirmations: 2,
@@ -354,7 +360,30 @@ impl Default for CooperationOptions {
     }
 }
 
+/// How long a peer frame is held in our state with fixed CI weights
+/// (`cooperation.peer_frame_state_s` unset), s.
+pub const FIXED_WEIGHT_FRAME_HOLD_S: f64 = 60.0;
+
 impl CooperationOptions {
+    /// How long each confirmed peer frame is held in our state, s:
+    /// `peer_frame_state_s`, or when unset, by the weighting. A held frame
+    /// learns only from the CI updates through it. With weights chosen per
+    /// update it does so for as long as it is held, and holding it for the
+    /// whole flight gains (README, "Robots in their own frames"). A fixed
+    /// small peer weight (`fixed_peer` 0.005 divides each window's covariance
+    /// by 200) starves it, while the fixed alignment that replaces it is
+    /// refined by every later loop closure: it is held for
+    /// [`FIXED_WEIGHT_FRAME_HOLD_S`].
+    pub fn peer_frame_hold_s(&self) -> f64 {
+        self.peer_frame_state_s.unwrap_or(match self.ci_weighting {
+            CiWeighting::FixedPeer | CiWeighting::FixedOwn => FIXED_WEIGHT_FRAME_HOLD_S,
+            CiWeighting::MinTrace
+            | CiWeighting::MinPoseTrace
+            | CiWeighting::MinDeterminant
+            | CiWeighting::MinPoseFeaturesDeterminant => f64::INFINITY,
+        })
+    }
+
     /// Whether anything is taken from peers.
     pub fn any(&self) -> bool {
         self.common_vio || self.common_slam || self.historical
@@ -426,11 +455,16 @@ impl CooperationOptions {
                     .into(),
             );
         }
-        if !(self.peer_frame_state_s.is_finite() && self.peer_frame_state_s >= 0.0) {
-            return Err(format!(
-                "cooperation.peer_frame_state_s must be finite and at least 0, not {}",
-                self.peer_frame_state_s
-            ));
+        if let Some(s) = self.peer_frame_state_s {
+            // `.inf` is allowed: held for the whole flight.
+            if s.is_nan() || s < 0.0 {
+                return Err(format!(
+                    "cooperation.peer_frame_state_s must be at least 0 (or .inf), not {s}"
+                ));
+            }
+        }
+        if self.max_held_peer_frames == 0 {
+            return Err("cooperation.max_held_peer_frames must be at least 1".into());
         }
         if self.min_alignment_inliers < 3 || self.alignment_confirmations == 0 {
             return Err(format!(
@@ -726,8 +760,12 @@ mod tests {
         })
         .contains("needs historical"));
         assert!(bad(|o| o.cooperation.alignment_confirmations = 0).contains("confirmations"));
-        assert!(bad(|o| o.cooperation.peer_frame_state_s = -1.0).contains("peer_frame_state_s"));
-        assert!(bad(|o| o.cooperation.peer_frame_state_s = f64::NAN).contains("peer_frame_state_s"));
+        assert!(
+            bad(|o| o.cooperation.peer_frame_state_s = Some(-1.0)).contains("peer_frame_state_s")
+        );
+        assert!(bad(|o| o.cooperation.peer_frame_state_s = Some(f64::NAN))
+            .contains("peer_frame_state_s"));
+        assert!(bad(|o| o.cooperation.max_held_peer_frames = 0).contains("max_held_peer_frames"));
         assert!(bad(|o| o.cooperation.max_alignment_yaw_sigma_deg = 0.0).contains("yaw_sigma"));
         assert!(bad(|o| o.cooperation.max_ci_participants = 0).contains("max_ci_participants"));
         assert!(bad(|o| o.cooperation.max_peers_matched_per_frame = 0)
@@ -757,5 +795,25 @@ mod tests {
         let small = EstimatorOptions { max_clones: 3, ..o };
         assert!(!small.window_ready(3));
         assert!(small.window_ready(4));
+    }
+
+    #[test]
+    fn a_peer_frame_is_held_by_the_weighting_unless_named() {
+        let mut c = CooperationOptions::default();
+        assert_eq!(c.ci_weighting, CiWeighting::MinPoseTrace);
+        assert_eq!(c.peer_frame_hold_s(), f64::INFINITY);
+        c.ci_weighting = CiWeighting::FixedPeer;
+        assert_eq!(c.peer_frame_hold_s(), FIXED_WEIGHT_FRAME_HOLD_S);
+        c.peer_frame_state_s = Some(0.0);
+        assert_eq!(c.peer_frame_hold_s(), 0.0);
+        // `.inf` in YAML: the whole flight, and valid.
+        let o: CooperationOptions =
+            serde_yaml::from_str("peer_frame_state_s: .inf").expect("parses");
+        assert_eq!(o.peer_frame_state_s, Some(f64::INFINITY));
+        let e = EstimatorOptions {
+            cooperation: o,
+            ..EstimatorOptions::default()
+        };
+        assert!(e.validate().is_ok());
     }
 }

@@ -175,7 +175,7 @@ impl Cooperation {
     /// Whether peer `peer`'s frame `epoch`, once confirmed, is held by the
     /// state (`peer_frame_state_s`), not yet let go.
     pub(crate) fn holds_in_state(&self, peer: u32, epoch: u64) -> bool {
-        self.opts.peer_frame_state_s > 0.0 && !self.frozen.contains(&(peer, epoch))
+        self.opts.peer_frame_hold_s() > 0.0 && !self.frozen.contains(&(peer, epoch))
     }
 
     /// When peer `peer`'s frame `epoch` was confirmed (fleet clock), s.

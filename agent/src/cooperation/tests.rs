@@ -265,7 +265,7 @@ fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
     let opts = CooperationOptions {
         align_peer_frames: true,
         alignment_confirmations: 1,
-        peer_frame_state_s: 0.0,
+        peer_frame_state_s: Some(0.0),
         ..options()
     };
     let mut coop = Cooperation::new(opts, builtin_vocabulary(), 460.0);
@@ -320,7 +320,7 @@ fn a_frame_for_the_state_is_seeded_once_and_used_at_the_states_mean() {
     let (w, mut frame) = world_and_posed_frame(&mut rng);
     let opts = CooperationOptions {
         align_peer_frames: true,
-        peer_frame_state_s: 60.0,
+        peer_frame_state_s: Some(60.0),
         alignment_confirmations: 1,
         ..options()
     };

@@ -105,24 +105,47 @@ pub fn take_from(state: &mut State, coop: &mut Cooperation, opts: &CooperationOp
             tracing::warn!("a dropped peer frame stays in the state: {e}");
         }
     }
-    // Held long enough: a fixed alignment from now on, at the state's
-    // estimate (frame and pose would otherwise drift together, since CI
-    // inflates that direction with every update and nothing observes it).
-    for ((p, e), a) in held(state) {
-        let due = coop
-            .frame_aligned_at(p, e)
-            .is_some_and(|t| state.t - t >= opts.peer_frame_state_s);
-        if due {
-            match state.marginalize(frame_var(p, e)) {
-                Ok(()) => coop.freeze_frame(p, e, a),
-                Err(err) => tracing::warn!(
-                    peer = p,
-                    epoch = e,
-                    "a peer frame stays in the state: {err}"
-                ),
-            }
+    // Held long enough, or one too many: a fixed alignment from now on, at
+    // the state's estimate.
+    let frames = held(state);
+    let aligned: Vec<((u32, u64), f64)> = frames
+        .keys()
+        .map(|&(p, e)| ((p, e), coop.frame_aligned_at(p, e).unwrap_or(state.t)))
+        .collect();
+    for (p, e) in to_release(&aligned, state.t, opts) {
+        let Some(a) = frames.get(&(p, e)) else {
+            continue;
+        };
+        match state.marginalize(frame_var(p, e)) {
+            Ok(()) => coop.freeze_frame(p, e, *a),
+            Err(err) => tracing::warn!(
+                peer = p,
+                epoch = e,
+                "a peer frame stays in the state: {err}"
+            ),
         }
     }
+}
+
+/// Of the held frames (each with when it was confirmed, s), those to let go
+/// at `now`: held `peer_frame_hold_s` or longer, and beyond the
+/// `max_held_peer_frames` most recently confirmed (each adds 4 states to
+/// every update, and a peer that starts again brings a new frame).
+pub fn to_release(
+    aligned: &[((u32, u64), f64)],
+    now: f64,
+    opts: &CooperationOptions,
+) -> Vec<(u32, u64)> {
+    let mut newest_first = aligned.to_vec();
+    newest_first.sort_by(|x, y| y.1.total_cmp(&x.1).then(y.0.cmp(&x.0)));
+    newest_first
+        .into_iter()
+        .enumerate()
+        .filter(|(rank, (_, at))| {
+            now - at >= opts.peer_frame_hold_s() || *rank >= opts.max_held_peer_frames
+        })
+        .map(|(_, (k, _))| k)
+        .collect()
 }
 
 /// The frames the state holds, each with its marginal covariance.
@@ -299,5 +322,26 @@ mod tests {
         let want =
             DVector::from_column_slice(&[0.1, -0.2]) - &cols * DVector::from_column_slice(&delta);
         assert!((res - want).abs().max() < 1e-12);
+    }
+
+    #[test]
+    fn frames_are_let_go_when_held_long_enough_or_one_too_many() {
+        let aligned = [
+            ((1, 1), 10.0),
+            ((2, 1), 50.0),
+            ((2, 2), 80.0),
+            ((3, 1), 90.0),
+        ];
+        let mut opts = CooperationOptions {
+            peer_frame_state_s: Some(60.0),
+            ..CooperationOptions::default()
+        };
+        assert_eq!(to_release(&aligned, 100.0, &opts), vec![(1, 1)]);
+        assert_eq!(to_release(&aligned, 110.0, &opts), vec![(2, 1), (1, 1)]);
+        // The whole flight: only a cap lets go, the longest held first.
+        opts.peer_frame_state_s = Some(f64::INFINITY);
+        assert!(to_release(&aligned, 1e6, &opts).is_empty());
+        opts.max_held_peer_frames = 2;
+        assert_eq!(to_release(&aligned, 100.0, &opts), vec![(2, 1), (1, 1)]);
     }
 }
