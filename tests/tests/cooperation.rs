@@ -130,6 +130,73 @@ fn agents_in_their_own_frames_align_their_peers_from_loop_closures_over_zenoh() 
     }
 }
 
+/// A robot in its own frame killed and started again in real time comes
+/// back in a new frame (a new `frame_epoch`) that no peer knows: the
+/// followers, holding its first frame in their filters, find the new one from
+/// their loop closures to the windows it makes after the restart, and both
+/// frames place it right (its frame is its trajectory's start either way).
+#[test]
+fn a_restarted_robot_in_its_own_frame_is_found_again_by_peers_holding_its_old_frame() {
+    use integration_tests::fleet::{configs, start_agent, start_agents, wait};
+    use std::time::Duration;
+    let dir = tempfile::tempdir().unwrap();
+    write_loop_trajectory(&dir.path().join("loop.txt"), 24.0).unwrap();
+    let sc = dir.path().join("restart.yaml");
+    std::fs::write(
+        &sc,
+        "name: restart\nrobots:\n  - trajectory: loop.txt\n  - trajectory: loop.txt\n    start_time_s: 3.0\n  - trajectory: loop.txt\n    start_time_s: 6.0\nsensors:\n  camera:\n    max_features: 60\nestimator:\n  max_slam_features: 5\n  start_frame: own\n",
+    )
+    .unwrap();
+    let out = dir.path().join("run");
+    // Real time at 4x: the leader is killed about 10 s into its flight and
+    // back about 4 s later, over the places its followers reach next.
+    let cfgs = configs(
+        &sc,
+        &out,
+        &[
+            "--transport",
+            "zenoh",
+            "--variant",
+            "dc-full-history",
+            "--realtime",
+            "4",
+        ],
+    );
+    let mut agents = start_agents(&cfgs, &out);
+    std::thread::sleep(Duration::from_millis(2500));
+    agents[0].kill().unwrap();
+    agents[0].wait().unwrap();
+    std::thread::sleep(Duration::from_millis(1000));
+    let mut restarted = start_agent(&cfgs[0], &out.join("robot0-again.log"));
+    for (i, a) in agents.iter_mut().enumerate().skip(1) {
+        assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
+    }
+    assert!(
+        wait(&mut restarted, Duration::from_secs(120)),
+        "restarted robot failed"
+    );
+    for r in 1..3 {
+        let st = stats(&out, r);
+        let frames = st["peer_frames"]["0"].as_array().unwrap();
+        let aligned: Vec<&Value> = frames.iter().filter(|f| f["aligned"] == true).collect();
+        assert_eq!(aligned.len(), 2, "robot {r}: {frames:?}");
+        assert_ne!(aligned[0]["frame_epoch"], aligned[1]["frame_epoch"]);
+        // Every robot flies the loop from its start, so every frame is the
+        // same: each alignment should be the identity.
+        for f in aligned {
+            let yaw = f["yaw_deg"].as_f64().unwrap_or(f64::NAN);
+            let t: Vec<f64> = (0..3)
+                .map(|k| f["t_m"][k].as_f64().unwrap_or(f64::NAN))
+                .collect();
+            assert!(yaw.abs() < 2.0, "robot {r}: {f}");
+            assert!(t.iter().all(|x| x.abs() < 0.25), "robot {r}: {f}");
+        }
+        let s = integration_tests::read_json(&out.join(format!("robot{r}/summary.json")));
+        let ate = s["robots"][0]["ate_pos_m"].as_f64().unwrap_or(f64::NAN);
+        assert!(ate.is_finite() && ate < 0.5, "robot {r}: ATE {ate} m");
+    }
+}
+
 #[test]
 fn the_centralized_estimator_runs_the_fleet_in_one_process() {
     let dir = tempfile::tempdir().unwrap();
