@@ -105,6 +105,27 @@ pub fn start_agent(config: &Path, log: &Path) -> Child {
         .unwrap_or_else(|e| panic!("starting the agent: {e}"))
 }
 
+/// Lets `agent` run for `up`, kills it, and after `down` starts it again
+/// with `config`, its log in `log`.
+///
+/// # Panics
+/// If the agent cannot be killed or started.
+pub fn kill_and_restart(
+    agent: &mut Child,
+    config: &Path,
+    log: &Path,
+    up: Duration,
+    down: Duration,
+) -> Child {
+    std::thread::sleep(up);
+    agent
+        .kill()
+        .unwrap_or_else(|e| panic!("killing the agent: {e}"));
+    let _ = agent.wait();
+    std::thread::sleep(down);
+    start_agent(config, log)
+}
+
 /// Waits up to `limit` for `child` to exit; whether it exited with success
 /// (killed, and `false`, at the limit).
 pub fn wait(child: &mut Child, limit: Duration) -> bool {

@@ -137,7 +137,7 @@ fn agents_in_their_own_frames_align_their_peers_from_loop_closures_over_zenoh() 
 /// frames place it right (its frame is its trajectory's start either way).
 #[test]
 fn a_restarted_robot_in_its_own_frame_is_found_again_by_peers_holding_its_old_frame() {
-    use integration_tests::fleet::{configs, start_agent, start_agents, wait};
+    use integration_tests::fleet::{configs, kill_and_restart, start_agents, wait};
     use std::time::Duration;
     let dir = tempfile::tempdir().unwrap();
     write_loop_trajectory(&dir.path().join("loop.txt"), 24.0).unwrap();
@@ -163,11 +163,13 @@ fn a_restarted_robot_in_its_own_frame_is_found_again_by_peers_holding_its_old_fr
         ],
     );
     let mut agents = start_agents(&cfgs, &out);
-    std::thread::sleep(Duration::from_millis(2500));
-    agents[0].kill().unwrap();
-    agents[0].wait().unwrap();
-    std::thread::sleep(Duration::from_millis(1000));
-    let mut restarted = start_agent(&cfgs[0], &out.join("robot0-again.log"));
+    let mut restarted = kill_and_restart(
+        &mut agents[0],
+        &cfgs[0],
+        &out.join("robot0-again.log"),
+        Duration::from_millis(2500),
+        Duration::from_millis(1000),
+    );
     for (i, a) in agents.iter_mut().enumerate().skip(1) {
         assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
     }

@@ -4,7 +4,9 @@
 //! transports.
 #![allow(clippy::unwrap_used)] // helpers outside #[test] functions
 
-use integration_tests::fleet::{configs, probe, scenario, start_agent, start_agents, wait};
+use integration_tests::fleet::{
+    configs, kill_and_restart, probe, scenario, start_agent, start_agents, wait,
+};
 use integration_tests::{bin, read_json, sim_fleet_run};
 
 #[path = "../../agent/tests/support/mod.rs"]
@@ -165,11 +167,13 @@ fn a_killed_agent_is_seen_leaving_and_coming_back_and_the_others_finish() {
     // Real time at 4x: 24 s of data take about 6 s, time to kill and restart.
     let cfgs = configs(&sc, &out, &["--transport", "zenoh", "--realtime", "4"]);
     let mut agents = start_agents(&cfgs, &out);
-    std::thread::sleep(Duration::from_millis(2500));
-    agents[2].kill().unwrap();
-    agents[2].wait().unwrap();
-    std::thread::sleep(Duration::from_millis(1000));
-    let mut restarted = start_agent(&cfgs[2], &out.join("robot2-again.log"));
+    let mut restarted = kill_and_restart(
+        &mut agents[2],
+        &cfgs[2],
+        &out.join("robot2-again.log"),
+        Duration::from_millis(2500),
+        Duration::from_millis(1000),
+    );
     for (i, a) in agents.iter_mut().take(2).enumerate() {
         assert!(wait(a, Duration::from_secs(120)), "robot {i} failed");
     }
