@@ -112,6 +112,9 @@ pub struct PeerFrameReport {
     pub disagreements: u64,
     /// Loop closures that gave no measurement.
     pub failures: u64,
+    /// Whether the agent's filter held the frame as states at the end
+    /// (`cooperation.peer_frame_state_s`), or used it as a fixed alignment.
+    pub in_filter: bool,
 }
 
 impl PeerFrameReport {
@@ -129,6 +132,7 @@ impl PeerFrameReport {
             measurements: f.measurements,
             disagreements: f.disagreements,
             failures: f.failures,
+            in_filter: f.in_filter,
         }
     }
 }

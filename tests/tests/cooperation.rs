@@ -184,8 +184,10 @@ fn a_restarted_robot_in_its_own_frame_is_found_again_by_peers_holding_its_old_fr
         assert_eq!(aligned.len(), 2, "robot {r}: {frames:?}");
         assert_ne!(aligned[0]["frame_epoch"], aligned[1]["frame_epoch"]);
         // Every robot flies the loop from its start, so every frame is the
-        // same: each alignment should be the identity.
+        // same: each alignment should be the identity. Weights chosen per
+        // update (the default): both are held in the filter to the end.
         for f in aligned {
+            assert_eq!(f["in_filter"], true, "robot {r}: {f}");
             let yaw = f["yaw_deg"].as_f64().unwrap_or(f64::NAN);
             let t: Vec<f64> = (0..3)
                 .map(|k| f["t_m"][k].as_f64().unwrap_or(f64::NAN))

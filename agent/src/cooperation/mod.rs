@@ -281,7 +281,11 @@ impl Cooperation {
                     .map(|(e, f)| {
                         // A frame our state holds: its estimate is the state's.
                         let f = match self.state_frames.get(&(*p, *e)) {
-                            Some(a) => f.clone().with_alignment(*a),
+                            Some(a) => {
+                                let mut held = f.clone().with_alignment(*a);
+                                held.in_filter = true;
+                                held
+                            }
                             None => f.clone(),
                         };
                         (*e, f)

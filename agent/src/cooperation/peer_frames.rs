@@ -80,6 +80,9 @@ pub struct PeerFrame {
     /// Loop closures that gave no measurement (too few points agreed, or
     /// they placed the frame too loosely).
     pub failures: u64,
+    /// Whether our filter holds the frame as states now
+    /// (`cooperation.peer_frame_state_s`); its estimate is then the state's.
+    pub in_filter: bool,
 }
 
 impl PeerFrame {

@@ -360,6 +360,7 @@ fn a_frame_for_the_state_is_seeded_once_and_used_at_the_states_mean() {
         .expect("the frame's Jacobians");
     assert_eq!(link.at.yaw_rad, 0.001);
     assert_eq!(coop.peer_frames()[&3][&5].alignment(), Some(&held));
+    assert!(coop.peer_frames()[&3][&5].in_filter);
     // Held by the state: a later loop closure measures it no more.
     let measured = coop.peer_frames()[&3][&5].measurements;
     frame.t_s += 2.0;
@@ -374,6 +375,7 @@ fn a_frame_for_the_state_is_seeded_once_and_used_at_the_states_mean() {
     coop.freeze_frame(3, 5, held);
     coop.set_state_frames(BTreeMap::new());
     assert!(matches!(coop.frame_of(3, 5), Some(super::FrameUse::Fused(a)) if a == held));
+    assert!(!coop.peer_frames()[&3][&5].in_filter);
     frame.t_s += 2.0;
     coop.match_frame(&frame, &peers, 6);
     assert_eq!(coop.peer_frames()[&3][&5].measurements, measured + 1);
