@@ -526,6 +526,11 @@ pub struct EstimatorSection {
     /// held becomes a fixed alignment (`cooperation.max_held_peer_frames`).
     #[serde(default)]
     pub max_held_peer_frames: Option<usize>,
+    /// Later loop closures to a frame the filter holds measure it again, at
+    /// most once per this period, s; 0: never
+    /// (`cooperation.held_frame_measurement_period_s`).
+    #[serde(default)]
+    pub held_frame_measurement_period_s: Option<f64>,
     /// While peer frames are held in the state, leave our covariance along
     /// our world's yaw and translation (which no peer measurement through
     /// them observes) out of CI's inflation
@@ -618,6 +623,9 @@ impl EstimatorSection {
         if let Some(n) = self.max_held_peer_frames {
             c.max_held_peer_frames = n;
         }
+        if let Some(p) = self.held_frame_measurement_period_s {
+            c.held_frame_measurement_period_s = p;
+        }
         if let Some(s) = self.split_unobservable {
             c.split_unobservable = s;
         }
@@ -677,6 +685,7 @@ impl Default for EstimatorSection {
             align_peer_frames: None,
             peer_frame_state_s: None,
             max_held_peer_frames: None,
+            held_frame_measurement_period_s: None,
             split_unobservable: None,
             vocabulary: None,
         }

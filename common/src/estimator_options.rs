@@ -292,6 +292,11 @@ pub struct CooperationOptions {
     /// peer's windows; `.inf`: the whole flight. `None` (the default): by
     /// the weighting ([`CooperationOptions::peer_frame_hold_s`]).
     pub peer_frame_state_s: Option<f64>,
+    /// Later loop closures to a frame our state holds measure it again, at
+    /// most once per this period per frame, s, and the estimator updates the
+    /// frame and our camera pose with them (`updater_frame`). 0: never; a
+    /// held frame then learns only from the updates that use its windows.
+    pub held_frame_measurement_period_s: f64,
     /// Most peer frames held in our state at once (with
     /// `peer_frame_state_s`); beyond it the longest held becomes a fixed
     /// alignment. Each adds 4 states to every update, and a peer that starts
@@ -351,6 +356,7 @@ impl Default for CooperationOptions {
             align_peer_frames: false,
             peer_frame_state_s: None,
             max_held_peer_frames: 16,
+            held_frame_measurement_period_s: 0.0,
             split_unobservable: true,
             min_alignment_inliers: 12,
             alignment_confirmations: 2,
@@ -462,6 +468,12 @@ impl CooperationOptions {
                     "cooperation.peer_frame_state_s must be at least 0 (or .inf), not {s}"
                 ));
             }
+        }
+        let p = self.held_frame_measurement_period_s;
+        if !(p.is_finite() && p >= 0.0) {
+            return Err(format!(
+                "cooperation.held_frame_measurement_period_s must be finite and at least 0, not {p}"
+            ));
         }
         if self.max_held_peer_frames == 0 {
             return Err("cooperation.max_held_peer_frames must be at least 1".into());
@@ -766,6 +778,10 @@ mod tests {
         assert!(bad(|o| o.cooperation.peer_frame_state_s = Some(f64::NAN))
             .contains("peer_frame_state_s"));
         assert!(bad(|o| o.cooperation.max_held_peer_frames = 0).contains("max_held_peer_frames"));
+        assert!(
+            bad(|o| o.cooperation.held_frame_measurement_period_s = f64::NAN)
+                .contains("held_frame_measurement_period_s")
+        );
         assert!(bad(|o| o.cooperation.max_alignment_yaw_sigma_deg = 0.0).contains("yaw_sigma"));
         assert!(bad(|o| o.cooperation.max_ci_participants = 0).contains("max_ci_participants"));
         assert!(bad(|o| o.cooperation.max_peers_matched_per_frame = 0)

@@ -185,12 +185,31 @@ impl Cooperation {
             };
             // Each of the peer's frames is measured on its own windows only.
             let epoch = kf.snapshot.frame_epoch;
-            // A frame our state holds is corrected by the updates themselves.
+            // A frame our state holds is corrected by the updates that use
+            // its windows, and by the estimator with these measurements
+            // (`held_frame_measurements`).
             let in_state = self.holds_in_state(peer, epoch);
             let peer_frame = frame_entry(&mut self.peers.entry(peer).or_default().frames, epoch);
-            if (in_state && peer_frame.alignment().is_some())
-                || !peer_frame.wants_measurement(frame.t_s)
-            {
+            if !peer_frame.wants_measurement(frame.t_s) {
+                continue;
+            }
+            if in_state && peer_frame.alignment().is_some() {
+                let period = self.opts.held_frame_measurement_period_s;
+                if period <= 0.0 || !peer_frame.measured_before(frame.t_s - period) {
+                    continue;
+                }
+                match measure(lc, kf, frame, camera, focal, &opts) {
+                    Some(m) => {
+                        peer_frame.note_measured(frame.t_s);
+                        self.held_measurements.push(FrameSeed {
+                            peer,
+                            epoch,
+                            clone: seq,
+                            measurement: m,
+                        });
+                    }
+                    None => peer_frame.failures += 1,
+                }
                 continue;
             }
             match measure(lc, kf, frame, camera, focal, &opts) {

@@ -137,6 +137,9 @@ pub struct Cooperation {
     /// Peer frames confirmed since the estimator last took them
     /// (`peer_frame_state_s`).
     seeds: Vec<FrameSeed>,
+    /// Loop-closure measurements of frames the state holds, since the
+    /// estimator last took them (`held_frame_measurements`).
+    held_measurements: Vec<FrameSeed>,
     /// Frames the state held and let go: used as fixed alignments since.
     frozen: BTreeSet<(u32, u64)>,
     /// The peer frames our state holds, with their marginal covariances, as
@@ -161,6 +164,7 @@ impl Cooperation {
             focal_px: focal_px.max(1.0),
             windows: WindowCache::default(),
             seeds: Vec::new(),
+            held_measurements: Vec::new(),
             frozen: BTreeSet::new(),
             state_frames: BTreeMap::new(),
         }
@@ -170,6 +174,13 @@ impl Cooperation {
     /// take into its state (`peer_frame_state_s`).
     pub fn take_frame_seeds(&mut self) -> Vec<FrameSeed> {
         std::mem::take(&mut self.seeds)
+    }
+
+    /// Loop-closure measurements of frames the state holds, since the last
+    /// call (`cooperation.held_frame_measurements`), for the estimator's
+    /// `updater_frame`.
+    pub fn take_held_frame_measurements(&mut self) -> Vec<FrameSeed> {
+        std::mem::take(&mut self.held_measurements)
     }
 
     /// Whether peer `peer`'s frame `epoch`, once confirmed, is held by the

@@ -103,6 +103,18 @@ impl PeerFrame {
         self.aligned.is_none() || self.refined_at_s.is_none_or(|t| t_s - t >= REFINE_PERIOD_S)
     }
 
+    /// Whether the frame was last measured (or confirmed) at or before `t_s`.
+    pub(crate) fn measured_before(&self, t_s: f64) -> bool {
+        self.refined_at_s.is_none_or(|t| t <= t_s)
+    }
+
+    /// A measurement at `t_s` of a frame our state holds, handed to the
+    /// estimator (it is not fused here).
+    pub(crate) fn note_measured(&mut self, t_s: f64) {
+        self.refined_at_s = Some(t_s);
+        self.measurements += 1;
+    }
+
     /// Takes in a measurement from keyframe window `keyframe` at `t_s`.
     pub fn add(&mut self, m: FrameAlignment, keyframe: u64, t_s: f64, confirmations: usize) {
         if let Some(a) = self.aligned {

@@ -33,6 +33,7 @@ pub mod triangulation;
 pub mod updater_ci;
 pub mod updater_common;
 pub mod updater_common_slam;
+pub mod updater_frame;
 pub mod updater_msckf;
 pub mod updater_slam;
 pub mod updater_zupt;

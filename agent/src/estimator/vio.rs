@@ -18,6 +18,7 @@ use super::propagator::{gyro_at_frame, propagate, PropagateError};
 use super::state::{ClonePose, ImuState, State, Var};
 use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
 use super::triangulation::TriangulationOptions;
+use super::updater_frame;
 use super::{updater_msckf, updater_slam, updater_zupt};
 use crate::cooperation::{Cooperation, Peers};
 use common::calibration::CameraCalibration;
@@ -385,6 +386,11 @@ impl Estimator {
             }
             c.match_frame(&ours, peers, key);
             peer_frame_states::take_from(state, c, &opts.cooperation);
+            for m in c.take_held_frame_measurements() {
+                if let Err(e) = updater_frame::update(state, &m) {
+                    tracing::warn!(peer = m.peer, "peer frame measurement not used: {e}");
+                }
+            }
         }
         coop.matching_ms = ms(t);
         if !opts.window_ready(state.clones.len()) {
