@@ -183,7 +183,7 @@ pub fn forget_unless(state: &mut State, keep: impl Fn(u32, u64) -> bool) -> Resu
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::estimator::camera_window::camera_estimate;
     use crate::estimator::ci_system::{add_frame_columns, frame_columns, Part};
@@ -192,7 +192,8 @@ mod tests {
     use crate::estimator::test_scene::scene;
     use nalgebra::{DVector, SMatrix, Vector3};
 
-    fn seed(clone: u64) -> FrameSeed {
+    /// A measurement of peer 3's frame 7 (yaw 0.4 rad) from our clone `clone`.
+    pub(crate) fn seed(clone: u64) -> FrameSeed {
         let d = SMatrix::<f64, 4, 6>::from_fn(|r, c| 0.1 * (r as f64 + 1.0) - 0.07 * c as f64);
         FrameSeed {
             peer: 3,

@@ -80,29 +80,14 @@ pub fn update(state: &mut State, m: &FrameSeed) -> Result<Option<CiOutcome>, Sta
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::estimator::frame_alignment::{AlignmentMeasurement, FrameAlignment};
     use crate::estimator::peer_frame_states::augment;
+    use crate::estimator::peer_frame_states::tests::seed;
     use crate::estimator::test_scene::scene;
-    use nalgebra::{Matrix4, SMatrix, Vector3, Vector4};
 
     fn measurement(clone: u64, yaw_rad: f64) -> FrameSeed {
-        let d = SMatrix::<f64, 4, 6>::from_fn(|r, c| 0.1 * (r as f64 + 1.0) - 0.07 * c as f64);
-        FrameSeed {
-            peer: 3,
-            epoch: 7,
-            clone,
-            measurement: AlignmentMeasurement {
-                alignment: FrameAlignment {
-                    yaw_rad,
-                    t_m: Vector3::new(1.0, -2.0, 0.1),
-                    cov: Matrix4::identity(),
-                },
-                inliers: vec![true; 12],
-                rms_normalized: 0.0,
-                our_pose_jacobian: d,
-                noise_cov: Matrix4::from_diagonal(&Vector4::new(1e-5, 1e-4, 2e-4, 3e-4)),
-            },
-        }
+        let mut m = seed(clone);
+        m.measurement.alignment.yaw_rad = yaw_rad;
+        m
     }
 
     #[test]
