@@ -187,7 +187,7 @@ impl Cooperation {
             let epoch = kf.snapshot.frame_epoch;
             // A frame our state holds is corrected by the updates that use
             // its windows, and by the estimator with these measurements
-            // (`held_frame_measurements`).
+            // (`held_frame_measurement_period_s`).
             let in_state = self.holds_in_state(peer, epoch);
             let peer_frame = frame_entry(&mut self.peers.entry(peer).or_default().frames, epoch);
             if !peer_frame.wants_measurement(frame.t_s) {

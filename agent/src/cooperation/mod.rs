@@ -138,7 +138,7 @@ pub struct Cooperation {
     /// (`peer_frame_state_s`).
     seeds: Vec<FrameSeed>,
     /// Loop-closure measurements of frames the state holds, since the
-    /// estimator last took them (`held_frame_measurements`).
+    /// estimator last took them (`held_frame_measurement_period_s`).
     held_measurements: Vec<FrameSeed>,
     /// Frames the state held and let go: used as fixed alignments since.
     frozen: BTreeSet<(u32, u64)>,
@@ -177,7 +177,7 @@ impl Cooperation {
     }
 
     /// Loop-closure measurements of frames the state holds, since the last
-    /// call (`cooperation.held_frame_measurements`), for the estimator's
+    /// call (`cooperation.held_frame_measurement_period_s`), for the estimator's
     /// `updater_frame`.
     pub fn take_held_frame_measurements(&mut self) -> Vec<FrameSeed> {
         std::mem::take(&mut self.held_measurements)
