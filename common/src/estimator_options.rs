@@ -373,7 +373,8 @@ pub const FIXED_WEIGHT_FRAME_HOLD_S: f64 = 60.0;
 impl CooperationOptions {
     /// How long each confirmed peer frame is held in our state, s:
     /// `peer_frame_state_s`, or when unset, by the weighting. A held frame
-    /// learns only from the CI updates through it. With weights chosen per
+    /// learns only from the CI updates through it (unless
+    /// `held_frame_measurement_period_s`, off by default). With weights chosen per
     /// update it does so for as long as it is held, and holding it for the
     /// whole flight gains (README, "Robots in their own frames"). A fixed
     /// small peer weight (`fixed_peer` 0.005 divides each window's covariance

@@ -109,7 +109,8 @@ impl PeerFrame {
     }
 
     /// A measurement at `t_s` of a frame our state holds, handed to the
-    /// estimator (it is not fused here).
+    /// estimator (it is not fused here). Counted as taken in, though the
+    /// estimator's χ² gate (`updater_frame`) may still refuse it.
     pub(crate) fn note_measured(&mut self, t_s: f64) {
         self.refined_at_s = Some(t_s);
         self.measurements += 1;
