@@ -531,6 +531,10 @@ pub struct EstimatorSection {
     /// (`cooperation.held_frame_measurement_period_s`).
     #[serde(default)]
     pub held_frame_measurement_period_s: Option<f64>,
+    /// Those measurements only this long after the frame was confirmed, s
+    /// (`cooperation.held_frame_measurement_window_s`).
+    #[serde(default)]
+    pub held_frame_measurement_window_s: Option<f64>,
     /// While peer frames are held in the state, leave our covariance along
     /// our world's yaw and translation (which no peer measurement through
     /// them observes) out of CI's inflation
@@ -626,6 +630,9 @@ impl EstimatorSection {
         if let Some(p) = self.held_frame_measurement_period_s {
             c.held_frame_measurement_period_s = p;
         }
+        if let Some(w) = self.held_frame_measurement_window_s {
+            c.held_frame_measurement_window_s = w;
+        }
         if let Some(s) = self.split_unobservable {
             c.split_unobservable = s;
         }
@@ -686,6 +693,7 @@ impl Default for EstimatorSection {
             peer_frame_state_s: None,
             max_held_peer_frames: None,
             held_frame_measurement_period_s: None,
+            held_frame_measurement_window_s: None,
             split_unobservable: None,
             vocabulary: None,
         }

@@ -297,6 +297,12 @@ pub struct CooperationOptions {
     /// frame and our camera pose with them (`updater_frame`). 0: never; a
     /// held frame then learns only from the updates that use its windows.
     pub held_frame_measurement_period_s: f64,
+    /// Those measurements are taken only this long after the frame was
+    /// confirmed, s (`.inf`: while it is held). Their noise holds the
+    /// peer's anchor pose, whose drift they share and the filter takes as
+    /// independent: over an hour without this bound the robots' position
+    /// NEES reached 8-11 (README, "Robots in their own frames").
+    pub held_frame_measurement_window_s: f64,
     /// Most peer frames held in our state at once (with
     /// `peer_frame_state_s`); beyond it the longest held becomes a fixed
     /// alignment. Each adds 4 states to every update, and a peer that starts
@@ -356,7 +362,8 @@ impl Default for CooperationOptions {
             align_peer_frames: false,
             peer_frame_state_s: None,
             max_held_peer_frames: 16,
-            held_frame_measurement_period_s: 0.0,
+            held_frame_measurement_period_s: 5.0,
+            held_frame_measurement_window_s: 60.0,
             split_unobservable: true,
             min_alignment_inliers: 12,
             alignment_confirmations: 2,
@@ -373,8 +380,8 @@ pub const FIXED_WEIGHT_FRAME_HOLD_S: f64 = 60.0;
 impl CooperationOptions {
     /// How long each confirmed peer frame is held in our state, s:
     /// `peer_frame_state_s`, or when unset, by the weighting. A held frame
-    /// learns only from the CI updates through it (unless
-    /// `held_frame_measurement_period_s`, off by default). With weights chosen per
+    /// learns from the CI updates through it, and in its first
+    /// `held_frame_measurement_window_s` from later loop closures to it. With weights chosen per
     /// update it does so for as long as it is held, and holding it for the
     /// whole flight gains (README, "Robots in their own frames"). A fixed
     /// small peer weight (`fixed_peer` 0.005 divides each window's covariance
@@ -474,6 +481,12 @@ impl CooperationOptions {
         if !(p.is_finite() && p >= 0.0) {
             return Err(format!(
                 "cooperation.held_frame_measurement_period_s must be finite and at least 0, not {p}"
+            ));
+        }
+        let w = self.held_frame_measurement_window_s;
+        if w.is_nan() || w < 0.0 {
+            return Err(format!(
+                "cooperation.held_frame_measurement_window_s must be at least 0 (or .inf), not {w}"
             ));
         }
         if self.max_held_peer_frames == 0 {
@@ -782,6 +795,10 @@ mod tests {
         assert!(
             bad(|o| o.cooperation.held_frame_measurement_period_s = f64::NAN)
                 .contains("held_frame_measurement_period_s")
+        );
+        assert!(
+            bad(|o| o.cooperation.held_frame_measurement_window_s = -1.0)
+                .contains("held_frame_measurement_window_s")
         );
         assert!(bad(|o| o.cooperation.max_alignment_yaw_sigma_deg = 0.0).contains("yaw_sigma"));
         assert!(bad(|o| o.cooperation.max_ci_participants = 0).contains("max_ci_participants"));

@@ -195,7 +195,11 @@ impl Cooperation {
             }
             if in_state && peer_frame.alignment().is_some() {
                 let period = self.opts.held_frame_measurement_period_s;
-                if period <= 0.0 || !peer_frame.measured_before(frame.t_s - period) {
+                let window = self.opts.held_frame_measurement_window_s;
+                if period <= 0.0
+                    || !peer_frame.confirmed_within(frame.t_s, window)
+                    || !peer_frame.measured_before(frame.t_s - period)
+                {
                     continue;
                 }
                 match measure(lc, kf, frame, camera, focal, &opts) {

@@ -138,7 +138,8 @@ pub struct Cooperation {
     /// (`peer_frame_state_s`).
     seeds: Vec<FrameSeed>,
     /// Loop-closure measurements of frames the state holds, since the
-    /// estimator last took them (`held_frame_measurement_period_s`).
+    /// estimator last took them (`held_frame_measurement_period_s` and
+    /// `held_frame_measurement_window_s`).
     held_measurements: Vec<FrameSeed>,
     /// Frames the state held and let go: used as fixed alignments since.
     frozen: BTreeSet<(u32, u64)>,

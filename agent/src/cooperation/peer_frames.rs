@@ -103,6 +103,11 @@ impl PeerFrame {
         self.aligned.is_none() || self.refined_at_s.is_none_or(|t| t_s - t >= REFINE_PERIOD_S)
     }
 
+    /// Whether the frame was confirmed at most `window_s` before `t_s`.
+    pub(crate) fn confirmed_within(&self, t_s: f64, window_s: f64) -> bool {
+        self.aligned_at_s.is_some_and(|t| t_s - t <= window_s)
+    }
+
     /// Whether the frame was last measured (or confirmed) at or before `t_s`.
     pub(crate) fn measured_before(&self, t_s: f64) -> bool {
         self.refined_at_s.is_none_or(|t| t <= t_s)
@@ -355,6 +360,10 @@ mod tests {
         assert!((a.yaw_rad - 0.5).abs() < 0.01);
         assert_eq!(f.aligned_at_s, Some(10.3));
         assert_eq!(f.measurements, 4);
+        // Held in our state, it is measured again only within the window.
+        assert!(f.confirmed_within(70.3, 60.0));
+        assert!(!f.confirmed_within(70.4, 60.0));
+        assert!(f.confirmed_within(3600.0, f64::INFINITY));
         // Refined at most once a second; a wrong one is counted, not taken.
         assert!(!f.wants_measurement(10.8));
         assert!(f.wants_measurement(11.3));
