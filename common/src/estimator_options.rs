@@ -381,9 +381,10 @@ impl CooperationOptions {
     /// How long each confirmed peer frame is held in our state, s:
     /// `peer_frame_state_s`, or when unset, by the weighting. A held frame
     /// learns from the CI updates through it, and in its first
-    /// `held_frame_measurement_window_s` from later loop closures to it. With weights chosen per
-    /// update it does so for as long as it is held, and holding it for the
-    /// whole flight gains (README, "Robots in their own frames"). A fixed
+    /// `held_frame_measurement_window_s` from later loop closures to it.
+    /// With weights chosen per update the CI updates teach it for as long
+    /// as it is held, and holding it for the whole flight gains (README,
+    /// "Robots in their own frames"). A fixed
     /// small peer weight (`fixed_peer` 0.005 divides each window's covariance
     /// by 200) starves it, while the fixed alignment that replaces it is
     /// refined by every later loop closure: it is held for
