@@ -508,7 +508,8 @@ pub struct EstimatorSection {
     #[serde(default)]
     pub ci_weighting: Option<CiWeighting>,
     /// Each peer window's weight with `fixed_peer`, in (0, 1): its covariance
-    /// is divided by it.
+    /// is divided by it. With chosen weights it only sets the windows' part of
+    /// the peers' share (`CooperationOptions::ci_peer_weight`).
     #[serde(default)]
     pub ci_peer_weight: Option<f64>,
     /// The robots were not given their start poses in one fleet frame: find

@@ -231,7 +231,10 @@ pub struct CooperationOptions {
     /// How CI weights are chosen.
     pub ci_weighting: CiWeighting,
     /// Weight of each participant's covariance with `fixed_peer` (thesis
-    /// simulation: 0.001; the covariance is divided by it).
+    /// simulation: 0.001; the covariance is divided by it). With weights chosen
+    /// per update it and `constraint_peer_weight` only set how the peers' share
+    /// `1 − ω` divides between windows and landmarks (measured to move the
+    /// results by about 1 %, docs/evidence/cooperation.md, stop 64).
     pub ci_peer_weight: f64,
     /// Our weight with `fixed_own` (thesis real data: 0.99).
     pub ci_own_weight: f64,
