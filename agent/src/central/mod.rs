@@ -381,6 +381,7 @@ impl CentralEstimator {
             &self.chi2,
             &self.tri,
             &mut slam,
+            &mut untriangulated,
         );
         timing.slam_init_ms = ms(t);
 

@@ -3,6 +3,7 @@
 //! initialization), and after the updates the used or lost ones are cleaned up.
 
 use super::feature_db::{FeatureDb, FeatureMeasurement};
+use super::feature_system::camera_pose;
 use super::filter::Filter;
 use super::options::EstimatorOptions;
 use super::slam_feature;
@@ -45,12 +46,17 @@ impl FeatureClasses {
         self.deferred.retain(|id| !ids.contains(id));
     }
 
-    /// Keeps the tracks of `untriangulated` MSCKF features that frame `key` still
-    /// sees, like [`Self::deferred`]: they lacked the parallax (slow motion) and are
-    /// tried again next frame with a wider baseline, instead of restarting from one
-    /// view. Lost tracks go as before. On V1_01's slow flight a quarter of the
-    /// window-spanning tracks fail the condition limit (20 seeds: 0.453 -> 0.356
-    /// deg, 0.064 -> 0.052 m with SLAM features).
+    /// Keeps the tracks of `untriangulated` MSCKF features and SLAM candidates
+    /// that frame `key` still sees, like [`Self::deferred`]: they lacked the
+    /// parallax (slow motion) and are tried again next frame with a wider
+    /// baseline (their retired rays, `feature_system::build`), instead of
+    /// restarting from one view. Lost tracks go as before. On V1_01's slow
+    /// flight a quarter of the window-spanning tracks fail the condition limit
+    /// (20 seeds: 0.453 -> 0.356 deg, 0.064 -> 0.052 m with SLAM features). A
+    /// SLAM candidate dropped on its first failure left a slow flight nothing to
+    /// update with: every track that came to span the window was tried once and
+    /// deleted (V1_01 at 0.4 of its speed, 10 seeds: 5 runs diverged, none with
+    /// the candidates kept and the retired rays).
     pub fn retry_untriangulated(&mut self, db: &FeatureDb, key: u64, untriangulated: &[u64]) {
         for id in untriangulated {
             let seen = db.get(*id).is_some_and(|f| f.has_measurement_at(key));
@@ -140,20 +146,30 @@ pub fn classify(
 /// After the updates: forgets used tracks (all but the deferred candidates), keeps
 /// SLAM features' tracks empty
 /// (each measurement is used once), marginalizes lost SLAM features, and slides
-/// the window (re-anchoring anchored features first).
+/// the window (re-anchoring anchored features first). The views of the clone
+/// that leaves stay with the tracks that go on as rays from its last pose
+/// ([`FeatureDb::retire_measurements_before`]).
 pub fn clean_up<F: Filter + ?Sized>(
     db: &mut FeatureDb,
     state: &mut F,
     c: &FeatureClasses,
     max_clones: usize,
 ) {
-    let done = c.msckf_ids.iter().filter(|id| !c.deferred.contains(id));
-    for id in done.chain(c.slam_candidates.iter()) {
+    let done = c
+        .msckf_ids
+        .iter()
+        .chain(c.slam_candidates.iter())
+        .filter(|id| !c.deferred.contains(id));
+    for id in done {
         if !state.means().features.contains_key(id) {
             db.remove(*id);
         }
     }
-    for id in c.slam_seen.iter().chain(c.slam_candidates.iter()) {
+    let slam_candidates = c
+        .slam_candidates
+        .iter()
+        .filter(|id| !c.deferred.contains(id));
+    for id in c.slam_seen.iter().chain(slam_candidates) {
         if let Some(f) = db.get_mut(*id) {
             f.measurements.clear();
         }
@@ -176,9 +192,12 @@ pub fn clean_up<F: Filter + ?Sized>(
         if let Some(&newest) = state.means().clones.keys().next_back() {
             slam_feature::reanchor(state, old, newest);
         }
+        // The leaving camera's pose, kept with the views it leaves behind: a
+        // slow track triangulates over a longer baseline (`feature_system::build`).
+        let pose = camera_pose(state.means(), old);
         let _ = state.marginalize(Var::Clone(old));
         if let Some(&next) = state.means().clones.keys().next() {
-            db.remove_measurements_before(next);
+            db.retire_measurements_before(next, |k| pose.filter(|_| k == old));
         }
     }
 }

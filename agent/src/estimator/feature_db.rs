@@ -9,11 +9,16 @@
 //! returned) is in ascending id order: the database behaves identically, bit for
 //! bit, from run to run.
 
-use nalgebra::{Vector2, Vector3};
+use super::triangulation::CameraObservation;
+use nalgebra::{Matrix3, Vector2, Vector3};
 use std::collections::BTreeMap;
 
 /// Default of [`FeatureDb::max_pixel_jump_px`], pixels.
 pub const DEFAULT_MAX_PIXEL_JUMP_PX: f64 = 150.0;
+
+/// Most rays a track keeps from clones that have left the window
+/// ([`Feature::retired`]): the oldest one and the newest others.
+pub const MAX_RETIRED_RAYS: usize = 20;
 
 /// One observation of a feature in one image.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -49,6 +54,11 @@ pub struct Feature {
     pub p_in_g: Option<Vector3<f64>>,
     /// Marks the feature for removal by [`FeatureDb::clean_up`].
     pub to_delete: bool,
+    /// The track's views from clones that have left the window, as rays from
+    /// the camera poses estimated when they left, oldest first (at most
+    /// [`MAX_RETIRED_RAYS`]): a longer baseline to triangulate a slow track's
+    /// point from, never measurements of an update ([`FeatureDb::retire_measurements_before`]).
+    pub retired: Vec<CameraObservation>,
 }
 
 impl Feature {
@@ -59,6 +69,7 @@ impl Feature {
             measurements: Vec::new(),
             p_in_g: None,
             to_delete: false,
+            retired: Vec::new(),
         }
     }
 
@@ -297,12 +308,31 @@ impl FeatureDb {
             .collect()
     }
 
-    /// Drops every measurement older than `clone_key`, then every feature left
-    /// without measurements.
-    pub fn remove_measurements_before(&mut self, clone_key: u64) {
+    /// Drops every measurement older than `clone_key` (the clones that were
+    /// marginalized), then every feature left without measurements. Each
+    /// dropped measurement whose clone `camera_pose` still knows (`R_CtoG`,
+    /// `p_CinG`) stays as a ray in [`Feature::retired`]. When a track holds more than [`MAX_RETIRED_RAYS`],
+    /// the second oldest goes: the oldest ray gives the widest baseline.
+    pub fn retire_measurements_before(
+        &mut self,
+        clone_key: u64,
+        camera_pose: impl Fn(u64) -> Option<(Matrix3<f64>, Vector3<f64>)>,
+    ) {
         self.features.retain(|_, f| {
             let n_old = f.measurements.partition_point(|m| m.clone_key < clone_key);
-            f.measurements.drain(..n_old);
+            for m in f.measurements.drain(..n_old) {
+                let Some((r_c_to_g, p_c_in_g)) = camera_pose(m.clone_key) else {
+                    continue;
+                };
+                f.retired.push(CameraObservation {
+                    r_c_to_g,
+                    p_c_in_g,
+                    uvn: m.uvn,
+                });
+                if f.retired.len() > MAX_RETIRED_RAYS {
+                    f.retired.remove(1);
+                }
+            }
             !f.measurements.is_empty()
         });
     }
@@ -488,7 +518,7 @@ mod tests {
     #[test]
     fn removing_old_measurements_drops_features_left_empty() {
         let mut db = sample_db();
-        db.remove_measurements_before(2);
+        db.retire_measurements_before(2, |_| None);
         assert_eq!(db.ids(), vec![1, 2, 4]);
         let keys: Vec<u64> = db
             .get(1)
@@ -499,14 +529,39 @@ mod tests {
             .collect();
         assert_eq!(keys, vec![2, 3, 4]);
         assert_eq!(db.get(4).unwrap().measurements.len(), 1);
-        db.remove_measurements_before(4);
+        db.retire_measurements_before(4, |_| None);
         assert_eq!(db.ids(), vec![1, 2]);
+    }
+
+    #[test]
+    fn retired_measurements_stay_as_rays_oldest_first_and_bounded() {
+        let mut db = FeatureDb::new();
+        let n = MAX_RETIRED_RAYS as u64 + 5;
+        for k in 0..=n {
+            db.insert(1, meas(k, 100.0 + k as f64, 100.0)).unwrap();
+        }
+        // Clone k's camera sits at x = k; clone 3's pose is no longer known.
+        let pose =
+            |k: u64| (k != 3).then(|| (Matrix3::identity(), Vector3::new(k as f64, 0.0, 0.0)));
+        for k in 1..=n {
+            db.retire_measurements_before(k, pose);
+        }
+        let f = db.get(1).unwrap();
+        assert_eq!(f.measurements.len(), 1);
+        assert_eq!(f.retired.len(), MAX_RETIRED_RAYS);
+        // The oldest ray stays (the widest baseline), then the newest others.
+        let xs: Vec<f64> = f.retired.iter().map(|r| r.p_c_in_g.x).collect();
+        assert_eq!(xs[0], 0.0);
+        assert_eq!(xs[MAX_RETIRED_RAYS - 1], (n - 1) as f64);
+        assert!(xs.windows(2).all(|w| w[0] < w[1]));
+        assert!(!xs.contains(&3.0));
+        assert_eq!(f.retired[0].uvn, meas(0, 100.0, 100.0).uvn);
     }
 
     #[test]
     fn removing_the_measurements_of_one_clone_drops_features_left_empty() {
         let mut db = sample_db();
-        db.remove_measurements_before(3);
+        db.retire_measurements_before(3, |_| None);
         db.remove_measurements_at(3);
         assert_eq!(db.ids(), vec![1, 2]);
         assert!(!db.get(1).unwrap().has_measurement_at(3));

@@ -7,7 +7,7 @@ use super::filter::FilterView;
 use super::projection::{predict, project};
 use super::state::{Means, Var};
 use super::triangulation::{triangulate, CameraObservation, TriangulationOptions};
-use nalgebra::{DMatrix, DVector, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
 /// Column layout of a stacked Jacobian over the window: calibration variables
 /// (when estimated) then every clone, oldest first.
@@ -70,24 +70,40 @@ pub struct FeatureSystem {
 /// (current estimates) with undistorted normalized coordinates, for
 /// triangulation.
 pub fn camera_observations(state: &Means, feature: &Feature) -> Vec<CameraObservation> {
-    let calib = &state.calib;
     feature
         .measurements
         .iter()
         .filter_map(|m| {
-            let c = state.clones.get(&m.clone_key)?;
+            let (r_c_to_g, p_c_in_g) = camera_pose(state, m.clone_key)?;
             Some(CameraObservation {
-                r_c_to_g: c.rot * calib.rot_c_to_i,
-                p_c_in_g: c.pos + c.rot * calib.p_c_in_i,
+                r_c_to_g,
+                p_c_in_g,
                 uvn: m.uvn,
             })
         })
         .collect()
 }
 
+/// The camera of clone `key` (current estimates): `R_CtoG` and `p_CinG`.
+pub fn camera_pose(state: &Means, key: u64) -> Option<(Matrix3<f64>, Vector3<f64>)> {
+    let c = state.clones.get(&key)?;
+    let calib = &state.calib;
+    Some((c.rot * calib.rot_c_to_i, c.pos + c.rot * calib.p_c_in_i))
+}
+
 /// Triangulates `feature` from the clones still in the window (current estimates)
 /// and stacks its measurements. Jacobians use the clones' first estimates when
 /// `use_fej`. `None` when the feature cannot be triangulated or projected.
+///
+/// When the window's views alone fail the limits and the track is older than
+/// the window, the point is triangulated again with its retired rays
+/// ([`Feature::retired`]) in front: on a slow flight the window's second of
+/// views lacks the parallax (V1_01 at half speed: 0.2 m/s, points 5-7 m away,
+/// rays about 1 deg apart) while the track's whole life has it. The point is
+/// only where the system is linearized: the update still uses the window's
+/// measurements alone, and the nullspace projection removes the point's error
+/// to first order, so the rays of clones that have left add no information,
+/// only a better linearization point.
 pub fn build(
     state: &Means,
     feature: &Feature,
@@ -99,7 +115,15 @@ pub fn build(
     if obs.len() < 2 {
         return None;
     }
-    let p_f = triangulate(&obs, tri).ok()?;
+    let p_f = match triangulate(&obs, tri) {
+        Ok(p) => p,
+        Err(_) if !feature.retired.is_empty() => {
+            let mut longer = feature.retired.clone();
+            longer.extend_from_slice(&obs);
+            triangulate(&longer, tri).ok()?
+        }
+        Err(_) => return None,
+    };
     build_at(state, feature, cols, use_fej, &p_f)
 }
 

@@ -153,7 +153,9 @@ pub fn update<F: Filter + ?Sized>(
 /// Delayed initialization of each of `candidates`, counted in `stats`. A
 /// candidate that does not enter the state still has measurements worth using
 /// once: they go through the MSCKF, unless `used_elsewhere` says another update
-/// of this frame already took them.
+/// of this frame already took them. The candidates that could not be
+/// triangulated at all are listed in `untriangulated` (their measurements went
+/// to no update: the caller may keep the tracks for another try).
 #[allow(clippy::too_many_arguments)]
 pub fn initialize_candidates<F: Filter + ?Sized>(
     state: &mut F,
@@ -164,6 +166,7 @@ pub fn initialize_candidates<F: Filter + ?Sized>(
     chi2: &Chi2Table,
     tri: &TriangulationOptions,
     stats: &mut SlamStats,
+    untriangulated: &mut Vec<u64>,
 ) {
     for &id in candidates {
         if initialize(state, db, id, opts, chi2, tri) {
@@ -171,7 +174,16 @@ pub fn initialize_candidates<F: Filter + ?Sized>(
         } else {
             stats.init_failed += 1;
             if !used_elsewhere(id) {
-                let _ = super::updater_msckf::update(state, db, &[id], opts, chi2, tri);
+                let _ = super::updater_msckf::update_up_to(
+                    state,
+                    db,
+                    &[id],
+                    usize::MAX,
+                    opts,
+                    chi2,
+                    tri,
+                    untriangulated,
+                );
             }
         }
     }

@@ -501,6 +501,7 @@ impl Estimator {
             &self.chi2,
             &self.tri,
             &mut slam,
+            &mut untriangulated,
         );
         timing.slam_init_ms = ms(t);
 
