@@ -57,7 +57,8 @@ pub struct Feature {
     /// The track's views from clones that have left the window, as rays from
     /// the camera poses estimated when they left, oldest first (at most
     /// [`MAX_RETIRED_RAYS`]): a longer baseline to triangulate a slow track's
-    /// point from, never measurements of an update ([`FeatureDb::retire_measurements_before`]).
+    /// point from, never measurements of an update
+    /// ([`FeatureDb::retire_measurements_before`]).
     pub retired: Vec<CameraObservation>,
 }
 
@@ -311,8 +312,9 @@ impl FeatureDb {
     /// Drops every measurement older than `clone_key` (the clones that were
     /// marginalized), then every feature left without measurements. Each
     /// dropped measurement whose clone `camera_pose` still knows (`R_CtoG`,
-    /// `p_CinG`) stays as a ray in [`Feature::retired`]. When a track holds more than [`MAX_RETIRED_RAYS`],
-    /// the second oldest goes: the oldest ray gives the widest baseline.
+    /// `p_CinG`) stays as a ray in [`Feature::retired`]. When a track holds
+    /// more than [`MAX_RETIRED_RAYS`], the second oldest goes: the oldest ray
+    /// gives the widest baseline.
     pub fn retire_measurements_before(
         &mut self,
         clone_key: u64,
