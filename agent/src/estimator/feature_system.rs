@@ -120,7 +120,18 @@ pub fn build(
         Err(_) if !feature.retired.is_empty() => {
             let mut longer = feature.retired.clone();
             longer.extend_from_slice(&obs);
-            triangulate(&longer, tri).ok()?
+            let limits = if tri.retired_by_precision {
+                // The same depth precision as `obs` at the plain limit
+                // (TriangulationOptions::starved).
+                let rays = longer.len() as f64 / obs.len() as f64;
+                TriangulationOptions {
+                    max_condition_number: tri.max_condition_number * rays,
+                    ..*tri
+                }
+            } else {
+                *tri
+            };
+            triangulate(&longer, &limits).ok()?
         }
         Err(_) => return None,
     };

@@ -93,6 +93,12 @@ pub struct TriangulationOptions {
     /// Largest accepted mean norm of the normalized-coordinate residuals after the
     /// refinement.
     pub max_reprojection_error_normalized: f64,
+    /// When a track's window views fail these limits and its retired rays are
+    /// added ([`crate::estimator::feature_system::build`]), let the longer set's
+    /// condition-number limit grow with its number of rays, so that it asks the
+    /// depth precision the window's views would have had to reach (see
+    /// [`TriangulationOptions::starved`]).
+    pub retired_by_precision: bool,
 }
 
 impl Default for TriangulationOptions {
@@ -121,6 +127,26 @@ impl TriangulationOptions {
             max_baseline_ratio: l.max_baseline_ratio,
             gn_iterations: 10,
             max_reprojection_error_normalized: 0.02,
+            retired_by_precision: false,
+        }
+    }
+
+    /// These limits for an update starved of features, where nearly every
+    /// track fails them (see `updater_msckf::update_up_to`): a track whose
+    /// window views fail may pass with its retired rays in front under a
+    /// condition-number limit scaled by `rays / window views`. The depth's
+    /// relative precision from `n` rays of angular noise `σ` is about
+    /// `σ √(cond / n)` (the smallest eigenvalue of `Σ N_i` is the depth
+    /// direction's information, the largest is about `n`), so this asks the
+    /// longer set for the precision the window's views would have had to reach
+    /// under the plain limit. On a slow flight (V1_01 at half speed: 0.2 m/s,
+    /// points 5-7 m away) the plain limit passes almost nothing even with
+    /// three seconds of rays (condition numbers 10⁴-10⁵), and the filter
+    /// coasts on the IMU for seconds at a time.
+    pub fn starved(&self) -> Self {
+        Self {
+            retired_by_precision: true,
+            ..*self
         }
     }
 

@@ -57,8 +57,26 @@ pub fn update_up_to<F: Filter + ?Sized>(
     tri: &TriangulationOptions,
     untriangulated: &mut Vec<u64>,
 ) -> (MsckfStats, usize) {
-    let (mut stats, tried, stacked) =
+    let before = untriangulated.len();
+    let (mut stats, mut tried, mut stacked) =
         stack_up_to(state, db, ids, cap, opts, Some(chi2), tri, untriangulated);
+    // Starved: fewer than one candidate passes for every
+    // RELAX_WHEN_FAILED_PER_PASSED that fail (a slow flight's far points).
+    // Then the tracks with retired rays are asked for the window's depth
+    // precision rather than its ray spread (TriangulationOptions::starved).
+    if starved(&stats) {
+        untriangulated.truncate(before);
+        (stats, tried, stacked) = stack_up_to(
+            state,
+            db,
+            ids,
+            cap,
+            opts,
+            Some(chi2),
+            &tri.starved(),
+            untriangulated,
+        );
+    }
     if let Some(st) = stacked {
         if state
             .ekf_update(&st.vars, &st.h, &st.res, &st.noise())
@@ -72,8 +90,17 @@ pub fn update_up_to<F: Filter + ?Sized>(
 }
 
 /// The first update relaxes the ray-geometry limits when more than this many
-/// candidates fail them for each one that passes.
+/// candidates fail them for each one that passes; a later update then asks
+/// the tracks with retired rays for depth precision instead
+/// ([`TriangulationOptions::starved`]).
 pub const RELAX_WHEN_FAILED_PER_PASSED: usize = 10;
+
+/// Whether an update's candidates nearly all failed to triangulate: more than
+/// [`RELAX_WHEN_FAILED_PER_PASSED`] for each one that passed.
+fn starved(stats: &MsckfStats) -> bool {
+    let passed = stats.used + stats.rejected_chi2;
+    stats.failed > 0 && passed * RELAX_WHEN_FAILED_PER_PASSED < stats.failed
+}
 
 /// [`update_up_to`] iterated (an iterated EKF, for the filter's first update):
 /// after the update, the features it used are triangulated again at the
@@ -116,8 +143,7 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
     // triangulate the points again at the corrected clones.
     let relaxed = tri.relaxed(ray_noise_rad(state, opts));
     let mut tri = tri;
-    let passed = stats.used + stats.rejected_chi2;
-    let relax = stats.failed > 0 && passed * RELAX_WHEN_FAILED_PER_PASSED < stats.failed;
+    let relax = starved(&stats);
     if relax {
         untriangulated.truncate(before);
         (stats, tried, stacked) = stack_up_to(
@@ -555,5 +581,90 @@ mod tests {
         // At 3.0 two pass, a sixth of those tried: the limits stay.
         let (stats, _) = update_under_baseline_limit(12, 3.0, 2);
         assert_eq!((stats.used, stats.failed), (2, 10), "{stats:?}");
+    }
+
+    /// The condition number of track `id`'s window views in `s`.
+    fn window_condition(s: &crate::estimator::test_scene::Scene, id: u64) -> f64 {
+        use crate::estimator::feature_system::camera_observations;
+        use crate::estimator::triangulation::{triangulate, TriangulationError};
+        let f = s.db.get(id).expect("track");
+        let obs = camera_observations(&s.state.means, f);
+        let any = TriangulationOptions {
+            max_condition_number: 1.0,
+            ..TriangulationOptions::default()
+        };
+        match triangulate(&obs, &any) {
+            Err(TriangulationError::IllConditioned { cond }) => cond,
+            other => panic!("{other:?}"),
+        }
+    }
+
+    /// A starved update (nearly every candidate fails) asks a track with
+    /// retired rays for the window's depth precision: the same spread from
+    /// twice the rays passes under twice the condition number. A later update
+    /// with candidates that pass keeps the plain limit.
+    #[test]
+    fn a_starved_update_takes_retired_rays_by_their_depth_precision() {
+        use crate::estimator::feature_system::camera_observations;
+        let mut s = scene(8, 1, 1e-4, 1e-4);
+        let cond = window_condition(&s, 0);
+        let tri = TriangulationOptions {
+            max_condition_number: cond / 1.5,
+            ..TriangulationOptions::default()
+        };
+        // The window's own views, retired a second time: the rays' spread,
+        // hence the condition number, is the same; the depth is √2 as precise.
+        let obs = camera_observations(&s.state.means, s.db.get(0).expect("track"));
+        s.db.get_mut(0).expect("track").retired = obs;
+        let cols = Columns::window(&s.state);
+        let f = s.db.get(0).expect("track");
+        assert!(build(&s.state.means, f, &cols, true, &tri).is_none());
+        assert!(build(&s.state.means, f, &cols, true, &tri.starved()).is_some());
+        let opts = EstimatorOptions::default();
+        let chi2 = Chi2Table::new(0.95, 500);
+        let (stats, _) = update_up_to(
+            &mut s.state,
+            &s.db,
+            &[0],
+            usize::MAX,
+            &opts,
+            &chi2,
+            &tri,
+            &mut Vec::new(),
+        );
+        assert_eq!((stats.used, stats.failed), (1, 0), "{stats:?}");
+
+        // Eleven tracks pass the plain limit beside the retired one: not
+        // starved, and that one is left for a later frame.
+        let mut s = scene(8, 12, 1e-4, 1e-4);
+        let conds: Vec<f64> = (0..12).map(|id| window_condition(&s, id)).collect();
+        let worst = (0..12)
+            .max_by(|a, b| conds[*a].total_cmp(&conds[*b]))
+            .expect("tracks");
+        let second = conds
+            .iter()
+            .copied()
+            .filter(|c| *c < conds[worst])
+            .fold(0.0, f64::max);
+        let tri = TriangulationOptions {
+            max_condition_number: (second + conds[worst]) / 2.0,
+            ..TriangulationOptions::default()
+        };
+        let obs = camera_observations(&s.state.means, s.db.get(worst as u64).expect("track"));
+        s.db.get_mut(worst as u64).expect("track").retired = obs;
+        let ids: Vec<u64> = (0..12).collect();
+        let mut failed = Vec::new();
+        let (stats, _) = update_up_to(
+            &mut s.state,
+            &s.db,
+            &ids,
+            usize::MAX,
+            &opts,
+            &chi2,
+            &tri,
+            &mut failed,
+        );
+        assert_eq!((stats.used, stats.failed), (11, 1), "{stats:?}");
+        assert_eq!(failed, vec![worst as u64]);
     }
 }
