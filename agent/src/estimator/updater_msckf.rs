@@ -45,7 +45,9 @@ pub fn update<F: Filter + ?Sized>(
 /// system could not be built (nearly always too little parallax to triangulate
 /// yet, at times a point that does not project): the caller may keep their tracks
 /// for another try. Returns the stats and how many candidates were tried; the
-/// caller keeps the rest for a later frame.
+/// caller keeps the rest for a later frame. An update starved of candidates
+/// (nearly all fail, see [`RELAX_WHEN_FAILED_PER_PASSED`]) is rebuilt once
+/// under [`TriangulationOptions::starved`].
 #[allow(clippy::too_many_arguments)]
 pub fn update_up_to<F: Filter + ?Sized>(
     state: &mut F,
