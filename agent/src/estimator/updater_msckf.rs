@@ -59,26 +59,18 @@ pub fn update_up_to<F: Filter + ?Sized>(
     tri: &TriangulationOptions,
     untriangulated: &mut Vec<u64>,
 ) -> (MsckfStats, usize) {
-    let before = untriangulated.len();
-    let (mut stats, mut tried, mut stacked) =
-        stack_up_to(state, db, ids, cap, opts, Some(chi2), tri, untriangulated);
-    // Starved: fewer than one candidate passes for every
-    // RELAX_WHEN_FAILED_PER_PASSED that fail (a slow flight's far points).
-    // Then the tracks with retired rays are asked for the window's depth
-    // precision rather than its ray spread (TriangulationOptions::starved).
-    if starved(&stats) {
-        untriangulated.truncate(before);
-        (stats, tried, stacked) = stack_up_to(
-            state,
-            db,
-            ids,
-            cap,
-            opts,
-            Some(chi2),
-            &tri.starved(),
-            untriangulated,
-        );
-    }
+    // Starved (a slow flight's far points): the tracks with retired rays are
+    // asked for the window's depth precision rather than its rays' spread.
+    let (mut stats, tried, stacked, _) = stack_unless_starved(
+        state,
+        db,
+        ids,
+        cap,
+        opts,
+        chi2,
+        [tri, &tri.starved()],
+        untriangulated,
+    );
     if let Some(st) = stacked {
         if state
             .ekf_update(&st.vars, &st.h, &st.res, &st.noise())
@@ -102,6 +94,34 @@ pub const RELAX_WHEN_FAILED_PER_PASSED: usize = 10;
 fn starved(stats: &MsckfStats) -> bool {
     let passed = stats.used + stats.rejected_chi2;
     stats.failed > 0 && passed * RELAX_WHEN_FAILED_PER_PASSED < stats.failed
+}
+
+/// [`stack_up_to`] under the first of `limits`; when that leaves the update
+/// [`starved`], stacked again under the second (the candidates it lists in
+/// `untriangulated` are those of the second try). The last value says whether
+/// the second was taken.
+#[allow(clippy::too_many_arguments)]
+fn stack_unless_starved<F: Filter + ?Sized>(
+    state: &F,
+    db: &FeatureDb,
+    ids: &[u64],
+    cap: usize,
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+    limits: [&TriangulationOptions; 2],
+    untriangulated: &mut Vec<u64>,
+) -> (MsckfStats, usize, Option<Stacked>, bool) {
+    let stack = |tri: &TriangulationOptions, untriangulated: &mut Vec<u64>| {
+        stack_up_to(state, db, ids, cap, opts, Some(chi2), tri, untriangulated)
+    };
+    let before = untriangulated.len();
+    let (stats, tried, stacked) = stack(limits[0], untriangulated);
+    if !starved(&stats) {
+        return (stats, tried, stacked, false);
+    }
+    untriangulated.truncate(before);
+    let (stats, tried, stacked) = stack(limits[1], untriangulated);
+    (stats, tried, stacked, true)
 }
 
 /// [`update_up_to`] iterated (an iterated EKF, for the filter's first update):
@@ -133,9 +153,6 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
     if iterations == 0 {
         return update_up_to(state, db, ids, cap, opts, chi2, tri, untriangulated);
     }
-    let before = untriangulated.len();
-    let (mut stats, mut tried, mut stacked) =
-        stack_up_to(state, db, ids, cap, opts, Some(chi2), tri, untriangulated);
     // A tilted start bends the window's clones by the gravity it leaks
     // (½ g sin 3° t² ≈ 0.3 m after 1.1 s), and on a slow start no track may
     // then pass the ray-geometry limits, frame after frame, while the error
@@ -144,22 +161,17 @@ pub fn iterated_update_up_to<F: Filter + ?Sized>(
     // diverged). Then this first update takes them looser, and its iterations
     // triangulate the points again at the corrected clones.
     let relaxed = tri.relaxed(ray_noise_rad(state, opts));
-    let mut tri = tri;
-    let relax = starved(&stats);
-    if relax {
-        untriangulated.truncate(before);
-        (stats, tried, stacked) = stack_up_to(
-            state,
-            db,
-            ids,
-            cap,
-            opts,
-            Some(chi2),
-            &relaxed,
-            untriangulated,
-        );
-        tri = &relaxed;
-    }
+    let (mut stats, tried, stacked, relax) = stack_unless_starved(
+        state,
+        db,
+        ids,
+        cap,
+        opts,
+        chi2,
+        [tri, &relaxed],
+        untriangulated,
+    );
+    let tri = if relax { &relaxed } else { tri };
     tracing::debug!(
         used = stats.used,
         gated = stats.rejected_chi2,
@@ -512,16 +524,7 @@ mod tests {
         assert_eq!(tried, 4);
         // Without a cap every candidate is tried.
         let mut s = scene(8, 6, 1e-4, 1e-4);
-        let (stats, tried) = update_up_to(
-            &mut s.state,
-            &s.db,
-            &ids,
-            usize::MAX,
-            &opts,
-            &chi2,
-            &tri,
-            &mut Vec::new(),
-        );
+        let (stats, tried) = update_scene(&mut s, &ids, &tri, &mut Vec::new());
         assert_eq!((stats.used, tried), (6, 6), "{stats:?}");
     }
 
@@ -585,6 +588,27 @@ mod tests {
         assert_eq!((stats.used, stats.failed), (2, 10), "{stats:?}");
     }
 
+    /// [`update_up_to`] of `s`'s tracks `ids` with no cap and the default
+    /// options.
+    fn update_scene(
+        s: &mut crate::estimator::test_scene::Scene,
+        ids: &[u64],
+        tri: &TriangulationOptions,
+        failed: &mut Vec<u64>,
+    ) -> (MsckfStats, usize) {
+        let (opts, chi2) = (EstimatorOptions::default(), Chi2Table::new(0.95, 500));
+        update_up_to(
+            &mut s.state,
+            &s.db,
+            ids,
+            usize::MAX,
+            &opts,
+            &chi2,
+            tri,
+            failed,
+        )
+    }
+
     /// The condition number of track `id`'s window views in `s`.
     fn window_condition(s: &crate::estimator::test_scene::Scene, id: u64) -> f64 {
         use crate::estimator::feature_system::camera_observations;
@@ -622,18 +646,7 @@ mod tests {
         let f = s.db.get(0).expect("track");
         assert!(build(&s.state.means, f, &cols, true, &tri).is_none());
         assert!(build(&s.state.means, f, &cols, true, &tri.starved()).is_some());
-        let opts = EstimatorOptions::default();
-        let chi2 = Chi2Table::new(0.95, 500);
-        let (stats, _) = update_up_to(
-            &mut s.state,
-            &s.db,
-            &[0],
-            usize::MAX,
-            &opts,
-            &chi2,
-            &tri,
-            &mut Vec::new(),
-        );
+        let (stats, _) = update_scene(&mut s, &[0], &tri, &mut Vec::new());
         assert_eq!((stats.used, stats.failed), (1, 0), "{stats:?}");
 
         // Eleven tracks pass the plain limit beside the retired one: not
@@ -656,16 +669,7 @@ mod tests {
         s.db.get_mut(worst as u64).expect("track").retired = obs;
         let ids: Vec<u64> = (0..12).collect();
         let mut failed = Vec::new();
-        let (stats, _) = update_up_to(
-            &mut s.state,
-            &s.db,
-            &ids,
-            usize::MAX,
-            &opts,
-            &chi2,
-            &tri,
-            &mut failed,
-        );
+        let (stats, _) = update_scene(&mut s, &ids, &tri, &mut failed);
         assert_eq!((stats.used, stats.failed), (11, 1), "{stats:?}");
         assert_eq!(failed, vec![worst as u64]);
     }
