@@ -443,6 +443,10 @@ pub struct EstimatorSection {
     /// estimate.
     #[serde(default)]
     pub rescue_first_update: Option<bool>,
+    /// Pixels of parallax a full window's second-newest clone needs to stay
+    /// (0: every clone stays, the oldest leaves).
+    #[serde(default)]
+    pub keyframe_parallax_px: Option<f64>,
     /// Where the MSCKF's Jacobians are evaluated (`first_estimates` or
     /// `observability_constrained`).
     #[serde(default)]
@@ -573,6 +577,9 @@ impl EstimatorSection {
         if let Some(v) = self.rescue_first_update {
             o.rescue_first_update = v;
         }
+        if let Some(v) = self.keyframe_parallax_px {
+            o.keyframe_parallax_px = v;
+        }
         if let Some(v) = self.msckf_jacobians {
             o.msckf_jacobians = v;
         }
@@ -670,6 +677,7 @@ impl Default for EstimatorSection {
             max_msckf_in_update: None,
             first_update_iterations: None,
             rescue_first_update: None,
+            keyframe_parallax_px: None,
             msckf_jacobians: None,
             use_fej: None,
             calib_cam_extrinsics: None,

@@ -562,6 +562,16 @@ pub struct EstimatorOptions {
     /// OpenVINS's prior, 20 seeds: 2 runs diverged, none with it; README).
     /// It only acts when that happens: every truth-start table is unchanged.
     pub rescue_first_update: bool,
+    /// Pixels of rotation-compensated parallax (median over the shared tracks)
+    /// the second-newest clone must have moved from the clone before it to stay
+    /// in a full window; one that moved less leaves instead of the oldest, with
+    /// its views unused (VINS-Mono's keyframe rule). 0: every clone stays and the
+    /// oldest leaves (OpenVINS's window). On a slow flight a window of 11
+    /// consecutive frames spans too little baseline to triangulate from: V1_01 at
+    /// 0.3 of its speed diverged in 3 of 10 runs without SLAM features and 2 of
+    /// 10 with them, and none with the camera at a third of its rate (README,
+    /// Slow flights).
+    pub keyframe_parallax_px: f64,
     /// Where the MSCKF's Jacobians are evaluated when `use_fej`: at the first
     /// estimates (default), or at the current estimate with the unobservable
     /// directions projected out. On a slowly starting circle without SLAM
@@ -712,6 +722,7 @@ impl Default for EstimatorOptions {
             min_clones_to_update: 12,
             first_update_iterations: 2,
             rescue_first_update: true,
+            keyframe_parallax_px: 0.0,
             msckf_jacobians: MsckfJacobians::default(),
             feature_representation: Default::default(),
             max_msckf_in_update: 40,

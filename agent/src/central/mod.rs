@@ -17,7 +17,9 @@ use crate::cooperation::loop_closure::FrameFeatures;
 use crate::cooperation::matcher::{epipolar_inliers, match_descriptors, MatchRules};
 use crate::estimator::chi2::Chi2Table;
 use crate::estimator::cooperative::{frame_features, CoopFrameStats};
-use crate::estimator::feature_classes::{classify, clean_up, record_measurements};
+use crate::estimator::feature_classes::{
+    classify, clean_up, drop_non_keyframe, record_measurements,
+};
 use crate::estimator::feature_db::FeatureDb;
 use crate::estimator::filter::FilterView;
 use crate::estimator::frame_output::{cpu_ms, GyroAtFrame, ImuCovariance};
@@ -279,6 +281,10 @@ impl CentralEstimator {
         };
         if !opts.window_ready(means.clones.len()) {
             // Too few views to triangulate: as in the single-robot estimator.
+            let robot = &mut self.robots[r];
+            if let Some(mut slot) = self.joint.slot(rid) {
+                drop_non_keyframe(&mut robot.features, &mut slot, opts.keyframe_parallax_px);
+            }
             timing.total_ms = ms(t_start);
             timing.cpu_ms = cpu_ms(cpu_start);
             return Ok(self.output_without_updates(rid, &gyro, timing, coop, false));

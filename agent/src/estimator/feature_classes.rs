@@ -9,6 +9,7 @@ use super::options::EstimatorOptions;
 use super::slam_feature;
 use super::state::{Means, Var};
 use common::measurement::FeatureFrame;
+use nalgebra::Vector3;
 
 /// The features of one frame by the update they go to. A feature is in at most
 /// one of `slam_seen`, `slam_candidates`, `msckf_ids`.
@@ -28,6 +29,11 @@ pub struct FeatureClasses {
     /// instead emptied the whole window at once after the first full update on
     /// slow starts.
     pub deferred: Vec<u64>,
+    /// The second-newest clone when it leaves the full window instead of the
+    /// oldest: it moved less than `keyframe_parallax_px` from the clone before it
+    /// ([`non_keyframe`]). Its views leave with it unused, and no track is sent
+    /// to the MSCKF for it.
+    pub dropped_clone: Option<u64>,
 }
 
 impl FeatureClasses {
@@ -100,7 +106,8 @@ pub fn classify(
 ) -> FeatureClasses {
     let oldest = state.clones.keys().next().copied().unwrap_or(key);
     let lost = db.ids_not_seen_since(key);
-    let at_marg = if state.clones.len() > opts.max_clones {
+    let dropped_clone = non_keyframe(db, state, opts.keyframe_parallax_px);
+    let at_marg = if state.clones.len() > opts.max_clones && dropped_clone.is_none() {
         db.ids_with_measurement_at(oldest)
     } else {
         Vec::new()
@@ -120,6 +127,7 @@ pub fn classify(
     };
     let mut c = FeatureClasses {
         slam_seen,
+        dropped_clone,
         ..FeatureClasses::default()
     };
     for id in lost.iter().chain(at_marg.iter()) {
@@ -141,6 +149,67 @@ pub fn classify(
         std::cmp::Reverse(db.get(*id).map(|f| f.measurements.len()).unwrap_or(0))
     });
     c
+}
+
+/// Tracks a parallax is measured over, at least: fewer say little about the
+/// scene, and the clone stays.
+const MIN_TRACKS_FOR_PARALLAX: usize = 10;
+
+/// The second-newest clone, when the median rotation-compensated angle between
+/// its views and those of the clone before it (the last one kept) is under
+/// `min_parallax_px` pixels: it adds little baseline to the window, so it leaves
+/// rather than the oldest, and the window keeps the span that lets a slow
+/// flight's tracks triangulate (VINS-Mono's keyframe rule; README, Slow flights).
+/// `None` when the rule is off (0), the window holds fewer than three clones, or
+/// fewer than [`MIN_TRACKS_FOR_PARALLAX`] tracks join the two views.
+pub fn non_keyframe(db: &FeatureDb, state: &Means, min_parallax_px: f64) -> Option<u64> {
+    let mut keys = state.clones.keys().rev();
+    let (_newest, second, kept) = (keys.next()?, *keys.next()?, *keys.next()?);
+    if min_parallax_px <= 0.0 {
+        return None;
+    }
+    let (r_second, _) = camera_pose(state, second)?;
+    let (r_kept, _) = camera_pose(state, kept)?;
+    let mut angles: Vec<f64> = db
+        .iter()
+        .filter_map(|f| {
+            let a = f.measurement_at(kept)?.uvn;
+            let b = f.measurement_at(second)?.uvn;
+            let ray_a = r_kept * Vector3::new(a.x, a.y, 1.0);
+            let ray_b = r_second * Vector3::new(b.x, b.y, 1.0);
+            Some(ray_a.angle(&ray_b))
+        })
+        .collect();
+    if angles.len() < MIN_TRACKS_FOR_PARALLAX {
+        return None;
+    }
+    let mid = angles.len() / 2;
+    let (_, median, _) = angles.select_nth_unstable_by(mid, f64::total_cmp);
+    let focal = state.calib.camera.fx();
+    (*median * focal < min_parallax_px).then_some(second)
+}
+
+/// Drops the second-newest clone if it is not a keyframe ([`non_keyframe`]), as
+/// a frame with no update does while the window fills: the window fills with
+/// keyframes, and the first update has their baseline.
+pub fn drop_non_keyframe<F: Filter + ?Sized>(
+    db: &mut FeatureDb,
+    state: &mut F,
+    min_parallax_px: f64,
+) {
+    if let Some(key) = non_keyframe(db, state.means(), min_parallax_px) {
+        drop_clone(db, state, key);
+    }
+}
+
+/// Marginalizes clone `key` and drops its views unused (its anchored features
+/// move to the newest clone first).
+fn drop_clone<F: Filter + ?Sized>(db: &mut FeatureDb, state: &mut F, key: u64) {
+    if let Some(&newest) = state.means().clones.keys().next_back() {
+        slam_feature::reanchor(state, key, newest);
+    }
+    let _ = state.marginalize(Var::Clone(key));
+    db.remove_measurements_at(key);
 }
 
 /// After the updates: forgets used tracks (all but the deferred candidates), keeps
@@ -184,6 +253,9 @@ pub fn clean_up<F: Filter + ?Sized>(
     for id in lost_slam {
         let _ = state.marginalize(Var::Feature(id));
         db.remove(id);
+    }
+    if let Some(dropped) = c.dropped_clone {
+        drop_clone(db, state, dropped);
     }
     while state.means().clones.len() > max_clones {
         let Some(&old) = state.means().clones.keys().next() else {
@@ -263,5 +335,39 @@ mod tests {
         let f = s.db.get(seen).expect("a track still seen is kept");
         assert_eq!(f.measurements.len(), 11);
         assert!(!s.db.contains(lost), "a lost track is dropped");
+    }
+
+    #[test]
+    fn a_clone_that_moved_too_little_leaves_instead_of_the_oldest() {
+        let mut s = scene(12, 12, 1e-4, 1e-4);
+        let key = 12;
+        let second = 11;
+        // Off, or a threshold every clone passes: the oldest leaves as before.
+        for px in [0.0, 1e-9] {
+            assert_eq!(non_keyframe(&s.db, &s.state.means, px), None);
+        }
+        let opts = EstimatorOptions {
+            max_clones: 11,
+            keyframe_parallax_px: 1e9,
+            ..EstimatorOptions::default()
+        };
+        let c = classify(&s.db, &s.state.means, key, &opts, false);
+        assert_eq!(c.dropped_clone, Some(second));
+        // No track goes to the MSCKF for the clone that leaves.
+        assert!(c.msckf_ids.is_empty(), "{:?}", c.msckf_ids);
+        let oldest = *s.state.means.clones.keys().next().expect("clones");
+        clean_up(&mut s.db, &mut s.state, &c, opts.max_clones);
+        let keys: Vec<u64> = s.state.means.clones.keys().copied().collect();
+        assert_eq!(keys.len(), 11);
+        assert!(keys.contains(&oldest) && keys.contains(&key));
+        assert!(!keys.contains(&second));
+        for f in s.db.iter() {
+            assert!(
+                !f.has_measurement_at(second),
+                "track {} keeps a dropped view",
+                f.id
+            );
+            assert_eq!(f.measurements.len(), 11);
+        }
     }
 }

@@ -5,7 +5,9 @@
 use super::camera_window::{camera_estimate, camera_window, CameraWindow};
 use super::chi2::Chi2Table;
 use super::cooperative::{self, frame_features, CoopFrameStats};
-use super::feature_classes::{classify, clean_up, record_measurements, FeatureClasses};
+use super::feature_classes::{
+    classify, clean_up, drop_non_keyframe, record_measurements, FeatureClasses,
+};
 use super::feature_db::FeatureDb;
 use super::filter::Filter;
 use super::frame_output::{cpu_ms, GyroAtFrame, ImuCovariance};
@@ -395,6 +397,7 @@ impl Estimator {
         coop.matching_ms = ms(t);
         if !opts.window_ready(state.clones.len()) {
             // Too few views to triangulate: keep every track for the first update.
+            drop_non_keyframe(&mut self.features, state, opts.keyframe_parallax_px);
             timing.total_ms = ms(t_start);
             timing.cpu_ms = cpu_ms(cpu_start);
             return Ok(output_without_updates(state, &gyro, timing, coop, false));

@@ -386,6 +386,9 @@ pub struct EstimatorSpec {
     /// Redo a first update whose step left its rays apart at the current
     /// estimate (`EstimatorOptions::rescue_first_update`).
     pub rescue_first_update: bool,
+    /// Pixels of parallax a full window's second-newest clone needs to stay
+    /// (`EstimatorOptions::keyframe_parallax_px`; 0: every clone stays).
+    pub keyframe_parallax_px: f64,
     /// Where the MSCKF's Jacobians are evaluated: `first_estimates` or
     /// `observability_constrained` (`EstimatorOptions::msckf_jacobians`).
     pub msckf_jacobians: MsckfJacobians,
@@ -461,6 +464,7 @@ impl EstimatorSpec {
             min_clones_to_update: self.first_update_clones(),
             first_update_iterations: self.first_update_iterations,
             rescue_first_update: self.rescue_first_update,
+            keyframe_parallax_px: self.keyframe_parallax_px,
             msckf_jacobians: self.msckf_jacobians,
             feature_representation: self.feature_representation,
             max_msckf_in_update: self.max_msckf_in_update,
@@ -505,6 +509,7 @@ impl Default for EstimatorSpec {
             min_clones_to_update: None,
             first_update_iterations: o.first_update_iterations,
             rescue_first_update: o.rescue_first_update,
+            keyframe_parallax_px: o.keyframe_parallax_px,
             msckf_jacobians: o.msckf_jacobians,
             feature_representation: o.feature_representation,
             max_msckf_in_update: o.max_msckf_in_update,
