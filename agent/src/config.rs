@@ -443,8 +443,8 @@ pub struct EstimatorSection {
     /// estimate.
     #[serde(default)]
     pub rescue_first_update: Option<bool>,
-    /// Pixels of parallax a full window's second-newest clone needs to stay
-    /// (0: every clone stays, the oldest leaves).
+    /// Pixels of parallax the window's second-newest clone needs to stay, while
+    /// the window fills too (0: every clone stays, the oldest leaves).
     #[serde(default)]
     pub keyframe_parallax_px: Option<f64>,
     /// Where the MSCKF's Jacobians are evaluated (`first_estimates` or

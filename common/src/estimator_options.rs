@@ -564,8 +564,9 @@ pub struct EstimatorOptions {
     pub rescue_first_update: bool,
     /// Pixels of rotation-compensated parallax (median over the shared tracks)
     /// the second-newest clone must have moved from the clone before it to stay
-    /// in a full window; one that moved less leaves instead of the oldest, with
-    /// its views unused (VINS-Mono's keyframe rule). 0: every clone stays and the
+    /// in the window (while it fills too, so the first update has the keyframes'
+    /// baseline); one that moved less leaves instead of the oldest, with its
+    /// views unused (VINS-Mono's keyframe rule). 0: every clone stays and the
     /// oldest leaves (OpenVINS's window). On a slow flight a window of 11
     /// consecutive frames spans too little baseline to triangulate from: V1_01 at
     /// 0.3 of its speed diverged in 3 of 10 runs without SLAM features and 2 of

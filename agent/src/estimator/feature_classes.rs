@@ -29,8 +29,8 @@ pub struct FeatureClasses {
     /// instead emptied the whole window at once after the first full update on
     /// slow starts.
     pub deferred: Vec<u64>,
-    /// The second-newest clone when it leaves the full window instead of the
-    /// oldest: it moved less than `keyframe_parallax_px` from the clone before it
+    /// The second-newest clone when it leaves the window instead of the oldest
+    /// (which then stays): it moved less than `keyframe_parallax_px` from the clone before it
     /// ([`non_keyframe`]). Its views leave with it unused, and no track is sent
     /// to the MSCKF for it.
     pub dropped_clone: Option<u64>,

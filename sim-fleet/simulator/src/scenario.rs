@@ -386,8 +386,9 @@ pub struct EstimatorSpec {
     /// Redo a first update whose step left its rays apart at the current
     /// estimate (`EstimatorOptions::rescue_first_update`).
     pub rescue_first_update: bool,
-    /// Pixels of parallax a full window's second-newest clone needs to stay
-    /// (`EstimatorOptions::keyframe_parallax_px`; 0: every clone stays).
+    /// Pixels of parallax the window's second-newest clone needs to stay, while
+    /// the window fills too (`EstimatorOptions::keyframe_parallax_px`; 0: every
+    /// clone stays).
     pub keyframe_parallax_px: f64,
     /// Where the MSCKF's Jacobians are evaluated: `first_estimates` or
     /// `observability_constrained` (`EstimatorOptions::msckf_jacobians`).
