@@ -906,10 +906,10 @@ impl Node {
             let mut envs = self.outbox.tracks(index, &frame, est.calibration());
             match out {
                 Ok(o) => {
-                    let oldest = est
-                        .state()
-                        .and_then(|s| s.clones.values().next().map(|c| c.t_cam));
-                    if let Some(plan) = self.outbox.snapshot_due(index, frame.t, oldest) {
+                    let clones = est.state().map(|s| &s.clones);
+                    let oldest = clones.and_then(|c| c.values().next().map(|c| c.t_cam));
+                    let full = clones.is_some_and(|c| c.len() >= est.options().max_clones);
+                    if let Some(plan) = self.outbox.snapshot_due(index, frame.t, oldest, full) {
                         if let Some(w) = est.camera_window(plan.landmarks) {
                             envs.extend(self.outbox.snapshot(index, &frame, plan, &w));
                         }

@@ -120,19 +120,28 @@ impl Outbox {
     }
 
     /// Whether frame `frame_index` at time `t` sends a snapshot, given the oldest
-    /// clone time of the window: at keyframes (with landmarks), and otherwise once
-    /// `snapshot_every_frames` frames have passed since the last snapshot.
+    /// clone time of the window and whether the window is full: at keyframes
+    /// (with landmarks), and otherwise once `snapshot_every_frames` frames have
+    /// passed since the last snapshot.
+    ///
+    /// A keyframe window is always a full one. Peers triangulate our tracks
+    /// from it, minutes later maybe: a window of the first frame
+    /// alone (one clone) gives no point at all, yet its descriptors win place
+    /// recognition there again and again, and as windows never overlap it
+    /// held back the next keyframe by a whole window.
     pub fn snapshot_due(
         &self,
         frame_index: u64,
         t: f64,
         oldest_clone_t: Option<f64>,
+        window_full: bool,
     ) -> Option<SnapshotPlan> {
         let oldest = oldest_clone_t?;
-        let keyframe = match (self.last_keyframe_s, self.last_keyframe_end_s) {
-            (Some(last), Some(end)) => t - last >= self.cfg.keyframe_period_s && oldest > end,
-            _ => true,
-        };
+        let keyframe = window_full
+            && match (self.last_keyframe_s, self.last_keyframe_end_s) {
+                (Some(last), Some(end)) => t - last >= self.cfg.keyframe_period_s && oldest > end,
+                _ => true,
+            };
         let every = u64::from(self.cfg.snapshot_every_frames.max(1));
         let periodic = self
             .last_snapshot_frame
@@ -271,11 +280,12 @@ mod tests {
         }
     }
 
-    fn window(t_last: f64) -> CameraWindow {
-        let poses: Vec<CameraPoseEstimate> = (0..11)
+    /// A window of `n` clones 0.1 s apart ending at `t_last`.
+    fn window(t_last: f64, n: u64) -> CameraWindow {
+        let poses: Vec<CameraPoseEstimate> = (0..n)
             .map(|i| CameraPoseEstimate {
                 key: i,
-                t_cam: t_last - 0.1 * (10 - i) as f64,
+                t_cam: t_last - 0.1 * (n - 1 - i) as f64,
                 rot: Matrix3::identity(),
                 pos: Vector3::zeros(),
             })
@@ -283,7 +293,7 @@ mod tests {
         CameraWindow {
             t: t_last,
             poses,
-            cov: DMatrix::identity(66, 66) * 1e-4,
+            cov: DMatrix::identity(6 * n as usize, 6 * n as usize) * 1e-4,
             landmarks: Vec::new(),
             calib: CameraCalibration::euroc_cam0(),
         }
@@ -300,9 +310,11 @@ mod tests {
             let t = 1.0 + 0.1 * k as f64;
             // Tracks 0..50 persist; one new track per frame.
             let f = frame(t, k..(k + 50));
-            let w = window(t);
+            // The window fills over the first 11 frames.
+            let w = window(t, (k + 1).min(11));
             let mut envelopes = ob.tracks(k, &f, &calib);
-            let plan = ob.snapshot_due(k, t, w.poses.first().map(|p| p.t_cam));
+            let full = w.poses.len() == 11;
+            let plan = ob.snapshot_due(k, t, w.poses.first().map(|p| p.t_cam), full);
             if let Some(plan) = plan {
                 envelopes.extend(ob.snapshot(k, &f, plan, &w));
             }
@@ -321,9 +333,11 @@ mod tests {
                 .filter(|k| **k == MessageKind::Snapshot)
                 .count();
         }
-        // Keyframes at t = 1.0, 2.1, 3.2, 4.3 (period 1 s, but windows of 1.0 s must
-        // not overlap), and one snapshot between keyframes (6 frames after each).
-        assert_eq!(keyframes.len(), 4, "{keyframes:?}");
+        // Keyframes at t = 2.0 (the first full window), 3.1, 4.2 (period 1 s,
+        // but windows of 1.0 s must not overlap), and one snapshot between
+        // keyframes (6 frames after each; the first at the first frame).
+        assert_eq!(keyframes.len(), 3, "{keyframes:?}");
+        assert!((keyframes[0] - 2.0).abs() < 1e-9, "{keyframes:?}");
         for w in keyframes.windows(2) {
             assert!(w[1] - w[0] > 1.0 + 1e-9);
         }
