@@ -126,6 +126,26 @@ pub fn kill_and_restart(
     start_agent(config, log)
 }
 
+/// Data rows in a text file now (0 while it does not exist).
+pub fn rows_now(path: &Path) -> usize {
+    std::fs::read_to_string(path).map_or(0, |s| s.lines().filter(|l| !l.starts_with('#')).count())
+}
+
+/// Waits up to `limit` until the running agent's `estimate` (TUM, flushed
+/// about once a second) holds `rows` poses; whether it did. Ties a test's
+/// kill to how far the agent flew, not to the wall clock: a loaded machine
+/// starts agents late (the vocabulary is trained at start).
+pub fn wait_for_poses(estimate: &Path, rows: usize, limit: Duration) -> bool {
+    let t = Instant::now();
+    while t.elapsed() < limit {
+        if rows_now(estimate) >= rows {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    false
+}
+
 /// Waits up to `limit` for `child` to exit; whether it exited with success
 /// (killed, and `false`, at the limit).
 pub fn wait(child: &mut Child, limit: Duration) -> bool {

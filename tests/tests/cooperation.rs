@@ -137,7 +137,7 @@ fn agents_in_their_own_frames_align_their_peers_from_loop_closures_over_zenoh() 
 /// frames place it right (its frame is its trajectory's start either way).
 #[test]
 fn a_restarted_robot_in_its_own_frame_is_found_again_by_peers_holding_its_old_frame() {
-    use integration_tests::fleet::{configs, kill_and_restart, start_agents, wait};
+    use integration_tests::fleet::{configs, kill_and_restart, start_agents, wait, wait_for_poses};
     use std::time::Duration;
     let dir = tempfile::tempdir().unwrap();
     write_loop_trajectory(&dir.path().join("loop.txt"), 24.0).unwrap();
@@ -148,8 +148,9 @@ fn a_restarted_robot_in_its_own_frame_is_found_again_by_peers_holding_its_old_fr
     )
     .unwrap();
     let out = dir.path().join("run");
-    // Real time at 4x: the leader is killed about 10 s into its flight and
-    // back about 4 s later, over the places its followers reach next.
+    // Real time at 4x: the leader is killed 8-12 s into its flight (it has
+    // sent keyframe windows of its first frame by then) and back about 4 s
+    // later, over the places its followers reach next.
     let cfgs = configs(
         &sc,
         &out,
@@ -163,11 +164,17 @@ fn a_restarted_robot_in_its_own_frame_is_found_again_by_peers_holding_its_old_fr
         ],
     );
     let mut agents = start_agents(&cfgs, &out);
+    let flew = wait_for_poses(
+        &out.join("robot0/estimate.txt"),
+        80,
+        Duration::from_secs(60),
+    );
+    assert!(flew, "robot 0 did not fly 8 s");
     let mut restarted = kill_and_restart(
         &mut agents[0],
         &cfgs[0],
         &out.join("robot0-again.log"),
-        Duration::from_millis(2500),
+        Duration::ZERO,
         Duration::from_millis(1000),
     );
     for (i, a) in agents.iter_mut().enumerate().skip(1) {

@@ -5,7 +5,7 @@
 #![allow(clippy::unwrap_used)] // helpers outside #[test] functions
 
 use integration_tests::fleet::{
-    configs, kill_and_restart, probe, scenario, start_agent, start_agents, wait,
+    configs, kill_and_restart, probe, rows_now, scenario, start_agent, start_agents, wait,
 };
 use integration_tests::{bin, read_json, sim_fleet_run};
 
@@ -501,11 +501,6 @@ fn tum_rows(path: &Path) -> Vec<Vec<f64>> {
     assert!(rows.iter().all(|r: &Vec<f64>| r.len() == 8));
     assert!(rows.windows(2).all(|w| w[0][0] < w[1][0]));
     rows
-}
-
-/// Data rows in a text file now (0 while it does not exist).
-fn rows_now(path: &Path) -> usize {
-    std::fs::read_to_string(path).map_or(0, |s| s.lines().filter(|l| !l.starts_with('#')).count())
 }
 
 #[test]

@@ -268,7 +268,19 @@ pub fn measure(
             xy: *xy,
         });
     }
-    estimate_alignment(camera, &anchor, &points, opts).ok()
+    match estimate_alignment(camera, &anchor, &points, opts) {
+        Ok(m) => Some(m),
+        Err(e) => {
+            // Why a peer frame stays unaligned, for whoever reads the log.
+            tracing::debug!(
+                keyframe = lc.keyframe,
+                pairs = lc.pairs.len(),
+                points = points.len(),
+                "no alignment from the loop closure: {e}"
+            );
+            None
+        }
+    }
 }
 
 /// How well the peers' frames were aligned, against their true places.
