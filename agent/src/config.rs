@@ -451,6 +451,10 @@ pub struct EstimatorSection {
     /// `observability_constrained`).
     #[serde(default)]
     pub msckf_jacobians: Option<MsckfJacobians>,
+    /// Where the SLAM features' Jacobians are evaluated (`first_estimates` or
+    /// `observability_constrained`).
+    #[serde(default)]
+    pub slam_jacobians: Option<MsckfJacobians>,
     /// First-Estimates Jacobians.
     #[serde(default)]
     pub use_fej: Option<bool>,
@@ -583,6 +587,9 @@ impl EstimatorSection {
         if let Some(v) = self.msckf_jacobians {
             o.msckf_jacobians = v;
         }
+        if let Some(v) = self.slam_jacobians {
+            o.slam_jacobians = v;
+        }
         if let Some(v) = self.use_fej {
             o.use_fej = v;
         }
@@ -679,6 +686,7 @@ impl Default for EstimatorSection {
             rescue_first_update: None,
             keyframe_parallax_px: None,
             msckf_jacobians: None,
+            slam_jacobians: None,
             use_fej: None,
             calib_cam_extrinsics: None,
             calib_cam_intrinsics: None,

@@ -30,7 +30,8 @@ pub enum FeatureRepresentation {
     AnchoredInverseDepth,
 }
 
-/// Where the MSCKF's measurement Jacobians are evaluated (with `use_fej`).
+/// Where the MSCKF's (or the SLAM features') measurement Jacobians are
+/// evaluated (with `use_fej`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum MsckfJacobians {
@@ -580,6 +581,17 @@ pub struct EstimatorOptions {
     /// NEES 14.3, the second 0.231 m, NEES 1.46; on the reference trajectories
     /// both are within seed noise of each other (README).
     pub msckf_jacobians: MsckfJacobians,
+    /// Where the SLAM features' Jacobians are evaluated when `use_fej`, in
+    /// their updates and their delayed initialization: at the first estimates
+    /// (default, OpenVINS), or at the current estimate with the unobservable
+    /// directions projected out. On a slow flight the first estimates of the
+    /// clones and features are far from the current ones and the filter claims
+    /// a position it does not have: V1_01 at 0.3x with a keyframe window,
+    /// inverse-depth features and constrained MSCKF Jacobians, 10 seeds,
+    /// position NEES 14.6 with the first, 2.1 with the second (README, Slow
+    /// flights). With 3-D points at full speed it costs orientation (V1_01
+    /// 0.230 -> 0.384 deg).
+    pub slam_jacobians: MsckfJacobians,
     /// Global or anchored 3-D SLAM features.
     pub feature_representation: FeatureRepresentation,
     /// Maximum MSCKF features used per frame (the longest tracks first). A
@@ -725,6 +737,7 @@ impl Default for EstimatorOptions {
             rescue_first_update: true,
             keyframe_parallax_px: 0.0,
             msckf_jacobians: MsckfJacobians::default(),
+            slam_jacobians: MsckfJacobians::default(),
             feature_representation: Default::default(),
             max_msckf_in_update: 40,
             use_fej: true,

@@ -7,7 +7,8 @@ use super::feature_db::FeatureDb;
 use super::feature_system::{build, Columns};
 use super::filter::Filter;
 use super::linalg::givens_qr_split;
-use super::options::EstimatorOptions;
+use super::observability;
+use super::options::{EstimatorOptions, MsckfJacobians};
 use super::projection::{predict, project, Projection};
 use super::slam_feature::{anchor_params, global_position, in_anchor, FeatureRepresentation};
 use super::state::{SlamFeature, Var};
@@ -114,12 +115,38 @@ pub fn update<F: Filter + ?Sized>(
     chi2: &Chi2Table,
     stats: &mut SlamStats,
 ) {
+    let Some((cols, h, res)) = stacked_rows(state, db, ids, clone_key, opts) else {
+        return;
+    };
+    let m = res.len();
+    let r = DMatrix::identity(m, m) * opts.slam_sigma_px().powi(2);
+    let threshold = opts.chi2_multiplier * chi2.get(2);
+    match state.gated_ekf_update(&cols.vars, &h, &res, &r, 2, threshold) {
+        Ok(accepted) => {
+            let used = accepted.iter().filter(|a| **a).count();
+            stats.updated += used;
+            stats.rejected_chi2 += accepted.len() - used;
+        }
+        Err(_) => stats.rejected_chi2 += m / 2,
+    }
+}
+
+/// The stacked rows of SLAM features `ids` seen by clone `clone_key`: their
+/// columns, Jacobian and residual (`None` when no feature gives a row).
+fn stacked_rows<F: Filter + ?Sized>(
+    state: &F,
+    db: &FeatureDb,
+    ids: &[u64],
+    clone_key: u64,
+    opts: &EstimatorOptions,
+) -> Option<(Columns, DMatrix<f64>, DVector<f64>)> {
+    let oc = constrained(opts);
     let rows: Vec<Row> = ids
         .iter()
-        .filter_map(|&id| measurement_row(state, db, id, clone_key, opts.use_fej))
+        .filter_map(|&id| measurement_row(state, db, id, clone_key, opts.use_fej && !oc))
         .collect();
     if rows.is_empty() {
-        return;
+        return None;
     }
     let mut vars: Vec<Var> = Vec::new();
     for row in &rows {
@@ -138,16 +165,18 @@ pub fn update<F: Filter + ?Sized>(
         res[2 * i] = row.res[0];
         res[2 * i + 1] = row.res[1];
     }
-    let r = DMatrix::identity(m, m) * opts.slam_sigma_px().powi(2);
-    let threshold = opts.chi2_multiplier * chi2.get(2);
-    match state.gated_ekf_update(&cols.vars, &h, &res, &r, 2, threshold) {
-        Ok(accepted) => {
-            let used = accepted.iter().filter(|a| **a).count();
-            stats.updated += used;
-            stats.rejected_chi2 += accepted.len() - used;
-        }
-        Err(_) => stats.rejected_chi2 += rows.len(),
+    if oc {
+        // No information along the first estimates' unobservable directions.
+        let n = observability::unobservable_directions(&cols, state.means());
+        observability::project_out(&mut h, &n);
     }
+    Some((cols, h, res))
+}
+
+/// Whether the SLAM Jacobians are taken at the current estimates and then
+/// constrained (`EstimatorOptions::slam_jacobians`).
+fn constrained(opts: &EstimatorOptions) -> bool {
+    opts.use_fej && opts.slam_jacobians == MsckfJacobians::ObservabilityConstrained
 }
 
 /// Delayed initialization of each of `candidates`, counted in `stats`. A
@@ -189,6 +218,34 @@ pub fn initialize_candidates<F: Filter + ?Sized>(
     }
 }
 
+/// Projects an initialization system `[H_x, H_f]` (Eq. 2.41) so that it gives
+/// no information along the unobservable directions `n_x` of its columns and
+/// of the new feature: a global point at `global` moves with the world as the
+/// clones do; an anchored one (`None`) moves with its anchor clone.
+fn constrain_initialization(
+    h_x: &mut DMatrix<f64>,
+    h_f: &mut DMatrix<f64>,
+    n_x: &DMatrix<f64>,
+    global: Option<&Vector3<f64>>,
+) {
+    let (rows, dim) = h_x.shape();
+    let mut n = DMatrix::zeros(dim + 3, 4);
+    n.view_mut((0, 0), (dim, 4)).copy_from(n_x);
+    if let Some(p) = global {
+        let yaw = Vector3::z().cross(p);
+        for a in 0..3 {
+            n[(dim + a, a)] = 1.0;
+            n[(dim + a, 3)] = yaw[a];
+        }
+    }
+    let mut h = DMatrix::zeros(rows, dim + 3);
+    h.columns_mut(0, dim).copy_from(h_x);
+    h.columns_mut(dim, 3).copy_from(h_f);
+    observability::project_out(&mut h, &n);
+    *h_x = h.columns(0, dim).into_owned();
+    *h_f = h.columns(dim, 3).into_owned();
+}
+
 /// Delayed initialization of feature `id` into the state from its whole track.
 /// Returns whether it entered the state.
 pub fn initialize<F: Filter + ?Sized>(
@@ -203,7 +260,8 @@ pub fn initialize<F: Filter + ?Sized>(
         return false;
     };
     let cols = Columns::window(state);
-    let Some(mut sys) = build(state.means(), feature, &cols, opts.use_fej, tri) else {
+    let oc = constrained(opts);
+    let Some(mut sys) = build(state.means(), feature, &cols, opts.use_fej && !oc, tri) else {
         return false;
     };
     // Anchored: the new variable is p_FinA in the newest clone's camera (or its
@@ -233,7 +291,7 @@ pub fn initialize<F: Filter + ?Sized>(
             anchor: Some(a),
             inverse_depth,
         };
-        let Some((_, jac)) = global_position(state, id, &probe, true) else {
+        let Some((_, jac)) = global_position(state, id, &probe, !oc) else {
             return false;
         };
         let h_fg = sys.h_f.clone();
@@ -247,6 +305,11 @@ pub fn initialize<F: Filter + ?Sized>(
             }
         }
         (p_init, p_init_fej) = (p_a, p_a_fej);
+    }
+    if oc {
+        let n_x = observability::unobservable_directions(&cols, state.means());
+        let global = anchor.is_none().then_some(&p_init_fej);
+        constrain_initialization(&mut sys.h_x, &mut sys.h_f, &n_x, global);
     }
     // Eq. 2.41-2.43: rotate so H_f = [R_f; 0]; the top 3 rows initialize the
     // feature, the rest update the state.
@@ -287,4 +350,99 @@ pub fn initialize<F: Filter + ?Sized>(
     // its correlations).
     let _ = state.ekf_update(&cols.vars, &h_x2, &r2, &noise2);
     true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimator::test_scene::scene;
+    use common::so3::exp_so3;
+
+    /// A scene of 6 clones whose first estimates are off their current poses
+    /// (cloned before corrections of 1-6 cm and 0.5 deg), with landmark 0 a
+    /// global SLAM feature whose first estimate is 20 cm off.
+    fn stale_scene() -> crate::estimator::test_scene::Scene {
+        let mut s = scene(6, 4, 1e-4, 1e-4);
+        for (k, c) in s.state.means.clones.values_mut().enumerate() {
+            let d = 0.01 * (k as f64 + 1.0);
+            c.pos_fej = c.pos + Vector3::new(d, -0.5 * d, 0.3 * d);
+            c.rot_fej = c.rot * exp_so3(&Vector3::new(0.0, 0.009, 0.004 * k as f64));
+        }
+        let p = s.landmarks[0];
+        s.state
+            .augment(Var::Feature(0), &[], &(DMatrix::identity(3, 3) * 0.01))
+            .expect("new feature");
+        s.state.means.features.insert(
+            0,
+            SlamFeature {
+                pos: p,
+                pos_fej: p + Vector3::new(0.1, 0.15, -0.05),
+                anchor: None,
+                inverse_depth: false,
+            },
+        );
+        s
+    }
+
+    fn leak(cols: &Columns, h: &DMatrix<f64>, means: &crate::estimator::state::Means) -> f64 {
+        let n = observability::unobservable_directions(cols, means);
+        (h * &n).norm() / h.norm()
+    }
+
+    #[test]
+    fn constrained_slam_rows_give_no_information_along_the_unobservable_directions() {
+        let s = stale_scene();
+        let opts = |j| EstimatorOptions {
+            slam_jacobians: j,
+            ..EstimatorOptions::default()
+        };
+        let first = opts(MsckfJacobians::FirstEstimates);
+        let (cols, h, _) = stacked_rows(&s.state, &s.db, &[0], 6, &first).expect("rows");
+        // At the first estimates the rows annihilate the directions by construction.
+        assert!(leak(&cols, &h, &s.state.means) < 1e-12);
+        // At the current estimates they would not; constrained, they do.
+        let current = EstimatorOptions {
+            use_fej: false,
+            ..first.clone()
+        };
+        let (cols, h_cur, _) = stacked_rows(&s.state, &s.db, &[0], 6, &current).expect("rows");
+        assert!(leak(&cols, &h_cur, &s.state.means) > 1e-4);
+        let oc = opts(MsckfJacobians::ObservabilityConstrained);
+        let (cols, h_oc, res) = stacked_rows(&s.state, &s.db, &[0], 6, &oc).expect("rows");
+        assert!(leak(&cols, &h_oc, &s.state.means) < 1e-12);
+        assert!((&h_oc - &h_cur).norm() < 0.1 * h_cur.norm());
+        // The residual is the current estimate's either way (exact here).
+        assert!(res.norm() < 1e-9, "{res}");
+    }
+
+    #[test]
+    fn a_constrained_initialization_gives_no_information_along_them() {
+        let s = stale_scene();
+        let cols = Columns::window(&s.state);
+        let feature = s.db.get(1).expect("track");
+        let tri = TriangulationOptions::default();
+        let sys = build(&s.state.means, feature, &cols, false, &tri).expect("system");
+        let n_x = observability::unobservable_directions(&cols, &s.state.means);
+        let joint_leak = |h_x: &DMatrix<f64>, h_f: &DMatrix<f64>, p: Option<&Vector3<f64>>| {
+            let mut n = DMatrix::zeros(cols.dim + 3, 4);
+            n.view_mut((0, 0), (cols.dim, 4)).copy_from(&n_x);
+            if let Some(p) = p {
+                let yaw = Vector3::z().cross(p);
+                for a in 0..3 {
+                    n[(cols.dim + a, a)] = 1.0;
+                    n[(cols.dim + a, 3)] = yaw[a];
+                }
+            }
+            let mut h = DMatrix::zeros(h_x.nrows(), cols.dim + 3);
+            h.columns_mut(0, cols.dim).copy_from(h_x);
+            h.columns_mut(cols.dim, 3).copy_from(h_f);
+            (&h * &n).norm() / h.norm()
+        };
+        for global in [Some(sys.p_f), None] {
+            let (mut h_x, mut h_f) = (sys.h_x.clone(), sys.h_f.clone());
+            assert!(joint_leak(&h_x, &h_f, global.as_ref()) > 1e-4);
+            constrain_initialization(&mut h_x, &mut h_f, &n_x, global.as_ref());
+            assert!(joint_leak(&h_x, &h_f, global.as_ref()) < 1e-12);
+        }
+    }
 }

@@ -393,6 +393,9 @@ pub struct EstimatorSpec {
     /// Where the MSCKF's Jacobians are evaluated: `first_estimates` or
     /// `observability_constrained` (`EstimatorOptions::msckf_jacobians`).
     pub msckf_jacobians: MsckfJacobians,
+    /// Where the SLAM features' Jacobians are evaluated: `first_estimates` or
+    /// `observability_constrained` (`EstimatorOptions::slam_jacobians`).
+    pub slam_jacobians: MsckfJacobians,
     /// SLAM feature parameterization: `global` (p_FinG), `anchored` (in the
     /// camera of the clone that initialized it) or `anchored_inverse_depth` (its
     /// inverse depth there).
@@ -467,6 +470,7 @@ impl EstimatorSpec {
             rescue_first_update: self.rescue_first_update,
             keyframe_parallax_px: self.keyframe_parallax_px,
             msckf_jacobians: self.msckf_jacobians,
+            slam_jacobians: self.slam_jacobians,
             feature_representation: self.feature_representation,
             max_msckf_in_update: self.max_msckf_in_update,
             use_fej: self.use_fej,
@@ -512,6 +516,7 @@ impl Default for EstimatorSpec {
             rescue_first_update: o.rescue_first_update,
             keyframe_parallax_px: o.keyframe_parallax_px,
             msckf_jacobians: o.msckf_jacobians,
+            slam_jacobians: o.slam_jacobians,
             feature_representation: o.feature_representation,
             max_msckf_in_update: o.max_msckf_in_update,
             pixel_sigma_px: None,
