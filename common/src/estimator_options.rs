@@ -588,9 +588,9 @@ pub struct EstimatorOptions {
     /// clones and features are far from the current ones and the filter claims
     /// a position it does not have: V1_01 at 0.3x with a keyframe window,
     /// inverse-depth features and constrained MSCKF Jacobians, 10 seeds,
-    /// position NEES 14.6 with the first, 2.1 with the second (README, Slow
-    /// flights). With 3-D points at full speed it costs orientation (V1_01
-    /// 0.230 -> 0.384 deg).
+    /// position NEES 14.6 with the first, 2.5 with the second (README, Slow
+    /// flights). With 3-D points, constrained MSCKF Jacobians and no keyframe
+    /// window it costs orientation at full speed (V1_01 0.230 -> 0.384 deg).
     pub slam_jacobians: MsckfJacobians,
     /// Global or anchored 3-D SLAM features.
     pub feature_representation: FeatureRepresentation,
