@@ -360,7 +360,7 @@ mod tests {
 
     /// A scene of 6 clones whose first estimates are off their current poses
     /// (cloned before corrections of 1-6 cm and 0.5 deg), with landmark 0 a
-    /// global SLAM feature whose first estimate is 20 cm off.
+    /// global SLAM feature whose first estimate is 19 cm off.
     fn stale_scene() -> crate::estimator::test_scene::Scene {
         let mut s = scene(6, 4, 1e-4, 1e-4);
         for (k, c) in s.state.means.clones.values_mut().enumerate() {
