@@ -1,14 +1,16 @@
 //! Estimator speed: milliseconds per camera frame (propagation + updates +
 //! marginalization, one thread) with and without SLAM features, side by side,
-//! and with the SLAM features kept as anchored inverse depths instead of the
-//! scenario's representation.
+//! with the SLAM features kept as anchored inverse depths instead of the
+//! scenario's representation, and with the README's four settings for slow
+//! platforms (keyframe rule at 4 px, inverse depths, observability-constrained
+//! MSCKF and SLAM Jacobians).
 //!
 //! `cargo bench -p agent --bench estimator_speed [-- SCENARIO [ROUNDS]]`
 //! (default `sim-fleet/scenarios/v1_01_easy.yaml`, 3 rounds). The variants run
 //! alternately so a noisy machine affects both alike; per-stage means and the
 //! p50/p95 of the frame total are printed for each.
 use agent::runner::{options_for, run_robot, Variant};
-use common::estimator_options::FeatureRepresentation;
+use common::estimator_options::{EstimatorOptions, FeatureRepresentation, MsckfJacobians};
 use simulator::{Fleet, Scenario};
 use std::path::PathBuf;
 
@@ -23,22 +25,21 @@ fn main() -> anyhow::Result<()> {
     let rounds: usize = args.get(1).and_then(|r| r.parse().ok()).unwrap_or(3);
     let scenario = Scenario::load(&path)?;
     let fleet = Fleet::build(&scenario, scenario.seed)?;
-    let variants = [
-        ("indp-slam", Variant::IndpSlam, None),
-        ("indp", Variant::Indp, None),
-        (
-            "indp-slam, inverse depth",
-            Variant::IndpSlam,
-            Some(FeatureRepresentation::AnchoredInverseDepth),
-        ),
+    // Each variant's settings on top of the scenario's.
+    type Tweak = fn(&mut EstimatorOptions);
+    let variants: [(&str, Variant, Tweak); 4] = [
+        ("indp-slam", Variant::IndpSlam, |_| {}),
+        ("indp", Variant::Indp, |_| {}),
+        ("indp-slam, inverse depth", Variant::IndpSlam, |o| {
+            o.feature_representation = FeatureRepresentation::AnchoredInverseDepth;
+        }),
+        ("indp-slam, slow platform", Variant::IndpSlam, slow_platform),
     ];
     let mut frames: Vec<Vec<agent::estimator::FrameRecord>> = vec![Vec::new(); variants.len()];
     for _ in 0..rounds {
-        for (i, (_, v, representation)) in variants.iter().enumerate() {
+        for (i, (_, v, tweak)) in variants.iter().enumerate() {
             let mut opts = options_for(&scenario.estimator, &fleet, *v);
-            if let Some(r) = representation {
-                opts.feature_representation = *r;
-            }
+            tweak(&mut opts);
             let run = run_robot(&fleet, 0, opts)?;
             frames[i].extend(run.frames);
         }
@@ -48,7 +49,7 @@ fn main() -> anyhow::Result<()> {
         scenario.name
     );
     println!(
-        "variant                   frames  propagate  msckf  slam_upd  slam_init  marg    mean    p50     p95"
+        "variant                     frames  propagate  msckf  slam_upd  slam_init  marg    mean    p50     p95"
     );
     for ((label, _, _), f) in variants.iter().zip(&frames) {
         let n = f.len().max(1) as f64;
@@ -63,7 +64,7 @@ fn main() -> anyhow::Result<()> {
                 .unwrap_or(f64::NAN)
         };
         println!(
-            "{:<24} {:>7} {:>10.3} {:>6.3} {:>9.3} {:>10.3} {:>5.3} {:>7.3} {:>6.3} {:>7.3}",
+            "{:<26} {:>7} {:>10.3} {:>6.3} {:>9.3} {:>10.3} {:>5.3} {:>7.3} {:>6.3} {:>7.3}",
             label,
             f.len(),
             mean(|t| t.propagate_ms),
@@ -77,4 +78,12 @@ fn main() -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// README, "Settings for slow platforms".
+fn slow_platform(o: &mut EstimatorOptions) {
+    o.keyframe_parallax_px = 4.0;
+    o.feature_representation = FeatureRepresentation::AnchoredInverseDepth;
+    o.msckf_jacobians = MsckfJacobians::ObservabilityConstrained;
+    o.slam_jacobians = MsckfJacobians::ObservabilityConstrained;
 }
