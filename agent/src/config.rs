@@ -550,6 +550,9 @@ pub struct EstimatorSection {
     /// (`cooperation.split_unobservable`).
     #[serde(default)]
     pub split_unobservable: Option<bool>,
+    /// Split CI over our own calibration (`cooperation.split_calibration`).
+    #[serde(default)]
+    pub split_calibration: Option<bool>,
     /// Vocabulary file for historical loop closures (`vocab train` output);
     /// without it, a vocabulary for random binary descriptors (the simulator's)
     /// is built in memory.
@@ -651,6 +654,9 @@ impl EstimatorSection {
         if let Some(s) = self.split_unobservable {
             c.split_unobservable = s;
         }
+        if let Some(s) = self.split_calibration {
+            c.split_calibration = s;
+        }
     }
 }
 
@@ -712,6 +718,7 @@ impl Default for EstimatorSection {
             held_frame_measurement_period_s: None,
             held_frame_measurement_window_s: None,
             split_unobservable: None,
+            split_calibration: None,
             vocabulary: None,
         }
     }

@@ -321,6 +321,14 @@ pub struct CooperationOptions {
     /// peers' windows, in their own frames, cannot carry it. Without it a
     /// frame and our pose drift together under the inflation.
     pub split_unobservable: bool,
+    /// Split CI over our own calibration (camera-IMU time offset, extrinsics,
+    /// intrinsics, when estimated): in every CI update our covariance of the
+    /// calibration, conditioned on the rest of our state, is not inflated by
+    /// `1/ω`. It describes our own sensor rig, which no peer estimates; without
+    /// it the inflation of every frame's update wipes out what our own
+    /// measurements taught the filter about it, and a robot of the EuRoC fleet
+    /// ends its flight knowing its calibration worse than its prior (README).
+    pub split_calibration: bool,
     /// Fewest loop-closure points that must agree on an alignment.
     pub min_alignment_inliers: usize,
     /// Loop closures to different keyframe windows of a peer that must agree
@@ -369,6 +377,7 @@ impl Default for CooperationOptions {
             held_frame_measurement_period_s: 5.0,
             held_frame_measurement_window_s: 60.0,
             split_unobservable: true,
+            split_calibration: true,
             min_alignment_inliers: 12,
             alignment_confirmations: 2,
             max_alignment_yaw_sigma_deg: 2.0,

@@ -288,20 +288,39 @@ pub fn update(
         r0 += k;
     }
     let (h, h_parts, res) = compress_joint(h, h_parts, res);
+    // Whitened rows; with `split_calibration`, plus the peers' intrinsics'
+    // part that is not inflated (`ci_split::peer_intrinsics_factor`).
+    let mut noise = DMatrix::identity(res.len(), res.len());
     let terms: Vec<PeerTerm> = parts
         .iter()
         .zip(h_parts)
-        .map(|((p, items), hp)| PeerTerm {
-            h: hp,
-            cov: part_covariance(*p, items, participants),
-            weight: Some(match p {
-                Part::Poses(_) => opts.ci_peer_weight,
-                Part::Landmarks(_) => opts.constraint_peer_weight,
-            }),
+        .map(|((p, items), hp)| {
+            let mut cov = part_covariance(*p, items, participants);
+            if let (true, Part::Poses(w)) = (opts.split_calibration, p) {
+                let (offsets, _) = p.layout(items, participants);
+                let intrinsics = participants[*w].intrinsics_item().and_then(|ii| {
+                    let at = items.iter().position(|i| *i == ii)?;
+                    Some(offsets[at])
+                });
+                if let Some(b) = intrinsics.and_then(|o| ci_split::peer_intrinsics_factor(&cov, o))
+                {
+                    let bbt = &b * b.transpose();
+                    let hb = &hp * &b;
+                    cov -= bbt;
+                    noise += &hb * hb.transpose();
+                }
+            }
+            PeerTerm {
+                h: hp,
+                cov,
+                weight: Some(match p {
+                    Part::Poses(_) => opts.ci_peer_weight,
+                    Part::Landmarks(_) => opts.constraint_peer_weight,
+                }),
+            }
         })
         .collect();
     let weights = weights_of(opts);
-    let eye = DMatrix::identity(res.len(), res.len());
     // Split CI only when no participant sees our frame's yaw and translation:
     // each came into our frame through a peer frame our state holds.
     let through_held_frames = !parts.is_empty()
@@ -311,20 +330,52 @@ pub fn update(
             };
             participants.get(w).is_some_and(|pw| pw.frame.is_some())
         });
-    let unobserved = (opts.split_unobservable && through_held_frames)
-        .then(|| ci_split::unobserved_factor(state))
-        .flatten();
+    let unobserved = split_factor(state, opts, through_held_frames);
     updater_ci::update(
         state,
         &cols.vars,
         &h,
         &res,
-        &eye,
+        &noise,
         &terms,
         &weights,
         unobserved.as_ref(),
     )
     .map(Some)
+}
+
+/// The part of our covariance CI does not inflate (split CI, `ci_split`): our
+/// world's yaw and translation when every participant comes through a frame
+/// our state holds (`split_unobservable`), our calibration
+/// (`split_calibration`), both conditioned on the rest. `None`: all is
+/// inflated.
+fn split_factor(
+    state: &State,
+    opts: &CooperationOptions,
+    through_held_frames: bool,
+) -> Option<DMatrix<f64>> {
+    let cols = super::feature_system::Columns::of(state.vars().collect());
+    let mut blocks: Vec<DMatrix<f64>> = Vec::new();
+    if opts.split_unobservable && through_held_frames {
+        blocks.push(super::observability::unobservable_directions(
+            &cols,
+            &state.means,
+        ));
+    }
+    if opts.split_calibration {
+        blocks.extend(ci_split::calibration_directions(state));
+    }
+    let k: usize = blocks.iter().map(|b| b.ncols()).sum();
+    if k == 0 {
+        return None;
+    }
+    let mut n = DMatrix::zeros(state.dim(), k);
+    let mut c = 0;
+    for b in &blocks {
+        n.columns_mut(c, b.ncols()).copy_from(b);
+        c += b.ncols();
+    }
+    ci_split::conditional_factor(state, &n)
 }
 
 /// How the options choose the CI weights.
