@@ -7,7 +7,8 @@
 //! frame through a peer frame held in our state is measured only relative to
 //! our pose: a yaw and translation of our whole world frame moves our pose,
 //! clones, global features and every held frame together and changes no such
-//! measurement. Along those four directions (`N`, [`unobservable_directions`])
+//! measurement. Along those four directions (`N`,
+//! [`unobservable_directions`](super::observability::unobservable_directions))
 //! nothing but our own measurements ever informed our estimate, so the part of
 //! our covariance there, conditioned on the rest, is treated as independent of
 //! the peers and is not inflated (split CI, Julier and Uhlmann): with
@@ -28,22 +29,12 @@
 //! rest of our state, stays out of `1/ω`; a peer window's intrinsics, given
 //! its poses, out of the peer's `1/(1−ω)` (README, "Results: three robots").
 
-use super::feature_system::Columns;
-use super::observability::unobservable_directions;
 use super::state::{State, Var};
 use common::messages::INTRINSICS_DIM;
 use nalgebra::DMatrix;
 
 /// The relative increase of each variance before `P` is factored.
 const REGULARIZATION: f64 = 1e-8;
-
-/// `B` (`n x 4`, over the whole state in covariance order) with
-/// `B Bᵀ = N (Nᵀ P⁻¹ N)⁻¹ Nᵀ`; `None` when `P` or `Nᵀ P⁻¹ N` is not
-/// positive definite (the caller then inflates everything).
-pub fn unobserved_factor(state: &State) -> Option<DMatrix<f64>> {
-    let cols = Columns::of(state.vars().collect());
-    conditional_factor(state, &unobservable_directions(&cols, &state.means))
-}
 
 /// The calibration's columns of the state (time offset, extrinsics,
 /// intrinsics, those it holds) as unit directions, `n x k`; `None` without any.
@@ -108,6 +99,8 @@ fn factor_given_rest(mut p: DMatrix<f64>, n: &DMatrix<f64>) -> Option<DMatrix<f6
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::estimator::feature_system::Columns;
+    use crate::estimator::observability::unobservable_directions;
     use crate::estimator::state::{PeerFrameMean, SlamFeature, Var};
     use crate::estimator::test_scene::scene;
     use nalgebra::Vector3;
@@ -196,7 +189,9 @@ mod tests {
     #[test]
     fn the_unobserved_part_is_the_conditional_covariance_along_the_directions() {
         let s = state();
-        let b = unobserved_factor(&s).expect("factor");
+        let cols = Columns::of(s.vars().collect());
+        let n = unobservable_directions(&cols, &s.means);
+        let b = conditional_factor(&s, &n).expect("factor");
         let p = s.cov();
         // (P − B Bᵀ) P⁻¹ N = N − N = 0: the inflated part loses exactly the
         // four directions' rank and stays positive semidefinite.
@@ -211,8 +206,6 @@ mod tests {
         }
         assert!(ev[4] > 1e-4 * scale, "{ev:?}");
         // Along N: B Bᵀ = N Σ Nᵀ with Σ⁻¹ = Nᵀ P⁻¹ N.
-        let cols = Columns::of(s.vars().collect());
-        let n = unobservable_directions(&cols, &s.means);
         let info = n.transpose() * p.clone().try_inverse().unwrap() * &n;
         let sigma = info.try_inverse().unwrap();
         let expect = &n * sigma * n.transpose();

@@ -354,9 +354,9 @@ fn split_factor(
     opts: &CooperationOptions,
     through_held_frames: bool,
 ) -> Option<DMatrix<f64>> {
-    let cols = super::feature_system::Columns::of(state.vars().collect());
     let mut blocks: Vec<DMatrix<f64>> = Vec::new();
     if opts.split_unobservable && through_held_frames {
+        let cols = Columns::of(state.vars().collect());
         blocks.push(super::observability::unobservable_directions(
             &cols,
             &state.means,
