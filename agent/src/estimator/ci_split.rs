@@ -25,7 +25,8 @@
 //! The calibration (time offset, extrinsics, intrinsics) is split the same
 //! way: it describes one robot's own rig, which no peer estimates, and at
 //! about ten updates a second the `1/ω` left a fleet's robots knowing their
-//! calibration worse than their prior by the end of a flight. Ours, given the
+//! calibration 2-5 times worse than alone by the end of a flight, one worse
+//! than its prior. Ours, given the
 //! rest of our state, stays out of `1/ω`; a peer window's intrinsics, given
 //! its poses, out of the peer's `1/(1−ω)` (README, "Results: three robots").
 
