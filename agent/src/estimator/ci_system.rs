@@ -216,6 +216,24 @@ fn part_covariance(part: Part, items: &[usize], participants: &[PeerWindow]) -> 
     }
 }
 
+/// `B` of the part `B Bᵀ` of a peer window's covariance `cov` (over `items`)
+/// that its intrinsics hold given its poses (`ci_split::peer_intrinsics_factor`),
+/// when the update involves them; `None` otherwise.
+fn peer_intrinsics_part(
+    part: Part,
+    items: &[usize],
+    cov: &DMatrix<f64>,
+    participants: &[PeerWindow],
+) -> Option<DMatrix<f64>> {
+    let Part::Poses(w) = part else {
+        return None;
+    };
+    let intrinsics = participants.get(w)?.intrinsics_item()?;
+    let at = items.iter().position(|i| *i == intrinsics)?;
+    let (offsets, _) = part.layout(items, participants);
+    ci_split::peer_intrinsics_factor(cov, offsets[at])
+}
+
 /// Stacks `rows` and applies one CI-EKF update. `Ok(None)` when there is
 /// nothing to do.
 pub fn update(
@@ -296,17 +314,10 @@ pub fn update(
         .zip(h_parts)
         .map(|((p, items), hp)| {
             let mut cov = part_covariance(*p, items, participants);
-            if let (true, Part::Poses(w)) = (opts.split_calibration, p) {
-                let (offsets, _) = p.layout(items, participants);
-                let intrinsics = participants[*w].intrinsics_item().and_then(|ii| {
-                    let at = items.iter().position(|i| *i == ii)?;
-                    Some(offsets[at])
-                });
-                if let Some(b) = intrinsics.and_then(|o| ci_split::peer_intrinsics_factor(&cov, o))
-                {
-                    let bbt = &b * b.transpose();
+            if opts.split_calibration {
+                if let Some(b) = peer_intrinsics_part(*p, items, &cov, participants) {
                     let hb = &hp * &b;
-                    cov -= bbt;
+                    cov -= &b * b.transpose();
                     noise += &hb * hb.transpose();
                 }
             }
