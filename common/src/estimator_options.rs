@@ -371,7 +371,7 @@ impl Default for CooperationOptions {
             max_window_age_s: 1.0,
             max_peers_matched_per_frame: 3,
             max_ci_participants: 2,
-            max_common_per_frame: 3,
+            max_common_per_frame: 6,
             align_peer_frames: false,
             peer_frame_state_s: None,
             max_held_peer_frames: 16,
