@@ -544,6 +544,10 @@ pub struct EstimatorSection {
     /// (`cooperation.held_frame_measurement_window_s`).
     #[serde(default)]
     pub held_frame_measurement_window_s: Option<f64>,
+    /// At most this many of those measurements a second over all held
+    /// frames, 1/s (`cooperation.held_frame_measurements_per_s`).
+    #[serde(default)]
+    pub held_frame_measurements_per_s: Option<f64>,
     /// While peer frames are held in the state, leave our covariance along
     /// our world's yaw and translation (which no peer measurement through
     /// them observes) out of CI's inflation
@@ -651,6 +655,9 @@ impl EstimatorSection {
         if let Some(w) = self.held_frame_measurement_window_s {
             c.held_frame_measurement_window_s = w;
         }
+        if let Some(r) = self.held_frame_measurements_per_s {
+            c.held_frame_measurements_per_s = r;
+        }
         if let Some(s) = self.split_unobservable {
             c.split_unobservable = s;
         }
@@ -717,6 +724,7 @@ impl Default for EstimatorSection {
             max_held_peer_frames: None,
             held_frame_measurement_period_s: None,
             held_frame_measurement_window_s: None,
+            held_frame_measurements_per_s: None,
             split_unobservable: None,
             split_calibration: None,
             vocabulary: None,

@@ -163,6 +163,26 @@ impl Cooperation {
         }
     }
 
+    /// How long a frame our state holds waits at `t_s` between two of its
+    /// measurements: `held_frame_measurement_period_s`, stretched so that the
+    /// frames in their measurement window together take at most
+    /// `held_frame_measurements_per_s`.
+    fn held_frame_period_s(&self, t_s: f64) -> f64 {
+        let window = self.opts.held_frame_measurement_window_s;
+        let measured = self
+            .peers
+            .iter()
+            .flat_map(|(&peer, st)| st.frames.iter().map(move |(&epoch, f)| (peer, epoch, f)))
+            .filter(|&(peer, epoch, f)| {
+                f.alignment().is_some()
+                    && self.holds_in_state(peer, epoch)
+                    && f.confirmed_within(t_s, window)
+            })
+            .count();
+        let period = self.opts.held_frame_measurement_period_s;
+        period.max(measured as f64 / self.opts.held_frame_measurements_per_s)
+    }
+
     /// Measures where peer `peer`'s frame is in ours from the loop closures
     /// `found` to its keyframe windows (see `peer_frames`).
     fn measure_frame(
@@ -179,6 +199,7 @@ impl Cooperation {
         let opts = alignment_options(&self.opts, frame.sigma_normalized);
         let confirmations = self.opts.alignment_confirmations;
         let focal = self.focal_px;
+        let held_period = self.held_frame_period_s(frame.t_s);
         for lc in found {
             let Some(kf) = h.keyframes.get(&lc.keyframe) else {
                 continue;
@@ -194,11 +215,10 @@ impl Cooperation {
                 continue;
             }
             if in_state && peer_frame.alignment().is_some() {
-                let period = self.opts.held_frame_measurement_period_s;
                 let window = self.opts.held_frame_measurement_window_s;
-                if period <= 0.0
+                if self.opts.held_frame_measurement_period_s <= 0.0
                     || !peer_frame.confirmed_within(frame.t_s, window)
-                    || !peer_frame.measured_before(frame.t_s - period)
+                    || !peer_frame.measured_before(frame.t_s - held_period)
                 {
                     continue;
                 }

@@ -382,6 +382,66 @@ fn a_frame_for_the_state_is_seeded_once_and_used_at_the_states_mean() {
     assert!(coop.take_frame_seeds().is_empty());
 }
 
+/// Held frames share `held_frame_measurements_per_s`: with two held, each is
+/// measured again at most once per `max(period, 2 / rate)`.
+#[test]
+fn held_frames_share_the_measurement_rate() {
+    for (rate, wait_s) in [(f64::INFINITY, 2.0), (0.25, 8.0)] {
+        let mut rng = ChaCha8Rng::seed_from_u64(12);
+        let (w, mut frame) = world_and_posed_frame(&mut rng);
+        let opts = CooperationOptions {
+            align_peer_frames: true,
+            peer_frame_state_s: Some(60.0),
+            alignment_confirmations: 1,
+            held_frame_measurement_period_s: 2.0,
+            held_frame_measurements_per_s: rate,
+            ..options()
+        };
+        let mut coop = Cooperation::new(opts, builtin_vocabulary(), 460.0);
+        let peers: Peers = [3u32, 4]
+            .into_iter()
+            .map(|peer| {
+                let mut h = peer_history_in(&w, &mut rng, 5);
+                h.clear_recent();
+                (peer, h)
+            })
+            .collect();
+        coop.match_frame(&frame, &peers, 4);
+        assert_eq!(coop.take_frame_seeds().len(), 2, "both frames confirmed");
+        let held = crate::estimator::frame_alignment::FrameAlignment {
+            yaw_rad: 0.0,
+            t_m: Vector3::zeros(),
+            cov: nalgebra::Matrix4::identity() * 1e-4,
+        };
+        coop.set_state_frames([((3, 5), held), ((4, 5), held)].into_iter().collect());
+        let t0 = frame.t_s;
+        let mut measured: BTreeMap<u32, Vec<f64>> = BTreeMap::new();
+        for step in 1..=40u64 {
+            frame.t_s = t0 + 0.5 * step as f64;
+            coop.match_frame(&frame, &peers, 4 + step);
+            for m in coop.take_held_frame_measurements() {
+                measured.entry(m.peer).or_default().push(frame.t_s - t0);
+            }
+        }
+        for peer in [3, 4] {
+            let times = &measured[&peer];
+            assert!(times.len() >= 2, "rate {rate}, peer {peer}: {times:?}");
+            let mut last = 0.0;
+            for &t in times {
+                assert!(
+                    t - last >= wait_s - 1e-9,
+                    "rate {rate}, peer {peer}: {times:?}"
+                );
+                last = t;
+            }
+            assert!(
+                times[0] < wait_s + 1.0,
+                "measured as soon as allowed: {times:?}"
+            );
+        }
+    }
+}
+
 #[test]
 fn a_frame_of_another_place_makes_no_link() {
     let mut rng = ChaCha8Rng::seed_from_u64(13);
