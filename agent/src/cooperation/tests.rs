@@ -309,6 +309,16 @@ fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
     }
 }
 
+/// Peer frames aligned on one confirmation and held by the state for 60 s.
+fn held_frame_options() -> CooperationOptions {
+    CooperationOptions {
+        align_peer_frames: true,
+        peer_frame_state_s: Some(60.0),
+        alignment_confirmations: 1,
+        ..options()
+    }
+}
+
 /// With `peer_frame_state_s` a confirmed frame is handed to the estimator
 /// (a seed), its windows wait for the state to hold it, are then taken into
 /// our frame at the state's mean with their Jacobian w.r.t. it, and further
@@ -318,13 +328,7 @@ fn a_peer_started_again_in_a_new_frame_is_aligned_anew() {
 fn a_frame_for_the_state_is_seeded_once_and_used_at_the_states_mean() {
     let mut rng = ChaCha8Rng::seed_from_u64(12);
     let (w, mut frame) = world_and_posed_frame(&mut rng);
-    let opts = CooperationOptions {
-        align_peer_frames: true,
-        peer_frame_state_s: Some(60.0),
-        alignment_confirmations: 1,
-        ..options()
-    };
-    let mut coop = Cooperation::new(opts, builtin_vocabulary(), 460.0);
+    let mut coop = Cooperation::new(held_frame_options(), builtin_vocabulary(), 460.0);
     let mut h = peer_history_in(&w, &mut rng, 5);
     h.clear_recent();
     let peers: Peers = [(3u32, h)].into_iter().collect();
@@ -390,12 +394,9 @@ fn held_frames_share_the_measurement_rate() {
         let mut rng = ChaCha8Rng::seed_from_u64(12);
         let (w, mut frame) = world_and_posed_frame(&mut rng);
         let opts = CooperationOptions {
-            align_peer_frames: true,
-            peer_frame_state_s: Some(60.0),
-            alignment_confirmations: 1,
             held_frame_measurement_period_s: 2.0,
             held_frame_measurements_per_s: rate,
-            ..options()
+            ..held_frame_options()
         };
         let mut coop = Cooperation::new(opts, builtin_vocabulary(), 460.0);
         let peers: Peers = [3u32, 4]
