@@ -447,6 +447,10 @@ pub struct EstimatorSection {
     /// the window fills too (0: every clone stays, the oldest leaves).
     #[serde(default)]
     pub keyframe_parallax_px: Option<f64>,
+    /// A slow start's keyframe window, px of parallax (0: off): a starved
+    /// first update on a window without parallax waits for baseline.
+    #[serde(default)]
+    pub slow_start_keyframe_px: Option<f64>,
     /// Where the MSCKF's Jacobians are evaluated (`first_estimates` or
     /// `observability_constrained`).
     #[serde(default)]
@@ -591,6 +595,9 @@ impl EstimatorSection {
         if let Some(v) = self.keyframe_parallax_px {
             o.keyframe_parallax_px = v;
         }
+        if let Some(v) = self.slow_start_keyframe_px {
+            o.slow_start_keyframe_px = v;
+        }
         if let Some(v) = self.msckf_jacobians {
             o.msckf_jacobians = v;
         }
@@ -698,6 +705,7 @@ impl Default for EstimatorSection {
             first_update_iterations: None,
             rescue_first_update: None,
             keyframe_parallax_px: None,
+            slow_start_keyframe_px: None,
             msckf_jacobians: None,
             slam_jacobians: None,
             use_fej: None,

@@ -601,6 +601,18 @@ pub struct EstimatorOptions {
     /// 10 with them, and none with the camera at a third of its rate (README,
     /// Slow flights).
     pub keyframe_parallax_px: f64,
+    /// A slow start's keyframe window, in pixels of parallax (0: off). When the
+    /// first full window spans less than three times this much parallax and
+    /// the first update would starve (fewer than one candidate in four passes
+    /// the ray limits), the first update waits, up to 2 s, for the window to
+    /// gain baseline, and from then on the window keeps keyframes of this
+    /// parallax as with [`Self::keyframe_parallax_px`]; the late first update
+    /// is one plain step. A flight whose first window has parallax never
+    /// waits: the reference trajectories and the fleets are unchanged bit for
+    /// bit. On V1_01 played at 0.3 of its speed the default window, whose
+    /// first update took the few tracks that triangulated, diverged in 3 of 10
+    /// runs without SLAM features and 2 of 10 with them (README, Slow flights).
+    pub slow_start_keyframe_px: f64,
     /// Where the MSCKF's Jacobians are evaluated when `use_fej`: at the first
     /// estimates (default), or at the current estimate with the unobservable
     /// directions projected out. On a slowly starting circle without SLAM
@@ -730,6 +742,8 @@ impl EstimatorOptions {
         }
         let non_negative = [
             ("slam_delay_s", self.slam_delay_s),
+            ("keyframe_parallax_px", self.keyframe_parallax_px),
+            ("slow_start_keyframe_px", self.slow_start_keyframe_px),
             ("zupt_max_disparity_px", self.zupt_max_disparity_px),
             ("imu.gyro_noise_density", self.imu.gyro_noise_density),
             ("imu.gyro_random_walk", self.imu.gyro_random_walk),
@@ -763,6 +777,7 @@ impl Default for EstimatorOptions {
             first_update_iterations: 2,
             rescue_first_update: true,
             keyframe_parallax_px: 0.0,
+            slow_start_keyframe_px: 4.0,
             msckf_jacobians: MsckfJacobians::default(),
             slam_jacobians: MsckfJacobians::default(),
             feature_representation: Default::default(),

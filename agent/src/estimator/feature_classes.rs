@@ -46,6 +46,21 @@ impl FeatureClasses {
         }
     }
 
+    /// The MSCKF's candidates and then the SLAM candidates.
+    pub fn candidates(&self) -> Vec<u64> {
+        self.msckf_ids
+            .iter()
+            .chain(&self.slam_candidates)
+            .copied()
+            .collect()
+    }
+
+    /// Keeps the tracks of every MSCKF and SLAM candidate, for a first update
+    /// that waits (`slow_start`).
+    pub fn keep_all_candidates(&mut self) {
+        self.defer(&self.candidates());
+    }
+
     /// Takes `ids` out of [`Self::deferred`]: another update (e.g. a cooperative
     /// one) has used their measurements, which must not be used again.
     pub fn mark_used(&mut self, ids: &[u64]) {
@@ -168,15 +183,22 @@ pub fn non_keyframe(db: &FeatureDb, state: &Means, min_parallax_px: f64) -> Opti
     if min_parallax_px <= 0.0 {
         return None;
     }
-    let (r_second, _) = camera_pose(state, second)?;
-    let (r_kept, _) = camera_pose(state, kept)?;
+    (parallax_px(db, state, kept, second)? < min_parallax_px).then_some(second)
+}
+
+/// The median rotation-compensated angle between the views of clones `a` and
+/// `b` over the tracks both saw, in pixels of focal length; `None` when fewer
+/// than [`MIN_TRACKS_FOR_PARALLAX`] tracks join them.
+pub fn parallax_px(db: &FeatureDb, state: &Means, a: u64, b: u64) -> Option<f64> {
+    let (r_a, _) = camera_pose(state, a)?;
+    let (r_b, _) = camera_pose(state, b)?;
     let mut angles: Vec<f64> = db
         .iter()
         .filter_map(|f| {
-            let a = f.measurement_at(kept)?.uvn;
-            let b = f.measurement_at(second)?.uvn;
-            let ray_a = r_kept * Vector3::new(a.x, a.y, 1.0);
-            let ray_b = r_second * Vector3::new(b.x, b.y, 1.0);
+            let ua = f.measurement_at(a)?.uvn;
+            let ub = f.measurement_at(b)?.uvn;
+            let ray_a = r_a * Vector3::new(ua.x, ua.y, 1.0);
+            let ray_b = r_b * Vector3::new(ub.x, ub.y, 1.0);
             Some(ray_a.angle(&ray_b))
         })
         .collect();
@@ -185,8 +207,14 @@ pub fn non_keyframe(db: &FeatureDb, state: &Means, min_parallax_px: f64) -> Opti
     }
     let mid = angles.len() / 2;
     let (_, median, _) = angles.select_nth_unstable_by(mid, f64::total_cmp);
-    let focal = state.calib.camera.fx();
-    (*median * focal < min_parallax_px).then_some(second)
+    Some(*median * state.calib.camera.fx())
+}
+
+/// The parallax between the window's oldest and newest clones ([`parallax_px`]).
+pub fn window_parallax_px(db: &FeatureDb, state: &Means) -> Option<f64> {
+    let oldest = *state.clones.keys().next()?;
+    let newest = *state.clones.keys().next_back()?;
+    parallax_px(db, state, oldest, newest)
 }
 
 /// Drops the second-newest clone if it is not a keyframe ([`non_keyframe`]), as

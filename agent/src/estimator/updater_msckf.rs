@@ -92,8 +92,31 @@ pub const RELAX_WHEN_FAILED_PER_PASSED: usize = 10;
 /// Whether an update's candidates nearly all failed to triangulate: more than
 /// [`RELAX_WHEN_FAILED_PER_PASSED`] for each one that passed.
 fn starved(stats: &MsckfStats) -> bool {
+    starved_at(stats, RELAX_WHEN_FAILED_PER_PASSED)
+}
+
+/// More than `failed_per_passed` candidates failed for each one that passed.
+fn starved_at(stats: &MsckfStats, failed_per_passed: usize) -> bool {
     let passed = stats.used + stats.rejected_chi2;
-    stats.failed > 0 && passed * RELAX_WHEN_FAILED_PER_PASSED < stats.failed
+    stats.failed > 0 && passed * failed_per_passed < stats.failed
+}
+
+/// Whether an update with the candidates `ids` would find fewer than one
+/// candidate passing the ray limits `tri` for every `failed_per_passed` that
+/// fail (built, not applied).
+#[allow(clippy::too_many_arguments)]
+pub fn would_starve<F: Filter + ?Sized>(
+    state: &F,
+    db: &FeatureDb,
+    ids: &[u64],
+    cap: usize,
+    opts: &EstimatorOptions,
+    chi2: &Chi2Table,
+    tri: &TriangulationOptions,
+    failed_per_passed: usize,
+) -> bool {
+    let (stats, _, _) = stack_up_to(state, db, ids, cap, opts, Some(chi2), tri, &mut Vec::new());
+    starved_at(&stats, failed_per_passed)
 }
 
 /// [`stack_up_to`] under the first of `limits`; when that leaves the update

@@ -17,6 +17,7 @@ use super::inputs::{check_frame, check_imu};
 use super::options::EstimatorOptions;
 use super::peer_frame_states;
 use super::propagator::{gyro_at_frame, propagate, PropagateError};
+use super::slow_start::SlowStart;
 use super::state::{ClonePose, ImuState, State, Var};
 use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
 use super::triangulation::TriangulationOptions;
@@ -95,6 +96,8 @@ pub struct Estimator {
     vocabulary: Option<Arc<Vocabulary>>,
     /// Whether an MSCKF update has run (the first one is iterated).
     updated_once: bool,
+    /// Whether the first update waited for parallax (a slow start).
+    slow_start: SlowStart,
 }
 
 fn ms(since: Instant) -> f64 {
@@ -120,6 +123,7 @@ impl Estimator {
             coop: None,
             vocabulary: None,
             updated_once: false,
+            slow_start: SlowStart::default(),
         }
     }
 
@@ -330,7 +334,9 @@ impl Estimator {
         let t_start = Instant::now();
         let cpu_start = cpu_time::ThreadTime::try_now().ok();
         let mut timing = FrameTiming::default();
-        let opts = self.opts.clone();
+        let mut opts = self.opts.clone();
+        // After a slow start the window keeps keyframes (`slow_start`).
+        opts.keyframe_parallax_px = self.slow_start.keyframe_parallax_px(&opts);
         let Some(state) = self.state.as_mut() else {
             return Err(FrameError::NotInitialized(frame.t));
         };
@@ -406,6 +412,24 @@ impl Estimator {
         // 4. Sort the features into classes, with the peers' evidence for ours.
         let slam_allowed = state.t - self.start_t >= opts.slam_delay_s;
         let mut classes = classify(&self.features, state, key, &opts, slam_allowed);
+        // A slow start: the first update waits for the window to gain parallax,
+        // its candidates kept for it.
+        if !self.updated_once
+            && self.slow_start.first_update_waits(
+                state,
+                &self.features,
+                &classes.candidates(),
+                &opts,
+                &self.chi2,
+                &self.tri,
+            )
+        {
+            classes.keep_all_candidates();
+            clean_up(&mut self.features, state, &classes, opts.max_clones);
+            timing.total_ms = ms(t_start);
+            timing.cpu_ms = cpu_ms(cpu_start);
+            return Ok(output_without_updates(state, &gyro, timing, coop, false));
+        }
         let FeatureClasses {
             slam_seen,
             slam_candidates,
@@ -434,7 +458,8 @@ impl Estimator {
             .collect();
         let mut untriangulated = Vec::new();
         // The filter's first update is iterated (`first_update_iterations`).
-        let iterations = if self.updated_once {
+        // One that waited for parallax is one plain step (`slow_start`).
+        let iterations = if self.updated_once || self.slow_start.plain_first_update() {
             0
         } else {
             opts.first_update_iterations

@@ -390,6 +390,10 @@ pub struct EstimatorSpec {
     /// the window fills too (`EstimatorOptions::keyframe_parallax_px`; 0: every
     /// clone stays).
     pub keyframe_parallax_px: f64,
+    /// A slow start's keyframe window, px of parallax (0: off): a starved first
+    /// update on a window without parallax waits for baseline
+    /// (`EstimatorOptions::slow_start_keyframe_px`).
+    pub slow_start_keyframe_px: f64,
     /// Where the MSCKF's Jacobians are evaluated: `first_estimates` or
     /// `observability_constrained` (`EstimatorOptions::msckf_jacobians`).
     pub msckf_jacobians: MsckfJacobians,
@@ -469,6 +473,7 @@ impl EstimatorSpec {
             first_update_iterations: self.first_update_iterations,
             rescue_first_update: self.rescue_first_update,
             keyframe_parallax_px: self.keyframe_parallax_px,
+            slow_start_keyframe_px: self.slow_start_keyframe_px,
             msckf_jacobians: self.msckf_jacobians,
             slam_jacobians: self.slam_jacobians,
             feature_representation: self.feature_representation,
@@ -515,6 +520,7 @@ impl Default for EstimatorSpec {
             first_update_iterations: o.first_update_iterations,
             rescue_first_update: o.rescue_first_update,
             keyframe_parallax_px: o.keyframe_parallax_px,
+            slow_start_keyframe_px: o.slow_start_keyframe_px,
             msckf_jacobians: o.msckf_jacobians,
             slam_jacobians: o.slam_jacobians,
             feature_representation: o.feature_representation,
