@@ -604,12 +604,12 @@ pub struct EstimatorOptions {
     /// A slow start's keyframe window, in pixels of parallax (0: off). When the
     /// first full window spans less than three times this much parallax and
     /// the first update would starve (fewer than one candidate in four passes
-    /// the ray limits), the first update waits, up to 2 s, for the window to
+    /// the ray limits), the first update waits, up to 2.5 s, for the window to
     /// gain baseline, and from then on the window keeps keyframes of this
     /// parallax as with [`Self::keyframe_parallax_px`]; the late first update
-    /// is one plain step. A flight whose first window has parallax never
-    /// waits: the reference trajectories and the fleets are unchanged bit for
-    /// bit. On V1_01 played at 0.3 of its speed the default window, whose
+    /// is one plain step (the iterated one if the wait ended still starved).
+    /// A flight whose first window has parallax never waits: the reference
+    /// trajectories from the truth are unchanged bit for bit. On V1_01 played at 0.3 of its speed the default window, whose
     /// first update took the few tracks that triangulated, diverged in 3 of 10
     /// runs without SLAM features and 2 of 10 with them (README, Slow flights).
     pub slow_start_keyframe_px: f64,
