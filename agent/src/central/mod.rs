@@ -25,6 +25,7 @@ use crate::estimator::filter::FilterView;
 use crate::estimator::frame_output::{cpu_ms, GyroAtFrame, ImuCovariance};
 use crate::estimator::inputs::{check_frame, check_imu, InputError};
 use crate::estimator::propagator::{gyro_at_frame, propagate, PropagateError};
+use crate::estimator::slow_start::SlowStart;
 use crate::estimator::state::{ImuState, Means, Var};
 use crate::estimator::triangulation::TriangulationOptions;
 use crate::estimator::vio::{augment_clone, initial_blocks, FrameError};
@@ -50,6 +51,8 @@ struct Robot {
     latest: Option<FrameFeatures>,
     /// Whether an MSCKF update has used a feature yet (the first is iterated).
     updated_once: bool,
+    /// Whether the first update waited for parallax (`slow_start`).
+    slow_start: SlowStart,
 }
 
 /// A track of a robot: `(robot, track id)`.
@@ -88,6 +91,7 @@ impl CentralEstimator {
                     start_t: 0.0,
                     latest: None,
                     updated_once: false,
+                    slow_start: SlowStart::default(),
                 })
                 .collect(),
             opts,
@@ -220,8 +224,12 @@ impl CentralEstimator {
     fn process_frame(&mut self, r: usize, frame: &FeatureFrame) -> Result<FrameOutput, FrameError> {
         let t_start = Instant::now();
         let cpu_start = cpu_time::ThreadTime::try_now().ok();
-        let opts = self.opts.clone();
+        let mut opts = self.opts.clone();
         let rid = r as u16;
+        // After a slow start the robot's window keeps keyframes (`slow_start`).
+        if let Some(robot) = self.robots.get(r) {
+            opts.keyframe_parallax_px = robot.slow_start.keyframe_parallax_px(&opts);
+        }
         let mut timing = crate::estimator::vio::FrameTiming::default();
         let mut coop = CoopFrameStats::default();
 
@@ -291,6 +299,28 @@ impl CentralEstimator {
         }
         let slam_allowed = means.t - robot.start_t >= opts.slam_delay_s;
         let mut classes = classify(&robot.features, means, key, &opts, slam_allowed);
+        // A slow start: the robot's first update waits for its window to gain
+        // parallax, as in the agents' filter, its candidates kept for it.
+        let robot = &mut self.robots[r];
+        if !robot.updated_once {
+            let Some(mut slot) = self.joint.slot(rid) else {
+                return Err(FrameError::NotInitialized(frame.t));
+            };
+            if robot.slow_start.first_update_waits(
+                &slot,
+                &robot.features,
+                &classes.candidates(),
+                &opts,
+                &self.chi2,
+                &self.tri,
+            ) {
+                classes.keep_all_candidates();
+                clean_up(&mut robot.features, &mut slot, &classes, opts.max_clones);
+                timing.total_ms = ms(t_start);
+                timing.cpu_ms = cpu_ms(cpu_start);
+                return Ok(self.output_without_updates(rid, &gyro, timing, coop, false));
+            }
+        }
 
         // 5. Common VIO features: one joint update with every robot's measurements.
         let t = Instant::now();
@@ -335,7 +365,8 @@ impl CentralEstimator {
         let mut untriangulated = Vec::new();
         // The robot's first update is iterated (`first_update_iterations`), as
         // in the agents; its prior and every redo are the whole joint state.
-        let iterations = if robot.updated_once {
+        // One that waited for parallax is one plain step (`slow_start`).
+        let iterations = if robot.updated_once || robot.slow_start.plain_first_update() {
             0
         } else {
             opts.first_update_iterations

@@ -18,6 +18,7 @@
 //! parallax never waits: the reference tables (from the truth) and the
 //! three-robot room are unchanged bit for bit. Six robots in their own frames
 //! (20 seeds) changed in one seed, where one robot's first window waited.
+//! The centralized filter (`central/`) keeps one [`SlowStart`] per robot.
 
 use super::chi2::Chi2Table;
 use super::feature_classes::window_parallax_px;
