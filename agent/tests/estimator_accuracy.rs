@@ -514,6 +514,16 @@ fn a_slow_flight_does_not_diverge() {
     }
 }
 
+/// The circle at 0.12 m/s for a minute, in `dir`, with the slow-start rule
+/// on (the default) and off (`slow_start_keyframe_px: 0`).
+fn slow_circle_with_the_rule_on_and_off(dir: &Path) -> (Scenario, Scenario) {
+    write_circle(&dir.join("slow.txt"), 60.0, |s| (0.03 * s, 1.0));
+    (
+        slow_start_scenario(dir, "on.yaml", "estimator: {}\n"),
+        slow_start_scenario(dir, "off.yaml", "estimator: {slow_start_keyframe_px: 0}\n"),
+    )
+}
+
 /// A slow first window (`agent::estimator::slow_start`): the slow flight's
 /// circle at 0.12 m/s, whose first window of consecutive frames spans a few
 /// pixels of parallax, so nearly every track fails the ray limits. The first
@@ -523,13 +533,7 @@ fn a_slow_flight_does_not_diverge() {
 #[test]
 fn a_slow_first_window_waits_for_parallax() {
     let dir = tempfile::tempdir().expect("tempdir");
-    write_circle(&dir.path().join("slow.txt"), 60.0, |s| (0.03 * s, 1.0));
-    let on = slow_start_scenario(dir.path(), "on.yaml", "estimator: {}\n");
-    let off = slow_start_scenario(
-        dir.path(),
-        "off.yaml",
-        "estimator: {slow_start_keyframe_px: 0}\n",
-    );
+    let (on, off) = slow_circle_with_the_rule_on_and_off(dir.path());
     let first_update = |r: &RobotRun| {
         r.frames
             .iter()
@@ -572,13 +576,7 @@ fn a_slow_first_window_waits_for_parallax() {
 #[test]
 fn the_centralized_filter_waits_on_a_slow_first_window_too() {
     let dir = tempfile::tempdir().expect("tempdir");
-    write_circle(&dir.path().join("slow.txt"), 60.0, |s| (0.03 * s, 1.0));
-    let sc = slow_start_scenario(dir.path(), "on.yaml", "estimator: {}\n");
-    let off = slow_start_scenario(
-        dir.path(),
-        "off.yaml",
-        "estimator: {slow_start_keyframe_px: 0}\n",
-    );
+    let (sc, off) = slow_circle_with_the_rule_on_and_off(dir.path());
     let seed = SEEDS[0];
     let fleet = Fleet::build(&sc, seed).expect("build fleet");
     let central = run_central(&fleet, Variant::CeCmsckf).expect("run fleet");
