@@ -451,6 +451,11 @@ pub struct EstimatorSection {
     /// first update on a window without parallax waits for baseline.
     #[serde(default)]
     pub slow_start_keyframe_px: Option<f64>,
+    /// Whether a slow start also takes the other settings for slow platforms
+    /// (observability-constrained Jacobians, anchored inverse-depth SLAM
+    /// features) from its late first update on.
+    #[serde(default)]
+    pub slow_start_constrained: Option<bool>,
     /// Where the MSCKF's Jacobians are evaluated (`first_estimates` or
     /// `observability_constrained`).
     #[serde(default)]
@@ -598,6 +603,9 @@ impl EstimatorSection {
         if let Some(v) = self.slow_start_keyframe_px {
             o.slow_start_keyframe_px = v;
         }
+        if let Some(v) = self.slow_start_constrained {
+            o.slow_start_constrained = v;
+        }
         if let Some(v) = self.msckf_jacobians {
             o.msckf_jacobians = v;
         }
@@ -706,6 +714,7 @@ impl Default for EstimatorSection {
             rescue_first_update: None,
             keyframe_parallax_px: None,
             slow_start_keyframe_px: None,
+            slow_start_constrained: None,
             msckf_jacobians: None,
             slam_jacobians: None,
             use_fej: None,

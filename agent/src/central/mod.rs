@@ -226,9 +226,10 @@ impl CentralEstimator {
         let cpu_start = cpu_time::ThreadTime::try_now().ok();
         let mut opts = self.opts.clone();
         let rid = r as u16;
-        // After a slow start the robot's window keeps keyframes (`slow_start`).
+        // After a slow start the robot's window keeps keyframes, and the
+        // settings for slow platforms hold (`slow_start`).
         if let Some(robot) = self.robots.get(r) {
-            opts.keyframe_parallax_px = robot.slow_start.keyframe_parallax_px(&opts);
+            robot.slow_start.apply(&mut opts);
         }
         let mut timing = crate::estimator::vio::FrameTiming::default();
         let mut coop = CoopFrameStats::default();

@@ -11,7 +11,12 @@
 //! Such a first update waits instead, up to [`MAX_WAIT_S`], and the window
 //! keeps keyframes from then on (`EstimatorOptions::slow_start_keyframe_px`,
 //! the rule of `keyframe_parallax_px`), so that it gains the baseline a
-//! consecutive window lacks. Whether the start is slow is read from the window
+//! consecutive window lacks. A start that waited is a slow platform, so the
+//! filter also takes the other settings for slow platforms from then on
+//! (`EstimatorOptions::slow_start_constrained`, [`SlowStart::apply`]):
+//! observability-constrained MSCKF and SLAM Jacobians and inverse-depth SLAM
+//! features, which keep a slow flight's clones, corrected long after they
+//! were cloned, from making the filter claim what it does not know. Whether the start is slow is read from the window
 //! itself: the parallax between its oldest and newest clones is under
 //! [`WINDOW_PARALLAX_FACTOR`] keyframes' worth, and fewer than one candidate in
 //! [`FAILED_PER_PASSED`] passes the limits. A start whose first window has that
@@ -24,7 +29,7 @@ use super::chi2::Chi2Table;
 use super::feature_classes::window_parallax_px;
 use super::feature_db::FeatureDb;
 use super::filter::Filter;
-use super::options::EstimatorOptions;
+use super::options::{EstimatorOptions, FeatureRepresentation, MsckfJacobians};
 use super::triangulation::TriangulationOptions;
 use super::updater_msckf::would_starve;
 
@@ -83,6 +88,21 @@ impl SlowStart {
             opts.keyframe_parallax_px.max(opts.slow_start_keyframe_px)
         } else {
             opts.keyframe_parallax_px
+        }
+    }
+
+    /// This frame's options: after a wait, the keyframe window and (with
+    /// `slow_start_constrained`) the other settings for slow platforms, the
+    /// MSCKF's and the SLAM features' Jacobians observability-constrained and
+    /// new SLAM features as anchored inverse depths. A waiting start is a slow
+    /// platform, whose clones are corrected long after they were cloned: there
+    /// the first estimates make the filter claim what it does not know.
+    pub fn apply(&self, opts: &mut EstimatorOptions) {
+        opts.keyframe_parallax_px = self.keyframe_parallax_px(opts);
+        if self.keyframes() && opts.slow_start_constrained {
+            opts.msckf_jacobians = MsckfJacobians::ObservabilityConstrained;
+            opts.slam_jacobians = MsckfJacobians::ObservabilityConstrained;
+            opts.feature_representation = FeatureRepresentation::AnchoredInverseDepth;
         }
     }
 
@@ -155,5 +175,45 @@ mod tests {
         // A wait that ended still starved leaves the iterated first update.
         s.timed_out = true;
         assert!(s.keyframes() && !s.plain_first_update());
+    }
+
+    #[test]
+    fn only_a_start_that_waited_takes_the_settings_for_slow_platforms() {
+        let defaults = EstimatorOptions::default();
+        let mut s = SlowStart::default();
+        let mut opts = defaults.clone();
+        s.apply(&mut opts);
+        assert_eq!(
+            opts, defaults,
+            "a start that never waited keeps its options"
+        );
+
+        s.since_s = Some(1.1);
+        s.apply(&mut opts);
+        assert_eq!(opts.keyframe_parallax_px, defaults.slow_start_keyframe_px);
+        assert_eq!(
+            opts.msckf_jacobians,
+            MsckfJacobians::ObservabilityConstrained
+        );
+        assert_eq!(
+            opts.slam_jacobians,
+            MsckfJacobians::ObservabilityConstrained
+        );
+        assert_eq!(
+            opts.feature_representation,
+            FeatureRepresentation::AnchoredInverseDepth
+        );
+
+        // Switched off, the wait keeps only its keyframe window.
+        let off = EstimatorOptions {
+            slow_start_constrained: false,
+            ..defaults.clone()
+        };
+        let mut opts = off.clone();
+        s.apply(&mut opts);
+        assert_eq!(opts.keyframe_parallax_px, off.slow_start_keyframe_px);
+        assert_eq!(opts.msckf_jacobians, off.msckf_jacobians);
+        assert_eq!(opts.slam_jacobians, off.slam_jacobians);
+        assert_eq!(opts.feature_representation, off.feature_representation);
     }
 }

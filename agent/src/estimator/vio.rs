@@ -335,8 +335,9 @@ impl Estimator {
         let cpu_start = cpu_time::ThreadTime::try_now().ok();
         let mut timing = FrameTiming::default();
         let mut opts = self.opts.clone();
-        // After a slow start the window keeps keyframes (`slow_start`).
-        opts.keyframe_parallax_px = self.slow_start.keyframe_parallax_px(&opts);
+        // After a slow start the window keeps keyframes, and the settings for
+        // slow platforms hold (`slow_start`).
+        self.slow_start.apply(&mut opts);
         let Some(state) = self.state.as_mut() else {
             return Err(FrameError::NotInitialized(frame.t));
         };
