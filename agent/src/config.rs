@@ -451,11 +451,12 @@ pub struct EstimatorSection {
     /// first update on a window without parallax waits for baseline.
     #[serde(default)]
     pub slow_start_keyframe_px: Option<f64>,
-    /// Whether a slow start also takes the other settings for slow platforms
-    /// (observability-constrained Jacobians, anchored inverse-depth SLAM
-    /// features) from its late first update on.
+    /// Whether a platform found slow takes the settings for slow platforms by
+    /// itself: a slow start the observability-constrained Jacobians and
+    /// anchored inverse-depth SLAM features, a flight that turns slow later the
+    /// constrained MSCKF Jacobians.
     #[serde(default)]
-    pub slow_start_constrained: Option<bool>,
+    pub slow_platform_settings: Option<bool>,
     /// Where the MSCKF's Jacobians are evaluated (`first_estimates` or
     /// `observability_constrained`).
     #[serde(default)]
@@ -603,8 +604,8 @@ impl EstimatorSection {
         if let Some(v) = self.slow_start_keyframe_px {
             o.slow_start_keyframe_px = v;
         }
-        if let Some(v) = self.slow_start_constrained {
-            o.slow_start_constrained = v;
+        if let Some(v) = self.slow_platform_settings {
+            o.slow_platform_settings = v;
         }
         if let Some(v) = self.msckf_jacobians {
             o.msckf_jacobians = v;
@@ -714,7 +715,7 @@ impl Default for EstimatorSection {
             rescue_first_update: None,
             keyframe_parallax_px: None,
             slow_start_keyframe_px: None,
-            slow_start_constrained: None,
+            slow_platform_settings: None,
             msckf_jacobians: None,
             slam_jacobians: None,
             use_fej: None,

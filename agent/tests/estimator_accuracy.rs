@@ -492,7 +492,7 @@ fn slow_start_scenario(dir: &Path, file: &str, settings: &str) -> Scenario {
 /// (`slow_start`, stop 75), seeds 1-3 keep 0.045-0.091 m, NEES 0.56-2.01,
 /// without SLAM features and 0.037-0.063 m, NEES 0.38-0.96, with them; since
 /// such a start also takes the settings for slow platforms
-/// (`slow_start_constrained`, stop 79), 0.048-0.102 m, NEES 0.43-1.76, and
+/// (`slow_platform_settings`, stop 79), 0.048-0.102 m, NEES 0.43-1.76, and
 /// 0.018-0.058 m, NEES 0.09-0.89.
 #[test]
 fn a_slow_flight_does_not_diverge() {
@@ -672,9 +672,9 @@ fn observability_constrained_msckf_jacobians_keep_a_slow_start_consistent() {
             dir.path(),
             &format!("{jacobians}.yaml"),
             // The setting alone: a start that waits would take the constrained
-            // Jacobians whatever the file says (`slow_start_constrained`).
+            // Jacobians whatever the file says (`slow_platform_settings`).
             &format!(
-                "estimator: {{msckf_jacobians: {jacobians}, slow_start_constrained: false}}\n"
+                "estimator: {{msckf_jacobians: {jacobians}, slow_platform_settings: false}}\n"
             ),
         );
         let ms: Vec<MetricSet> = (1..=8)
@@ -729,7 +729,7 @@ fn inverse_depth_slam_features_keep_a_noise_free_slow_start_on_its_path() {
                 "sensors:\n  calibration_perturbation:\n    enabled: false\n  camera:\n    \
                  pixel_noise_px: 0.0\nestimator: {{calib_extrinsics: false, \
                  calib_intrinsics: false, calib_time_offset: false, pixel_sigma_px: 1.0, \
-                 feature_representation: {representation}, slow_start_constrained: false}}\n"
+                 feature_representation: {representation}, slow_platform_settings: false}}\n"
             ),
         );
         let r = run(&sc, 9, Variant::IndpSlam);

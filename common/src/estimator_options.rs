@@ -613,18 +613,21 @@ pub struct EstimatorOptions {
     /// first update took the few tracks that triangulated, diverged in 3 of 10
     /// runs without SLAM features and 2 of 10 with them (README, Slow flights).
     pub slow_start_keyframe_px: f64,
-    /// Whether a slow start (one whose first update waited, see
-    /// [`Self::slow_start_keyframe_px`]) also takes the other settings for slow
-    /// platforms from then on: the MSCKF's and the SLAM features' Jacobians
-    /// observability-constrained and new SLAM features as anchored inverse
-    /// depths. With first estimates the clones of a slow flight are corrected
+    /// Whether a platform found slow takes the settings for slow platforms by
+    /// itself. A slow start (one whose first update waited, see
+    /// [`Self::slow_start_keyframe_px`]) takes, besides its keyframe window,
+    /// the MSCKF's and the SLAM features' Jacobians observability-constrained
+    /// and new SLAM features as anchored inverse depths; a flight that turns
+    /// slow later (its window spans under three keyframes' parallax for 4 s in
+    /// a row) takes the constrained MSCKF Jacobians (V1_02 at 0.3 of its speed
+    /// without SLAM features: position NEES 12.8 without). With first estimates the clones of a slow flight are corrected
     /// long after they were cloned and the filter claims what it does not know:
     /// V1_01 played at 0.5 of its speed with SLAM features, 10 seeds, 0.475 deg /
     /// 0.061 m, position NEES 2.35 with the keyframe window alone, 0.225 deg /
-    /// 0.033 m, NEES 0.39 with these too (README, A slow start takes the
-    /// settings for slow platforms). A flight that never waits is unchanged bit
-    /// for bit.
-    pub slow_start_constrained: bool,
+    /// 0.033 m, NEES 0.39 with these too (README, A platform found slow
+    /// takes the settings for slow platforms). A flight that is never found slow is
+    /// unchanged bit for bit.
+    pub slow_platform_settings: bool,
     /// Where the MSCKF's Jacobians are evaluated when `use_fej`: at the first
     /// estimates (default), or at the current estimate with the unobservable
     /// directions projected out. On a slowly starting circle without SLAM
@@ -790,7 +793,7 @@ impl Default for EstimatorOptions {
             rescue_first_update: true,
             keyframe_parallax_px: 0.0,
             slow_start_keyframe_px: 4.0,
-            slow_start_constrained: true,
+            slow_platform_settings: true,
             msckf_jacobians: MsckfJacobians::default(),
             slam_jacobians: MsckfJacobians::default(),
             feature_representation: Default::default(),

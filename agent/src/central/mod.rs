@@ -303,6 +303,12 @@ impl CentralEstimator {
         // A slow start: the robot's first update waits for its window to gain
         // parallax, as in the agents' filter, its candidates kept for it.
         let robot = &mut self.robots[r];
+        // A flight that turns slow takes the constrained MSCKF (`slow_start`).
+        if robot.updated_once {
+            robot
+                .slow_start
+                .observe_window(means, &robot.features, &opts);
+        }
         if !robot.updated_once {
             let Some(mut slot) = self.joint.slot(rid) else {
                 return Err(FrameError::NotInitialized(frame.t));

@@ -1,4 +1,5 @@
-//! A slow start: a platform that barely moves while its first window fills.
+//! Slow platforms: a start that barely moves while its first window fills,
+//! and a flight that turns slow later.
 //!
 //! At 0.1 m/s with points 5-7 m away, the first window's 1.1 s of frames sees
 //! each point's rays about 1 deg apart, and nearly every track fails the
@@ -11,18 +12,30 @@
 //! Such a first update waits instead, up to [`MAX_WAIT_S`], and the window
 //! keeps keyframes from then on (`EstimatorOptions::slow_start_keyframe_px`,
 //! the rule of `keyframe_parallax_px`), so that it gains the baseline a
-//! consecutive window lacks. A start that waited is a slow platform, so the
-//! filter also takes the other settings for slow platforms from then on
-//! (`EstimatorOptions::slow_start_constrained`, [`SlowStart::apply`]):
-//! observability-constrained MSCKF and SLAM Jacobians and inverse-depth SLAM
-//! features, which keep a slow flight's clones, corrected long after they
-//! were cloned, from making the filter claim what it does not know. Whether the start is slow is read from the window
+//! consecutive window lacks. Whether the start is slow is read from the window
 //! itself: the parallax between its oldest and newest clones is under
 //! [`WINDOW_PARALLAX_FACTOR`] keyframes' worth, and fewer than one candidate in
 //! [`FAILED_PER_PASSED`] passes the limits. A start whose first window has that
 //! parallax never waits: the reference tables (from the truth) and the
 //! three-robot room are unchanged bit for bit. Six robots in their own frames
 //! (20 seeds) changed in one seed, where one robot's first window waited.
+//!
+//! A start that waited is a slow platform, so the filter also takes the other
+//! settings for slow platforms from then on
+//! (`EstimatorOptions::slow_platform_settings`, [`SlowStart::apply`]):
+//! observability-constrained MSCKF and SLAM Jacobians and inverse-depth SLAM
+//! features, which keep a slow flight's clones, corrected long after they
+//! were cloned, from making the filter claim what it does not know.
+//!
+//! A flight can also turn slow after a start that had parallax (V1_02 played
+//! at 0.3 of its speed). When its window spans less than
+//! [`WINDOW_PARALLAX_FACTOR`] keyframes' parallax for [`SLOW_FLIGHT_S`] in a
+//! row, the MSCKF's Jacobians are observability-constrained from then on
+//! ([`SlowStart::observe_window`]). The keyframe window and the SLAM settings
+//! are not switched on mid-flight: a keyframe window thinned mid-flight
+//! starved the updates (stop 75), and the SLAM settings taken mid-flight made
+//! one V1_02 run at 0.3x worse (0.19 -> 0.36 m).
+//!
 //! The centralized filter (`central/`) keeps one [`SlowStart`] per robot.
 
 use super::chi2::Chi2Table;
@@ -30,6 +43,7 @@ use super::feature_classes::window_parallax_px;
 use super::feature_db::FeatureDb;
 use super::filter::Filter;
 use super::options::{EstimatorOptions, FeatureRepresentation, MsckfJacobians};
+use super::state::Means;
 use super::triangulation::TriangulationOptions;
 use super::updater_msckf::would_starve;
 
@@ -55,12 +69,27 @@ pub const FAILED_PER_PASSED: usize = 4;
 /// this bound and the iterated update, 2.11 deg / 0.105 m).
 pub const MAX_WAIT_S: f64 = 2.5;
 
-/// Whether, and since when, the filter's first update waited for parallax.
+/// How long a window of a flight that did not start slowly must span little
+/// parallax (under [`WINDOW_PARALLAX_FACTOR`] keyframes') before the flight
+/// counts as slow, s. None of the five reference flights from the truth
+/// comes to it (seeds 1-20; the longest such spans, seeds 1-2: 2.7-3.0 s on
+/// udel_gore, V1_01 and tum_corridor1); V1_02 played at 0.3 of its speed
+/// comes to it 6 s into its flight, and its windows span under 12 px in half
+/// its frames.
+pub const SLOW_FLIGHT_S: f64 = 4.0;
+
+/// Whether, and since when, the filter's first update waited for parallax,
+/// and whether the flight turned slow after its start.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct SlowStart {
     since_s: Option<f64>,
     /// The wait ended at [`MAX_WAIT_S`], with the update still starved.
     timed_out: bool,
+    /// Since when the window has spanned little parallax, after the first
+    /// update ([`Self::observe_window`]).
+    low_since_s: Option<f64>,
+    /// The flight turned slow after its start.
+    slow_flight: bool,
 }
 
 impl SlowStart {
@@ -92,18 +121,52 @@ impl SlowStart {
     }
 
     /// This frame's options: after a wait, the keyframe window and (with
-    /// `slow_start_constrained`) the other settings for slow platforms, the
+    /// `slow_platform_settings`) the other settings for slow platforms, the
     /// MSCKF's and the SLAM features' Jacobians observability-constrained and
     /// new SLAM features as anchored inverse depths. A waiting start is a slow
     /// platform, whose clones are corrected long after they were cloned: there
     /// the first estimates make the filter claim what it does not know.
     pub fn apply(&self, opts: &mut EstimatorOptions) {
         opts.keyframe_parallax_px = self.keyframe_parallax_px(opts);
-        if self.keyframes() && opts.slow_start_constrained {
+        if !opts.slow_platform_settings {
+            return;
+        }
+        if self.keyframes() {
             opts.msckf_jacobians = MsckfJacobians::ObservabilityConstrained;
             opts.slam_jacobians = MsckfJacobians::ObservabilityConstrained;
             opts.feature_representation = FeatureRepresentation::AnchoredInverseDepth;
+        } else if self.slow_flight {
+            opts.msckf_jacobians = MsckfJacobians::ObservabilityConstrained;
         }
+    }
+
+    /// After the first update, on a start that did not wait: watches the
+    /// window's parallax, and a flight whose window spans less than
+    /// [`WINDOW_PARALLAX_FACTOR`] keyframes' parallax for [`SLOW_FLIGHT_S`] in
+    /// a row is slow from then on (see [`Self::apply`]).
+    pub fn observe_window(&mut self, means: &Means, db: &FeatureDb, opts: &EstimatorOptions) {
+        if !opts.slow_platform_settings || self.slow_flight || self.keyframes() {
+            return;
+        }
+        let low = window_parallax_px(db, means)
+            .is_some_and(|px| px < WINDOW_PARALLAX_FACTOR * opts.slow_start_keyframe_px);
+        if !low {
+            self.low_since_s = None;
+            return;
+        }
+        let since = *self.low_since_s.get_or_insert(means.t);
+        if means.t - since >= SLOW_FLIGHT_S {
+            tracing::info!(
+                t = means.t,
+                "slow flight: the MSCKF's Jacobians are observability-constrained from now on"
+            );
+            self.slow_flight = true;
+        }
+    }
+
+    /// Whether the flight turned slow after its start ([`Self::observe_window`]).
+    pub fn slow_flight(&self) -> bool {
+        self.slow_flight
     }
 
     /// Whether the filter's first update, with the candidates `ids` (the
@@ -152,6 +215,7 @@ impl SlowStart {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::estimator::test_scene::scene;
 
     #[test]
     fn the_window_keeps_keyframes_and_the_update_is_one_step_only_after_a_wait() {
@@ -206,7 +270,7 @@ mod tests {
 
         // Switched off, the wait keeps only its keyframe window.
         let off = EstimatorOptions {
-            slow_start_constrained: false,
+            slow_platform_settings: false,
             ..defaults.clone()
         };
         let mut opts = off.clone();
@@ -215,5 +279,54 @@ mod tests {
         assert_eq!(opts.msckf_jacobians, off.msckf_jacobians);
         assert_eq!(opts.slam_jacobians, off.slam_jacobians);
         assert_eq!(opts.feature_representation, off.feature_representation);
+    }
+
+    #[test]
+    fn a_flight_whose_window_stays_without_parallax_takes_the_constrained_msckf() {
+        let s = scene(12, 12, 1e-4, 1e-4);
+        let mut means = s.state.means.clone();
+        // The scene's window spans metres: with a keyframe parallax this large it
+        // counts as a window without parallax, with the default's as one with.
+        let low = EstimatorOptions {
+            slow_start_keyframe_px: 1e9,
+            ..EstimatorOptions::default()
+        };
+        let high = EstimatorOptions::default();
+        let mut watch = |slow: &mut SlowStart, t: f64, opts: &EstimatorOptions| {
+            means.t = t;
+            slow.observe_window(&means, &s.db, opts);
+            slow.slow_flight()
+        };
+
+        let mut slow = SlowStart::default();
+        assert!(!watch(&mut slow, 10.0, &low));
+        assert!(!watch(&mut slow, 13.9, &low));
+        // One window with parallax starts the count again.
+        assert!(!watch(&mut slow, 14.0, &high));
+        assert!(!watch(&mut slow, 14.1, &low));
+        assert!(!watch(&mut slow, 18.0, &low));
+        assert!(watch(&mut slow, 18.1, &low), "4 s without parallax");
+
+        let mut opts = low.clone();
+        slow.apply(&mut opts);
+        let defaults = EstimatorOptions::default();
+        assert_eq!(
+            opts.msckf_jacobians,
+            MsckfJacobians::ObservabilityConstrained
+        );
+        // Mid-flight neither the window nor the SLAM settings change.
+        assert_eq!(opts.keyframe_parallax_px, defaults.keyframe_parallax_px);
+        assert_eq!(opts.slam_jacobians, defaults.slam_jacobians);
+        assert_eq!(opts.feature_representation, defaults.feature_representation);
+
+        // Switched off, a flight never turns slow.
+        let off = EstimatorOptions {
+            slow_platform_settings: false,
+            ..low.clone()
+        };
+        let mut slow = SlowStart::default();
+        for t in [0.0, 5.0, 10.0] {
+            assert!(!watch(&mut slow, t, &off));
+        }
     }
 }

@@ -410,6 +410,11 @@ impl Estimator {
             return Ok(output_without_updates(state, &gyro, timing, coop, false));
         }
 
+        // A flight that turns slow takes the constrained MSCKF (`slow_start`).
+        if self.updated_once {
+            self.slow_start
+                .observe_window(&state.means, &self.features, &opts);
+        }
         // 4. Sort the features into classes, with the peers' evidence for ours.
         let slam_allowed = state.t - self.start_t >= opts.slam_delay_s;
         let mut classes = classify(&self.features, state, key, &opts, slam_allowed);

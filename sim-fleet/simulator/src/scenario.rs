@@ -394,11 +394,12 @@ pub struct EstimatorSpec {
     /// update on a window without parallax waits for baseline
     /// (`EstimatorOptions::slow_start_keyframe_px`).
     pub slow_start_keyframe_px: f64,
-    /// Whether a slow start (its first update waited) also takes the other
-    /// settings for slow platforms: observability-constrained MSCKF and SLAM
-    /// Jacobians, inverse-depth SLAM features
-    /// (`EstimatorOptions::slow_start_constrained`).
-    pub slow_start_constrained: bool,
+    /// Whether a platform found slow takes the settings for slow platforms by
+    /// itself: a slow start (its first update waited) observability-constrained
+    /// MSCKF and SLAM Jacobians and inverse-depth SLAM features, a flight that
+    /// turns slow later the constrained MSCKF Jacobians
+    /// (`EstimatorOptions::slow_platform_settings`).
+    pub slow_platform_settings: bool,
     /// Where the MSCKF's Jacobians are evaluated: `first_estimates` or
     /// `observability_constrained` (`EstimatorOptions::msckf_jacobians`).
     pub msckf_jacobians: MsckfJacobians,
@@ -479,7 +480,7 @@ impl EstimatorSpec {
             rescue_first_update: self.rescue_first_update,
             keyframe_parallax_px: self.keyframe_parallax_px,
             slow_start_keyframe_px: self.slow_start_keyframe_px,
-            slow_start_constrained: self.slow_start_constrained,
+            slow_platform_settings: self.slow_platform_settings,
             msckf_jacobians: self.msckf_jacobians,
             slam_jacobians: self.slam_jacobians,
             feature_representation: self.feature_representation,
@@ -527,7 +528,7 @@ impl Default for EstimatorSpec {
             rescue_first_update: o.rescue_first_update,
             keyframe_parallax_px: o.keyframe_parallax_px,
             slow_start_keyframe_px: o.slow_start_keyframe_px,
-            slow_start_constrained: o.slow_start_constrained,
+            slow_platform_settings: o.slow_platform_settings,
             msckf_jacobians: o.msckf_jacobians,
             slam_jacobians: o.slam_jacobians,
             feature_representation: o.feature_representation,
