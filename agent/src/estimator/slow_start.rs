@@ -123,9 +123,10 @@ impl SlowStart {
     /// This frame's options: after a wait, the keyframe window and (with
     /// `slow_platform_settings`) the other settings for slow platforms, the
     /// MSCKF's and the SLAM features' Jacobians observability-constrained and
-    /// new SLAM features as anchored inverse depths. A waiting start is a slow
-    /// platform, whose clones are corrected long after they were cloned: there
-    /// the first estimates make the filter claim what it does not know.
+    /// new SLAM features as anchored inverse depths; after a flight turned slow
+    /// later ([`Self::observe_window`]), the constrained MSCKF Jacobians alone.
+    /// A slow platform's clones are corrected long after they were cloned:
+    /// there the first estimates make the filter claim what it does not know.
     pub fn apply(&self, opts: &mut EstimatorOptions) {
         opts.keyframe_parallax_px = self.keyframe_parallax_px(opts);
         if !opts.slow_platform_settings {
