@@ -145,8 +145,11 @@ impl SlowStart {
     /// window's parallax, and a flight whose window spans less than
     /// [`WINDOW_PARALLAX_FACTOR`] keyframes' parallax for [`SLOW_FLIGHT_S`] in
     /// a row is slow from then on (see [`Self::apply`]).
+    /// A filter already configured with the constrained MSCKF has nothing to
+    /// gain from the rule, and skips the per-frame parallax.
     pub fn observe_window(&mut self, means: &Means, db: &FeatureDb, opts: &EstimatorOptions) {
-        if !opts.slow_platform_settings || self.slow_flight || self.keyframes() {
+        let constrained = opts.msckf_jacobians == MsckfJacobians::ObservabilityConstrained;
+        if !opts.slow_platform_settings || constrained || self.slow_flight || self.keyframes() {
             return;
         }
         let low = window_parallax_px(db, means)
@@ -328,6 +331,17 @@ mod tests {
         let mut slow = SlowStart::default();
         for t in [0.0, 5.0, 10.0] {
             assert!(!watch(&mut slow, t, &off));
+        }
+
+        // Configured with the constrained MSCKF already, the rule has nothing
+        // to switch and does not watch.
+        let constrained = EstimatorOptions {
+            msckf_jacobians: MsckfJacobians::ObservabilityConstrained,
+            ..low.clone()
+        };
+        let mut slow = SlowStart::default();
+        for t in [0.0, 5.0, 10.0] {
+            assert!(!watch(&mut slow, t, &constrained));
         }
     }
 }
