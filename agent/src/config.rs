@@ -454,7 +454,7 @@ pub struct EstimatorSection {
     /// Whether a platform found slow takes the settings for slow platforms by
     /// itself: a slow start the observability-constrained Jacobians and
     /// anchored inverse-depth SLAM features, a flight that turns slow later the
-    /// constrained MSCKF Jacobians.
+    /// constrained MSCKF Jacobians and the keyframe window.
     #[serde(default)]
     pub slow_platform_settings: Option<bool>,
     /// Where the MSCKF's Jacobians are evaluated (`first_estimates` or

@@ -397,7 +397,7 @@ pub struct EstimatorSpec {
     /// Whether a platform found slow takes the settings for slow platforms by
     /// itself: a slow start (its first update waited) observability-constrained
     /// MSCKF and SLAM Jacobians and inverse-depth SLAM features, a flight that
-    /// turns slow later the constrained MSCKF Jacobians
+    /// turns slow later the constrained MSCKF Jacobians and the keyframe window
     /// (`EstimatorOptions::slow_platform_settings`).
     pub slow_platform_settings: bool,
     /// Where the MSCKF's Jacobians are evaluated: `first_estimates` or
