@@ -303,7 +303,8 @@ impl CentralEstimator {
         // A slow start: the robot's first update waits for its window to gain
         // parallax, as in the agents' filter, its candidates kept for it.
         let robot = &mut self.robots[r];
-        // A flight that turns slow takes the constrained MSCKF (`slow_start`).
+        // A flight that turns slow takes the constrained MSCKF and the keyframe
+        // window from the next frame on (`slow_start`).
         if robot.updated_once {
             robot
                 .slow_start

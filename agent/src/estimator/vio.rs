@@ -410,7 +410,8 @@ impl Estimator {
             return Ok(output_without_updates(state, &gyro, timing, coop, false));
         }
 
-        // A flight that turns slow takes the constrained MSCKF (`slow_start`).
+        // A flight that turns slow takes the constrained MSCKF and the keyframe
+        // window from the next frame on (`slow_start`).
         if self.updated_once {
             self.slow_start
                 .observe_window(&state.means, &self.features, &opts);
