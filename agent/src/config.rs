@@ -491,6 +491,11 @@ pub struct EstimatorSection {
     /// SLAM features consistent, and the pixel noise in simulation).
     #[serde(default)]
     pub up_slam_sigma_px: Option<f64>,
+    /// On a keyframe window, a SLAM feature takes a view only once its image
+    /// point moved the keyframe parallax (default on camera images, where a
+    /// track's error persists from image to image; off in simulation).
+    #[serde(default)]
+    pub slam_keyframe_updates: Option<bool>,
     /// SLAM feature representation: `global`, `anchored` or
     /// `anchored_inverse_depth`.
     #[serde(default)]
@@ -634,6 +639,9 @@ impl EstimatorSection {
         if let Some(v) = self.up_slam_sigma_px {
             o.slam_pixel_sigma_px = Some(v);
         }
+        if let Some(v) = self.slam_keyframe_updates {
+            o.slam_keyframe_updates = v;
+        }
         if let Some(v) = self.feat_rep_slam {
             o.feature_representation = v;
         }
@@ -725,6 +733,7 @@ impl Default for EstimatorSection {
             try_zupt: None,
             zupt_max_disparity_px: None,
             up_slam_sigma_px: None,
+            slam_keyframe_updates: None,
             feat_rep_slam: None,
             fi_max_cond_number: None,
             fi_min_dist: None,

@@ -148,12 +148,16 @@ pub enum RunError {
 ///
 /// A fleet that renders images makes its features with the image frontend,
 /// so unless the scenario sets `slam_pixel_sigma_px` its SLAM updates take the
-/// camera-image default ([`TRACKED_SLAM_SIGMA_PX`]), as `agent dataset` and
-/// live sensors do.
+/// camera-image default ([`TRACKED_SLAM_SIGMA_PX`]), and unless it sets
+/// `slam_keyframe_updates` they are paced on a keyframe window, as `agent
+/// dataset` and live sensors do ([`EstimatorOptions::for_tracked_images`]).
 pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> EstimatorOptions {
     let mut o = spec.options(&fleet.scenario.sensors);
     if fleet.renderer.is_some() && o.slam_pixel_sigma_px.is_none() {
         o.slam_pixel_sigma_px = Some(TRACKED_SLAM_SIGMA_PX);
+    }
+    if fleet.renderer.is_some() && spec.slam_keyframe_updates.is_none() {
+        o.slam_keyframe_updates = true;
     }
     variant.apply(&mut o);
     if spec.start_frame == StartFrame::Own && variant.cooperative() && !variant.centralized() {

@@ -22,16 +22,26 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
         .metrics();
     sc.render.enabled = true;
     let rendered_fleet = Fleet::build(&sc, seed).expect("rendered fleet");
-    // KLT tracks: the SLAM updates take 2 px unless the scenario says otherwise.
+    // KLT tracks: the SLAM updates take 2 px, and are paced on a keyframe
+    // window, unless the scenario says otherwise.
     let rendered_opts = options_for(&sc.estimator, &rendered_fleet, Variant::IndpSlam);
     assert_eq!(
         (opts.slam_sigma_px(), rendered_opts.slam_sigma_px()),
         (1.0, 2.0)
     );
+    assert_eq!(
+        (
+            opts.slam_keyframe_updates,
+            rendered_opts.slam_keyframe_updates
+        ),
+        (false, true)
+    );
     let mut set = sc.estimator.clone();
     set.slam_pixel_sigma_px = Some(1.5);
+    set.slam_keyframe_updates = Some(false);
     let set_opts = options_for(&set, &rendered_fleet, Variant::IndpSlam);
     assert_eq!(set_opts.slam_sigma_px(), 1.5);
+    assert!(!set_opts.slam_keyframe_updates);
     let r = run_robot_rendered(
         &rendered_fleet,
         0,

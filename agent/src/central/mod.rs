@@ -25,6 +25,7 @@ use crate::estimator::filter::FilterView;
 use crate::estimator::frame_output::{cpu_ms, GyroAtFrame, ImuCovariance};
 use crate::estimator::inputs::{check_frame, check_imu, InputError};
 use crate::estimator::propagator::{gyro_at_frame, propagate, PropagateError};
+use crate::estimator::slam_pacing::SlamPacing;
 use crate::estimator::slow_start::SlowStart;
 use crate::estimator::state::{ImuState, Means, Var};
 use crate::estimator::triangulation::TriangulationOptions;
@@ -53,6 +54,8 @@ struct Robot {
     updated_once: bool,
     /// Whether the first update waited for parallax (`slow_start`).
     slow_start: SlowStart,
+    /// Which SLAM features take a view on a keyframe window (`slam_pacing`).
+    slam_pacing: SlamPacing,
 }
 
 /// A track of a robot: `(robot, track id)`.
@@ -92,6 +95,7 @@ impl CentralEstimator {
                     latest: None,
                     updated_once: false,
                     slow_start: SlowStart::default(),
+                    slam_pacing: SlamPacing::default(),
                 })
                 .collect(),
             opts,
@@ -397,10 +401,17 @@ impl CentralEstimator {
         timing.msckf_ms = ms(t);
         let t = Instant::now();
         let mut slam = updater_slam::SlamStats::default();
+        let slam_due = robot.slam_pacing.due_in_frame(
+            &robot.features,
+            slot.means(),
+            &classes.slam_seen,
+            key,
+            &opts,
+        );
         updater_slam::update(
             &mut slot,
             &robot.features,
-            &classes.slam_seen,
+            slam_due.as_deref().unwrap_or(&classes.slam_seen),
             key,
             &opts,
             &self.chi2,

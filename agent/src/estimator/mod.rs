@@ -27,6 +27,7 @@ pub mod peer_window;
 pub mod projection;
 pub mod propagator;
 pub mod slam_feature;
+pub mod slam_pacing;
 pub mod slow_start;
 pub mod state;
 pub mod static_init;

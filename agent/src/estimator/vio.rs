@@ -17,6 +17,7 @@ use super::inputs::{check_frame, check_imu};
 use super::options::EstimatorOptions;
 use super::peer_frame_states;
 use super::propagator::{gyro_at_frame, propagate, PropagateError};
+use super::slam_pacing::SlamPacing;
 use super::slow_start::SlowStart;
 use super::state::{ClonePose, ImuState, State, Var};
 use super::static_init::{static_initialize, StaticInitError, StaticInitOptions, StaticInitResult};
@@ -98,6 +99,8 @@ pub struct Estimator {
     updated_once: bool,
     /// Whether the first update waited for parallax (a slow start).
     slow_start: SlowStart,
+    /// Which SLAM features take a view on a keyframe window (`slam_pacing`).
+    slam_pacing: SlamPacing,
 }
 
 fn ms(since: Instant) -> f64 {
@@ -124,6 +127,7 @@ impl Estimator {
             vocabulary: None,
             updated_once: false,
             slow_start: SlowStart::default(),
+            slam_pacing: SlamPacing::default(),
         }
     }
 
@@ -486,13 +490,17 @@ impl Estimator {
 
         timing.msckf_ms = ms(t);
 
-        // 6. SLAM update with the features seen now.
+        // 6. SLAM update with the features seen now (on a keyframe window of
+        //    tracked images, those whose view moved: `slam_pacing`).
         let t = Instant::now();
         let mut slam = updater_slam::SlamStats::default();
+        let slam_due =
+            self.slam_pacing
+                .due_in_frame(&self.features, &state.means, slam_seen, key, &opts);
         updater_slam::update(
             state,
             &self.features,
-            slam_seen,
+            slam_due.as_deref().unwrap_or(slam_seen),
             key,
             &opts,
             &self.chi2,

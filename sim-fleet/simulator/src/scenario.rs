@@ -421,6 +421,12 @@ pub struct EstimatorSpec {
     /// noise on simulated features, and `TRACKED_SLAM_SIGMA_PX` (2) on rendered
     /// images, whose KLT tracks err along a track rather than afresh per image.
     pub slam_pixel_sigma_px: Option<f64>,
+    /// Whether, on a keyframe window, a SLAM feature takes a view only once its
+    /// image point moved the keyframe parallax
+    /// (`EstimatorOptions::slam_keyframe_updates`); unset: off on simulated
+    /// features, on for rendered images, whose tracks' errors persist from
+    /// image to image.
+    pub slam_keyframe_updates: Option<bool>,
     /// First-Estimates Jacobians on.
     pub use_fej: bool,
     /// Online calibration of the camera-IMU extrinsics.
@@ -492,6 +498,7 @@ impl EstimatorSpec {
             zero_velocity_update: self.zero_velocity_update,
             pixel_sigma_px: self.filter_pixel_sigma_px(sensors.camera.pixel_noise_px),
             slam_pixel_sigma_px: self.slam_pixel_sigma_px,
+            slam_keyframe_updates: self.slam_keyframe_updates.unwrap_or(false),
             imu: ImuNoise {
                 gyro_noise_density: imu.gyro_noise_density,
                 gyro_random_walk: imu.gyro_random_walk,
@@ -535,6 +542,7 @@ impl Default for EstimatorSpec {
             max_msckf_in_update: o.max_msckf_in_update,
             pixel_sigma_px: None,
             slam_pixel_sigma_px: None,
+            slam_keyframe_updates: None,
             use_fej: o.use_fej,
             calib_extrinsics: o.calib_extrinsics,
             calib_intrinsics: o.calib_intrinsics,
