@@ -8,8 +8,8 @@
 //! many frames, counts that error again at every frame and grows
 //! overconfident. V1_01 played at 0.3 of its speed and rendered, with SLAM
 //! features, seeds 1-8: orientation NEES 3.94 (2.5-6.7 a run), against 1.2-2.0
-//! at full speed; paced as below, 3.04, lower in every seed (README, Slow
-//! flights).
+//! at full speed (stop 78); paced as below, 3.04, lower in every seed (README,
+//! Slow flights).
 //!
 //! On a keyframe window (a slow start, a flight found slow, or
 //! `keyframe_parallax_px` set), the window keeps only the views that moved;
