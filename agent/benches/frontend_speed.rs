@@ -44,11 +44,19 @@ fn main() {
                 ..FrontendOptions::default()
             },
         ),
+        (
+            "FAST, equalized, first patch (drop)",
+            FrontendOptions {
+                first_patch: agent::frontend::FirstPatch::Drop,
+                ..FrontendOptions::default()
+            },
+        ),
     ] {
         let mut fe = Frontend::new(opts, fleet.initial_calibration(0).camera).expect("frontend");
         let mut ms = Vec::new();
         let mut features = 0usize;
-        let mut stages = [0.0; 3];
+        let mut stages = [0.0; 4];
+        let mut refused = 0usize;
         for (t, img) in &frames {
             let out = fe.process(*t, img).expect("frame");
             ms.push(out.stats.ms);
@@ -56,6 +64,8 @@ fn main() {
             stages[0] += out.stats.track_ms;
             stages[1] += out.stats.detect_ms;
             stages[2] += out.stats.describe_ms;
+            stages[3] += out.stats.refine_ms;
+            refused += out.stats.refused_patch;
         }
         let n = frames.len() as f64;
         // The first frame only detects: leave it out.
@@ -63,13 +73,15 @@ fn main() {
         ms.sort_by(f64::total_cmp);
         let mean = ms.iter().sum::<f64>() / ms.len() as f64;
         println!(
-            "frontend ({name}), 752x480, one thread: {:.2} ms/frame mean, {:.2} median, {:.2} p95 over {} frames, {:.0} features/frame; stages (mean ms): track {:.2}, detect {:.2}, describe {:.2}",
+            "frontend ({name}), 752x480, one thread: {:.2} ms/frame mean, {:.2} median, {:.2} p95 over {} frames, {:.0} features/frame; stages (mean ms): track {:.2} (of which first-patch refinement {:.2}, {:.1} refused a frame), detect {:.2}, describe {:.2}",
             mean,
             ms[ms.len() / 2],
             ms[(ms.len() as f64 * 0.95) as usize],
             ms.len(),
             features as f64 / n,
             stages[0] / n,
+            stages[3] / n,
+            refused as f64 / n,
             stages[1] / n,
             stages[2] / n,
         );

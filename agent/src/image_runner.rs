@@ -12,8 +12,11 @@
 use crate::estimator::EstimatorOptions;
 use crate::frontend::{Frontend, FrontendOptions, FrontendOutput};
 use crate::runner::{run_robot_with, RobotRun, RunError};
+use common::calibration::CameraCalibration;
 use nalgebra::Vector3;
 use simulator::camera_sim::CameraEvent;
+use simulator::render::Renderer;
+use simulator::truth::RobotTruth;
 use simulator::world::camera_pose;
 use simulator::Fleet;
 use std::collections::HashMap;
@@ -98,76 +101,117 @@ pub fn run_robot_rendered(
     frontend: FrontendOptions,
     mut on_image: impl FnMut(&CameraEvent, &FrontendOutput),
 ) -> Result<ImageRun, RunError> {
-    let renderer = fleet.renderer.clone().ok_or(RunError::Frames {
-        t: f64::NAN,
-        reason: "the scenario does not render images (render.enabled: false)".into(),
-    })?;
-    let truth = fleet
-        .truths
-        .get(robot)
-        .ok_or(simulator::SimError::NoSuchRobot(robot))?;
-    let calib = fleet.true_calibration.clone();
+    if fleet.renderer.is_none() {
+        return Err(RunError::Frames {
+            t: f64::NAN,
+            reason: "the scenario does not render images (render.enabled: false)".into(),
+        });
+    }
+    let mut scorer =
+        TrackScorer::new(fleet, robot).ok_or(simulator::SimError::NoSuchRobot(robot))?;
     let mut fe = Frontend::new(frontend, fleet.initial_calibration(robot).camera).map_err(|e| {
         RunError::Frames {
             t: f64::NAN,
             reason: e.to_string(),
         }
     })?;
-    let mut landmarks: HashMap<u64, Vector3<f64>> = HashMap::new();
-    let mut errors = Vec::new();
-    let mut per_frame = Vec::new();
-    let (mut frames, mut features, mut ms) = (0usize, 0usize, 0.0);
     let run = run_robot_with(fleet, robot, opts, |c| {
         let t = c.frame.t;
         let fail = |reason: String| RunError::Frames { t, reason };
         let image = c.image.as_ref().ok_or_else(|| fail("no image".into()))?;
         let out = fe.process(t, image).map_err(|e| fail(e.to_string()))?;
         on_image(&c, &out);
-        frames += 1;
-        features += out.frame.features.len();
-        ms += out.stats.ms;
-        if let Some(pose) = camera_pose(truth, &calib, c.truth.t) {
-            let to_c = pose.inverse();
-            let ids: std::collections::HashSet<u64> = out.new_ids.iter().copied().collect();
-            let mut frame = FrameTrackError {
-                t_s: t,
-                ..FrameTrackError::default()
-            };
-            for f in &out.frame.features {
-                if ids.contains(&f.id) {
-                    if let Some(p) = renderer.raycast(&pose, &f.uv) {
-                        landmarks.insert(f.id, p);
-                    }
-                } else if let Some(p) = landmarks.get(&f.id) {
-                    if let Some(uv) = calib.camera.project(&to_c.transform_point(p)) {
-                        let e = uv - f.uv;
-                        let len = e.norm();
-                        errors.push(len);
-                        frame.observations += 1;
-                        frame.mean_px += len;
-                        frame.common_px[0] += e.x;
-                        frame.common_px[1] += e.y;
-                        frame.over_3px += usize::from(len > 3.0);
-                    }
-                }
-            }
-            if frame.observations > 0 {
-                let n = frame.observations as f64;
-                frame.mean_px /= n;
-                frame.common_px = frame.common_px.map(|c| c / n);
-                per_frame.push(frame);
-            }
-            let alive: std::collections::HashSet<u64> =
-                out.frame.features.iter().map(|f| f.id).collect();
-            landmarks.retain(|id, _| alive.contains(id));
-        }
+        scorer.score(&c, &out);
         Ok(Some(out.frame))
     })?;
     Ok(ImageRun {
         run,
-        tracks: quality(frames, features, ms, errors),
-        per_frame,
+        tracks: scorer.quality(),
+        per_frame: scorer.per_frame,
     })
+}
+
+/// Scores a frontend's tracks against the rendered truth, image by image (see
+/// the module documentation).
+pub struct TrackScorer<'a> {
+    renderer: &'a Renderer,
+    truth: &'a RobotTruth,
+    calib: &'a CameraCalibration,
+    landmarks: HashMap<u64, Vector3<f64>>,
+    errors: Vec<f64>,
+    frames: usize,
+    features: usize,
+    ms: f64,
+    /// The tracks' error in each image that had tracks to score.
+    pub per_frame: Vec<FrameTrackError>,
+}
+
+impl<'a> TrackScorer<'a> {
+    /// A scorer for robot `robot`'s images; `None` when the fleet does not
+    /// render or has no such robot.
+    pub fn new(fleet: &'a Fleet, robot: usize) -> Option<Self> {
+        Some(Self {
+            renderer: fleet.renderer.as_deref()?,
+            truth: fleet.truths.get(robot)?,
+            calib: &fleet.true_calibration,
+            landmarks: HashMap::new(),
+            errors: Vec::new(),
+            frames: 0,
+            features: 0,
+            ms: 0.0,
+            per_frame: Vec::new(),
+        })
+    }
+
+    /// Scores the frontend's output `out` for the camera event `c`: a new
+    /// track's pixel is cast into the room, an older one compared with its
+    /// point's projection.
+    pub fn score(&mut self, c: &CameraEvent, out: &FrontendOutput) {
+        self.frames += 1;
+        self.features += out.frame.features.len();
+        self.ms += out.stats.ms;
+        let Some(pose) = camera_pose(self.truth, self.calib, c.truth.t) else {
+            return;
+        };
+        let to_c = pose.inverse();
+        let ids: std::collections::HashSet<u64> = out.new_ids.iter().copied().collect();
+        let mut frame = FrameTrackError {
+            t_s: c.frame.t,
+            ..FrameTrackError::default()
+        };
+        for f in &out.frame.features {
+            if ids.contains(&f.id) {
+                if let Some(p) = self.renderer.raycast(&pose, &f.uv) {
+                    self.landmarks.insert(f.id, p);
+                }
+            } else if let Some(p) = self.landmarks.get(&f.id) {
+                if let Some(uv) = self.calib.camera.project(&to_c.transform_point(p)) {
+                    let e = uv - f.uv;
+                    let len = e.norm();
+                    self.errors.push(len);
+                    frame.observations += 1;
+                    frame.mean_px += len;
+                    frame.common_px[0] += e.x;
+                    frame.common_px[1] += e.y;
+                    frame.over_3px += usize::from(len > 3.0);
+                }
+            }
+        }
+        if frame.observations > 0 {
+            let n = frame.observations as f64;
+            frame.mean_px /= n;
+            frame.common_px = frame.common_px.map(|c| c / n);
+            self.per_frame.push(frame);
+        }
+        let alive: std::collections::HashSet<u64> =
+            out.frame.features.iter().map(|f| f.id).collect();
+        self.landmarks.retain(|id, _| alive.contains(id));
+    }
+
+    /// The summary so far.
+    pub fn quality(&self) -> TrackQuality {
+        quality(self.frames, self.features, self.ms, self.errors.clone())
+    }
 }
 
 fn quality(frames: usize, features: usize, ms: f64, mut errors: Vec<f64>) -> TrackQuality {

@@ -202,6 +202,11 @@ struct RunArgs {
     /// (needs the `vision` feature).
     #[arg(long)]
     render: bool,
+    /// With `--render`: image frontend settings (YAML), the keys of an agent
+    /// configuration's `images.frontend:` block (`first_patch: drop`, ...),
+    /// over the defaults.
+    #[arg(long, value_name = "YAML", requires = "render")]
+    frontend: Option<PathBuf>,
 }
 
 fn main() -> std::process::ExitCode {
@@ -668,25 +673,21 @@ fn rendered(
     fleet: &Fleet,
     robot: usize,
     opts: agent::estimator::EstimatorOptions,
+    frontend: Option<&std::path::Path>,
     log: &mut AgentLog,
     out: &std::path::Path,
 ) -> Result<agent::runner::RobotRun> {
+    let frontend = agent::dataset_cli::frontend_options(frontend)?;
     let mut k = 0usize;
-    let r = agent::image_runner::run_robot_rendered(
-        fleet,
-        robot,
-        opts,
-        Default::default(),
-        |c, out| {
-            if k % LOG_IMAGE_EVERY == 0 {
-                if let Some(img) = &c.image {
-                    let _ = log.image(c.frame.t, img);
-                    let _ = log.tracks(&out.frame, &out.new_ids);
-                }
+    let r = agent::image_runner::run_robot_rendered(fleet, robot, opts, frontend, |c, out| {
+        if k % LOG_IMAGE_EVERY == 0 {
+            if let Some(img) = &c.image {
+                let _ = log.image(c.frame.t, img);
+                let _ = log.tracks(&out.frame, &out.new_ids);
             }
-            k += 1;
-        },
-    )?;
+        }
+        k += 1;
+    })?;
     let q = &r.tracks;
     println!(
         "frontend: {} images, {:.0} features/image, {:.2} ms/image; KLT reprojection error vs the rendered truth: mean {:.3} px, median {:.3} px, p95 {:.3} px, {:.2}% over 3 px ({} observations)",
@@ -715,6 +716,7 @@ fn rendered(
     _: &Fleet,
     _: usize,
     _: agent::estimator::EstimatorOptions,
+    _: Option<&std::path::Path>,
     _: &mut AgentLog,
     _: &std::path::Path,
 ) -> Result<agent::runner::RobotRun> {
@@ -739,7 +741,14 @@ fn run(args: &RunArgs) -> Result<()> {
         let biases = args.real_imu_biases.clone().or(default_biases);
         agent::hybrid::run_robot_hybrid(&fleet, args.robot, opts, imu, biases.as_deref())?
     } else if fleet.renderer.is_some() {
-        rendered(&fleet, args.robot, opts, &mut log, out)?
+        rendered(
+            &fleet,
+            args.robot,
+            opts,
+            args.frontend.as_deref(),
+            &mut log,
+            out,
+        )?
     } else {
         run_robot(&fleet, args.robot, opts)?
     };

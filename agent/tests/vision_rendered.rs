@@ -3,10 +3,11 @@
 
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
-use agent::frontend::FrontendOptions;
-use agent::image_runner::run_robot_rendered;
+use agent::frontend::{FirstPatch, Frontend, FrontendOptions};
+use agent::image_runner::{run_robot_rendered, TrackScorer};
 use agent::runner::{options_for, run_robot, Variant};
-use simulator::{Fleet, Scenario};
+use simulator::camera_sim::CameraEvent;
+use simulator::{Fleet, Scenario, SimEvent};
 use std::path::PathBuf;
 
 #[test]
@@ -98,4 +99,50 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
         .map(|f| f.common_px[0].hypot(f.common_px[1]))
         .fold(0.0, f64::max);
     println!("largest common shift of one image: {worst:.3} px");
+}
+
+/// Frame-to-frame KLT adds an error at every image, and along a track they add
+/// up; a track held to its first patch (`first_patch`) does not drift.
+#[test]
+fn tracks_held_to_their_first_patch_drift_a_fraction_of_frame_to_frame_klt() {
+    let path =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../sim-fleet/scenarios/v1_01_easy.yaml");
+    let mut sc = Scenario::load(&path).expect("scenario");
+    sc.render.enabled = true;
+    let fleet = Fleet::build(&sc, 1).expect("rendered fleet");
+    let start = fleet.estimator_start_time(0).expect("start");
+    // 40 s of the flight.
+    let images: Vec<Box<CameraEvent>> = fleet
+        .stream(0)
+        .expect("stream")
+        .filter_map(|e| match e {
+            SimEvent::Camera(c) if c.truth.t >= start => Some(c),
+            _ => None,
+        })
+        .take(400)
+        .collect();
+    let score = |first_patch| {
+        let opts = FrontendOptions {
+            first_patch,
+            ..FrontendOptions::default()
+        };
+        let mut fe = Frontend::new(opts, fleet.initial_calibration(0).camera).expect("frontend");
+        let mut scorer = TrackScorer::new(&fleet, 0).expect("renders");
+        for c in &images {
+            let image = c.image.as_ref().expect("rendered");
+            let out = fe.process(c.frame.t, image).expect("frame");
+            scorer.score(c, &out);
+        }
+        scorer.quality()
+    };
+    let (klt, held) = (score(FirstPatch::Off), score(FirstPatch::Drop));
+    println!("frame to frame: {klt:?}\nheld to the first patch: {held:?}");
+    assert!(held.features_per_frame > 150.0, "{held:?}");
+    assert!(held.observations as f64 > 0.9 * klt.observations as f64);
+    assert!(
+        held.reprojection_mean_px < klt.reprojection_mean_px / 3.0,
+        "{held:?} vs {klt:?}"
+    );
+    assert!(held.reprojection_median_px < 0.15, "{held:?}");
+    assert!(held.outlier_fraction < 0.002, "{held:?}");
 }

@@ -10,7 +10,9 @@
 //!    lands within `max_forward_backward_px` of the start (forward-backward
 //!    check);
 //! 3. outlier rejection with a fundamental-matrix RANSAC on the undistorted
-//!    points (ideal pixels `K · n`, so the threshold is in pixels);
+//!    points (ideal pixels `K · n`, so the threshold is in pixels), then,
+//!    with `first_patch` set, each track refined against the patch it started
+//!    with ([`patch_refine`]), so frame-to-frame errors do not add up;
 //! 4. new features on a grid (FAST or Shi-Tomasi), away from the image border
 //!    and at least `min_distance_px` from every feature, until
 //!    `num_features` are tracked;
@@ -26,6 +28,8 @@ mod cv;
 mod detect;
 #[cfg(feature = "vision")]
 mod orb;
+#[cfg(feature = "vision")]
+mod patch_refine;
 #[cfg(feature = "vision")]
 mod ransac;
 #[cfg(feature = "vision")]
@@ -56,6 +60,21 @@ pub enum Histogram {
     Equalize,
     /// Contrast-limited adaptive equalization (8x8 tiles, clip limit 2).
     Clahe,
+}
+
+/// What a track does when its refinement against its first patch is refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FirstPatch {
+    /// No refinement: frame-to-frame KLT alone (the default, see the README's
+    /// "Tracks held to their first patch" for why).
+    Off,
+    /// Refined; when refused the track keeps its frame-to-frame pixel and
+    /// takes the patch there as its new first patch.
+    Reanchor,
+    /// Refined; when refused the track ends. A patch reaching
+    /// past the image border keeps the frame-to-frame pixel in both modes.
+    Drop,
 }
 
 /// Frontend settings (defaults follow OpenVINS's KLT frontend on EuRoC).
@@ -89,6 +108,9 @@ pub struct FrontendOptions {
     pub ransac_threshold_px: f64,
     /// Every this many frames is a keyframe: every track gets a fresh descriptor.
     pub keyframe_interval: u64,
+    /// Refinement of each track against the patch it started with
+    /// (`patch_refine`): `off` (the default), `drop` or `reanchor`.
+    pub first_patch: FirstPatch,
 }
 
 impl Default for FrontendOptions {
@@ -107,6 +129,7 @@ impl Default for FrontendOptions {
             max_forward_backward_px: 1.0,
             ransac_threshold_px: 1.0,
             keyframe_interval: 10,
+            first_patch: FirstPatch::Off,
         }
     }
 }

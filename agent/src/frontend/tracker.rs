@@ -4,8 +4,9 @@
 use super::cv::{mat_of, pixels_of, points_of};
 use super::detect::detect_new;
 use super::orb::OrbDescriber;
+use super::patch_refine::{ImageView, RefineLimits, Refusal, Template};
 use super::ransac::epipolar_inliers;
-use super::{FrontendOptions, Histogram};
+use super::{FirstPatch, FrontendOptions, Histogram};
 use common::camera::CameraModel;
 use common::descriptor::Descriptor;
 use common::image::GrayImage;
@@ -18,6 +19,7 @@ use opencv::core::{
 use opencv::imgproc::CLAHE;
 use opencv::prelude::*;
 use opencv::{imgproc, video};
+use std::collections::{HashMap, HashSet};
 use std::time::Instant;
 use thiserror::Error;
 
@@ -74,12 +76,18 @@ pub struct FrontendStats {
     pub lost_forward_backward: usize,
     /// Tracks rejected by the fundamental-matrix RANSAC.
     pub lost_ransac: usize,
+    /// Tracks whose refinement against their first patch was refused: ended
+    /// (`FirstPatch::Drop`) or given a new first patch (`Reanchor`).
+    pub refused_patch: usize,
     /// New tracks.
     pub detected: usize,
     /// Wall-clock cost of the frame, ms.
     pub ms: f64,
-    /// Of which: preprocessing, pyramid, KLT and RANSAC, ms.
+    /// Of which: preprocessing, pyramid, KLT, RANSAC and the refinement
+    /// against the first patches, ms.
     pub track_ms: f64,
+    /// Of which: the refinement against the first patches, ms.
+    pub refine_ms: f64,
     /// Detection of new features, ms.
     pub detect_ms: f64,
     /// ORB descriptors, ms.
@@ -122,6 +130,8 @@ pub struct Frontend {
     prev: Option<Previous>,
     next_id: u64,
     frames: u64,
+    /// Each live track's first patch (`first_patch` set).
+    templates: HashMap<u64, Template>,
 }
 
 impl std::fmt::Debug for Frontend {
@@ -154,6 +164,7 @@ impl Frontend {
             prev: None,
             next_id: 1,
             frames: 0,
+            templates: HashMap::new(),
         })
     }
 
@@ -174,10 +185,14 @@ impl Frontend {
             Some(prev) => self.track(&prev, &pyramid, &mut stats)?,
             None => Vec::new(),
         };
+        let refining = Instant::now();
+        self.hold_to_first_patches(&img, &mut tracks, &mut stats)?;
+        stats.refine_ms = ms_since(refining);
         stats.tracked = tracks.len();
         stats.track_ms = ms_since(started);
         let keyframe = self.frames % self.opts.keyframe_interval == 0;
         let new_ids = self.top_up(&img, keyframe, &mut tracks, &mut stats)?;
+        self.take_first_patches(&img, &tracks, &new_ids)?;
         stats.detected = new_ids.len();
         self.frames += 1;
         let features = tracks
@@ -305,6 +320,84 @@ impl Frontend {
         Ok(kept)
     }
 
+    /// Step 3, second part: each tracked pixel refined against its track's
+    /// first patch (`first_patch`); a refused one ends or starts over.
+    fn hold_to_first_patches(
+        &mut self,
+        img: &Mat,
+        tracks: &mut Vec<Track>,
+        stats: &mut FrontendStats,
+    ) -> Result<(), FrontendError> {
+        if self.opts.first_patch == FirstPatch::Off || tracks.is_empty() {
+            return Ok(());
+        }
+        let Some(view) = view_of(img)? else {
+            return Ok(());
+        };
+        let limits = RefineLimits::default();
+        let drop = self.opts.first_patch == FirstPatch::Drop;
+        let mut refused = 0;
+        tracks.retain_mut(|tr| {
+            let Some(tpl) = self.templates.get_mut(&tr.id) else {
+                // No first patch (it started too near the border or on a
+                // flat patch): the frame-to-frame pixel.
+                return true;
+            };
+            let why = match tpl.refine(&view, tr.uv, &limits) {
+                Ok(uv) => {
+                    tr.uv = uv;
+                    return true;
+                }
+                Err(why) => why,
+            };
+            refused += 1;
+            match (why, drop) {
+                // Near the border: the frame-to-frame pixel until the patch is
+                // inside again or the track leaves.
+                (Refusal::Outside, _) => true,
+                // The first patch and the frame-to-frame pixel disagree, or
+                // the patch changed: the track ends ...
+                (_, true) => false,
+                // ... or starts over from where KLT put it.
+                (_, false) => {
+                    match Template::extract(&view, tr.uv, limits.half_px) {
+                        Some(tpl) => self.templates.insert(tr.id, tpl),
+                        None => self.templates.remove(&tr.id),
+                    };
+                    true
+                }
+            }
+        });
+        stats.refused_patch = refused;
+        Ok(())
+    }
+
+    /// The first patches of the tracks that started in this frame, and none
+    /// for the tracks that ended.
+    fn take_first_patches(
+        &mut self,
+        img: &Mat,
+        tracks: &[Track],
+        new_ids: &[u64],
+    ) -> Result<(), FrontendError> {
+        if self.opts.first_patch == FirstPatch::Off {
+            return Ok(());
+        }
+        let alive: HashSet<u64> = tracks.iter().map(|t| t.id).collect();
+        self.templates.retain(|id, _| alive.contains(id));
+        let Some(view) = view_of(img)? else {
+            return Ok(());
+        };
+        let half = RefineLimits::default().half_px;
+        let new: HashSet<u64> = new_ids.iter().copied().collect();
+        for tr in tracks.iter().filter(|t| new.contains(&t.id)) {
+            if let Some(tpl) = Template::extract(&view, tr.uv, half) {
+                self.templates.insert(tr.id, tpl);
+            }
+        }
+        Ok(())
+    }
+
     /// Pyramidal Lucas-Kanade from `from` to `to`, optionally from initial
     /// guesses: the points and whether each was found.
     fn klt(
@@ -384,6 +477,13 @@ impl Frontend {
         stats.describe_ms = ms_since(started);
         Ok(ids)
     }
+}
+
+/// A view of an 8-bit single-channel `Mat` (`None` for another type).
+fn view_of(img: &Mat) -> Result<Option<ImageView<'_>>, FrontendError> {
+    let width = usize::try_from(img.cols()).unwrap_or(0);
+    let height = usize::try_from(img.rows()).unwrap_or(0);
+    Ok(ImageView::new(img.data_bytes()?, width, height))
 }
 
 fn ms_since(t: Instant) -> f64 {
