@@ -389,8 +389,20 @@ mod tests {
             (found - target).norm() < 0.15,
             "found {found}, truth {target}"
         );
+        // The damped linear part reaches the scale over a few frames (the
+        // 15x15 patch of this smooth texture sees it to a few percent).
+        let mut at = found;
+        for _ in 0..8 {
+            at = tpl
+                .refine(&img1, at, &RefineLimits::default())
+                .expect("refined");
+        }
+        assert!((at - target).norm() < 0.15, "{at} vs {target}");
         let sv = tpl.warp.singular_values();
-        assert!((sv.max() - 1.08).abs() < 0.03 && (sv.min() - 1.08).abs() < 0.03);
+        assert!(
+            (sv.max() - 1.08).abs() < 0.05 && (sv.min() - 1.08).abs() < 0.05,
+            "{sv}"
+        );
     }
 
     #[test]
