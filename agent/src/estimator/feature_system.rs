@@ -74,10 +74,11 @@ pub struct FeatureSystem {
 /// normalized coordinates recorded with a measurement hold the intrinsics of
 /// its time, and while online calibration converges those move. Near the
 /// image's corners a small change in the distortion moves a ray by tens of
-/// pixels (rendered V1_01 at 0.3x, seed 2: a held track 4-40 px from the
-/// corner had its oldest rays 30 px from where the intrinsics one second
-/// later put them; the point was triangulated at 0.4 m instead of 1.3 m and
-/// its SLAM initialization kicked the velocity by 1.3 cm/s). The recorded
+/// pixels (rendered V1_01 at 0.3x, seed 2: two held tracks 4-42 px from the
+/// corner had their oldest rays 27-30 px (in x) from where the intrinsics one
+/// second later put them; their points were triangulated 0.3-0.4 m deep
+/// instead of 1.2-1.4 m, and their SLAM initialization moved the velocity by
+/// 1.2 cm/s). The recorded
 /// coordinates stand in when the pixel cannot be undistorted now.
 pub fn camera_observations(state: &Means, feature: &Feature) -> Vec<CameraObservation> {
     let camera = &state.calib.camera;
