@@ -89,8 +89,11 @@ impl FeatureClasses {
 }
 
 /// Adds the frame's observations (undistorted with the current intrinsics) to the
-/// database under clone `key`. A track with an impossible jump restarts.
+/// database under clone `key`, the stored ones undistorted again first if the
+/// intrinsics moved ([`FeatureDb::follow_intrinsics`]). A track with an
+/// impossible jump restarts.
 pub fn record_measurements(db: &mut FeatureDb, state: &Means, frame: &FeatureFrame, key: u64) {
+    db.follow_intrinsics(&state.calib.camera);
     for f in &frame.features {
         let Ok(uvn) = state.calib.camera.undistort(&f.uv) else {
             continue;

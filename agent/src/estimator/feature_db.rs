@@ -10,6 +10,7 @@
 //! bit, from run to run.
 
 use super::triangulation::CameraObservation;
+use common::camera::CameraModel;
 use nalgebra::{Matrix3, Vector2, Vector3};
 use std::collections::BTreeMap;
 
@@ -20,6 +21,17 @@ pub const DEFAULT_MAX_PIXEL_JUMP_PX: f64 = 150.0;
 /// ([`Feature::retired`]): the oldest one and the newest others.
 pub const MAX_RETIRED_RAYS: usize = 20;
 
+/// How far, in pixels of focal length, the intrinsics may move a stored ray
+/// before [`FeatureDb::follow_intrinsics`] undistorts every stored pixel again:
+/// a tenth of the pixel noise.
+pub const RAY_REFRESH_PX: f64 = 0.1;
+
+/// Fractions of the image's width and height where
+/// [`FeatureDb::follow_intrinsics`] measures how far the intrinsics moved the
+/// rays: the corners, where the distortion moves them most, the edges' middles
+/// and the centre.
+const PROBE_FRACTIONS: [f64; 3] = [0.0, 0.5, 1.0];
+
 /// One observation of a feature in one image.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FeatureMeasurement {
@@ -29,7 +41,8 @@ pub struct FeatureMeasurement {
     pub t: f64,
     /// Raw (distorted) pixel coordinates, pixels.
     pub uv: Vector2<f64>,
-    /// Undistorted normalized coordinates `[x/z, y/z]`.
+    /// Undistorted normalized coordinates `[x/z, y/z]`, with the intrinsics of
+    /// the database's last [`FeatureDb::follow_intrinsics`].
     pub uvn: Vector2<f64>,
 }
 
@@ -59,7 +72,17 @@ pub struct Feature {
     /// [`MAX_RETIRED_RAYS`]): a longer baseline to triangulate a slow track's
     /// point from, never measurements of an update
     /// ([`FeatureDb::retire_measurements_before`]).
-    pub retired: Vec<CameraObservation>,
+    pub retired: Vec<RetiredRay>,
+}
+
+/// A view of a track from a clone that has left the window.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RetiredRay {
+    /// The camera pose estimated when the clone left, and the normalized
+    /// coordinates (kept with the intrinsics as [`FeatureMeasurement::uvn`]).
+    pub view: CameraObservation,
+    /// Raw (distorted) pixel coordinates, pixels.
+    pub uv: Vector2<f64>,
 }
 
 impl Feature {
@@ -158,6 +181,9 @@ pub struct FeatureDb {
     features: BTreeMap<u64, Feature>,
     /// Largest pixel motion accepted between measurements of consecutive clones.
     max_pixel_jump_px: f64,
+    /// Probe pixels and their rays with the intrinsics the stored normalized
+    /// coordinates hold ([`Self::follow_intrinsics`]); `None` before the first call.
+    probe_rays: Option<Vec<(Vector2<f64>, Vector2<f64>)>>,
 }
 
 impl Default for FeatureDb {
@@ -174,6 +200,7 @@ impl FeatureDb {
         Self {
             features: BTreeMap::new(),
             max_pixel_jump_px: DEFAULT_MAX_PIXEL_JUMP_PX,
+            probe_rays: None,
         }
     }
 
@@ -186,12 +213,66 @@ impl FeatureDb {
         Ok(Self {
             features: BTreeMap::new(),
             max_pixel_jump_px: max_px,
+            probe_rays: None,
         })
     }
 
     /// Largest pixel motion accepted between measurements of consecutive clones.
     pub fn max_pixel_jump_px(&self) -> f64 {
         self.max_pixel_jump_px
+    }
+
+    /// Keeps the stored normalized coordinates (of the window's measurements and
+    /// of the retired rays) those of `camera`'s intrinsics: when a probe pixel's
+    /// ray moved more than [`RAY_REFRESH_PX`] since the last refresh, every
+    /// stored pixel is undistorted again. Returns whether they were.
+    ///
+    /// A measurement's coordinates are undistorted when it is recorded, with the
+    /// intrinsics online calibration holds then; while those converge, a small
+    /// change in the distortion moves a ray near the image's corners by tens of
+    /// pixels (rendered V1_01 at 0.3x, seed 2: 27-30 px in one second), and
+    /// whatever compares rays of different times (the keyframe parallax, the
+    /// retired rays) would read that drift as motion. A pixel the intrinsics
+    /// cannot undistort now keeps its coordinates.
+    pub fn follow_intrinsics(&mut self, camera: &CameraModel) -> bool {
+        let fx = camera.fx();
+        // No probe the intrinsics could undistort (a fisheye's corners beyond
+        // its field of view): every call refreshes.
+        let moved = self.probe_rays.as_ref().is_none_or(|probes| {
+            probes.is_empty()
+                || probes.iter().any(|(uv, ray)| {
+                    camera
+                        .undistort(uv)
+                        .is_ok_and(|now| (now - ray).norm() * fx > RAY_REFRESH_PX)
+                })
+        });
+        if !moved {
+            return false;
+        }
+        let (w, h) = (f64::from(camera.width), f64::from(camera.height));
+        let probes = PROBE_FRACTIONS
+            .iter()
+            .flat_map(|fu| {
+                PROBE_FRACTIONS
+                    .iter()
+                    .map(move |fv| Vector2::new(fu * w, fv * h))
+            })
+            .filter_map(|uv| Some((uv, camera.undistort(&uv).ok()?)))
+            .collect();
+        self.probe_rays = Some(probes);
+        for f in self.features.values_mut() {
+            for m in &mut f.measurements {
+                if let Ok(uvn) = camera.undistort(&m.uv) {
+                    m.uvn = uvn;
+                }
+            }
+            for r in &mut f.retired {
+                if let Ok(uvn) = camera.undistort(&r.uv) {
+                    r.view.uvn = uvn;
+                }
+            }
+        }
+        true
     }
 
     /// Appends a measurement to feature `id`, creating the feature if new.
@@ -326,10 +407,13 @@ impl FeatureDb {
                 let Some((r_c_to_g, p_c_in_g)) = camera_pose(m.clone_key) else {
                     continue;
                 };
-                f.retired.push(CameraObservation {
-                    r_c_to_g,
-                    p_c_in_g,
-                    uvn: m.uvn,
+                f.retired.push(RetiredRay {
+                    view: CameraObservation {
+                        r_c_to_g,
+                        p_c_in_g,
+                        uvn: m.uvn,
+                    },
+                    uv: m.uv,
                 });
                 if f.retired.len() > MAX_RETIRED_RAYS {
                     f.retired.remove(1);
@@ -552,12 +636,73 @@ mod tests {
         assert_eq!(f.measurements.len(), 1);
         assert_eq!(f.retired.len(), MAX_RETIRED_RAYS);
         // The oldest ray stays (the widest baseline), then the newest others.
-        let xs: Vec<f64> = f.retired.iter().map(|r| r.p_c_in_g.x).collect();
+        let xs: Vec<f64> = f.retired.iter().map(|r| r.view.p_c_in_g.x).collect();
         assert_eq!(xs[0], 0.0);
         assert_eq!(xs[MAX_RETIRED_RAYS - 1], (n - 1) as f64);
         assert!(xs.windows(2).all(|w| w[0] < w[1]));
         assert!(!xs.contains(&3.0));
-        assert_eq!(f.retired[0].uvn, meas(0, 100.0, 100.0).uvn);
+        assert_eq!(f.retired[0].view.uvn, meas(0, 100.0, 100.0).uvn);
+        assert_eq!(f.retired[0].uv, meas(0, 100.0, 100.0).uv);
+    }
+
+    #[test]
+    fn stored_rays_follow_the_intrinsics_once_they_move_a_tenth_of_a_pixel() {
+        let mut camera = CameraModel::euroc_cam0();
+        let mut db = FeatureDb::new();
+        // A track at the image's corner and one at its centre, one view each
+        // retired, their coordinates undistorted with `camera`.
+        for (id, u, v) in [(1, 5.0, 8.0), (2, 376.0, 240.0)] {
+            for k in 0..3 {
+                let uv = Vector2::new(u + k as f64, v);
+                let uvn = camera.undistort(&uv).expect("undistorts");
+                let m = FeatureMeasurement {
+                    clone_key: k,
+                    t: 0.1 * k as f64,
+                    uv,
+                    uvn,
+                };
+                db.insert(id, m).expect("valid");
+            }
+        }
+        let pose = |_| Some((Matrix3::identity(), Vector3::zeros()));
+        db.retire_measurements_before(1, pose);
+        assert!(
+            db.follow_intrinsics(&camera),
+            "the first call sets the reference"
+        );
+        assert!(!db.follow_intrinsics(&camera));
+        let rays = |db: &FeatureDb| -> Vec<Vector2<f64>> {
+            db.iter()
+                .flat_map(|f| {
+                    let window = f.measurements.iter().map(|m| m.uvn);
+                    f.retired.iter().map(|r| r.view.uvn).chain(window)
+                })
+                .collect()
+        };
+        let exact = |db: &FeatureDb, camera: &CameraModel| -> f64 {
+            db.iter()
+                .flat_map(|f| {
+                    let window = f.measurements.iter().map(|m| (m.uv, m.uvn));
+                    f.retired.iter().map(|r| (r.uv, r.view.uvn)).chain(window)
+                })
+                .map(|(uv, uvn)| (camera.undistort(&uv).expect("undistorts") - uvn).norm())
+                .fold(0.0, f64::max)
+                * camera.fx()
+        };
+        // A distortion step too small to move any ray a tenth of a pixel: kept.
+        let before = rays(&db);
+        camera.distortion.x += 1e-6;
+        assert!(!db.follow_intrinsics(&camera));
+        assert_eq!(rays(&db), before);
+        assert!(exact(&db, &camera) < RAY_REFRESH_PX);
+        // Online calibration's distortion moving as in the first second of a
+        // flight: the corner's rays are pixels stale, and all are redone.
+        camera.distortion += nalgebra::Vector4::new(0.0016, 0.0021, 0.0028, -0.0067);
+        let stale = exact(&db, &camera);
+        assert!(stale > 1.0, "{stale} px");
+        assert!(db.follow_intrinsics(&camera));
+        assert!(exact(&db, &camera) < 1e-9, "{} px", exact(&db, &camera));
+        assert!(!db.follow_intrinsics(&camera));
     }
 
     #[test]

@@ -130,7 +130,8 @@ pub fn build(
     let p_f = match triangulate(&obs, tri) {
         Ok(p) => p,
         Err(_) if !feature.retired.is_empty() => {
-            let mut longer = feature.retired.clone();
+            let mut longer: Vec<CameraObservation> =
+                feature.retired.iter().map(|r| r.view).collect();
             longer.extend_from_slice(&obs);
             let limits = if tri.retired_by_precision {
                 // The same depth precision as `obs` at the plain limit

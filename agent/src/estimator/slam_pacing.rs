@@ -25,10 +25,13 @@ use super::state::Means;
 use nalgebra::Vector2;
 use std::collections::BTreeMap;
 
-/// The view each SLAM feature last took, in normalized image coordinates.
+/// The view each SLAM feature last took, as its raw pixel: compared in
+/// normalized coordinates with the intrinsics of the frame that compares,
+/// since online calibration moves the rays of a pixel while it converges
+/// (`FeatureDb::follow_intrinsics`).
 #[derive(Clone, Debug, Default)]
 pub struct SlamPacing {
-    last_uvn: BTreeMap<u64, Vector2<f64>>,
+    last_uv: BTreeMap<u64, Vector2<f64>>,
 }
 
 impl SlamPacing {
@@ -51,29 +54,35 @@ impl SlamPacing {
         self.retain(|id| seen.contains(&id));
         let views = seen.iter().filter_map(|&id| {
             let m = db.get(id)?.measurement_at(key)?;
-            Some((id, m.uvn))
+            Some((id, m.uv))
         });
-        let min_normalized = opts.keyframe_parallax_px / means.calib.camera.fx();
-        Some(self.due(views, min_normalized))
+        let camera = &means.calib.camera;
+        let min_normalized = opts.keyframe_parallax_px / camera.fx();
+        Some(self.due(views, |uv| camera.undistort(uv).ok(), min_normalized))
     }
 
-    /// The features of `seen` (id and this frame's normalized image point)
-    /// whose point moved at least `min_normalized` from the view each took
-    /// last, or that took none yet; those are remembered as taking this view.
-    /// With `min_normalized` 0 (no pacing) every feature is due.
+    /// The features of `seen` (id and this frame's raw pixel) whose point, as
+    /// `ray` (the current intrinsics) undistorts it, moved at least
+    /// `min_normalized` from the view each took last, or that took none yet
+    /// (or whose views `ray` cannot undistort); those are remembered as taking
+    /// this view. With `min_normalized` 0 (no pacing) every feature is due.
     pub fn due(
         &mut self,
         seen: impl IntoIterator<Item = (u64, Vector2<f64>)>,
+        ray: impl Fn(&Vector2<f64>) -> Option<Vector2<f64>>,
         min_normalized: f64,
     ) -> Vec<u64> {
         let mut due = Vec::new();
-        for (id, uvn) in seen {
+        for (id, uv) in seen {
             let moved = self
-                .last_uvn
+                .last_uv
                 .get(&id)
-                .is_none_or(|last| (uvn - last).norm() >= min_normalized);
+                .is_none_or(|last| match (ray(&uv), ray(last)) {
+                    (Some(now), Some(then)) => (now - then).norm() >= min_normalized,
+                    _ => true,
+                });
             if moved {
-                self.last_uvn.insert(id, uvn);
+                self.last_uv.insert(id, uv);
                 due.push(id);
             }
         }
@@ -82,7 +91,7 @@ impl SlamPacing {
 
     /// Forgets the features `keep` says are gone.
     pub fn retain(&mut self, keep: impl Fn(u64) -> bool) {
-        self.last_uvn.retain(|id, _| keep(*id));
+        self.last_uv.retain(|id, _| keep(*id));
     }
 }
 
@@ -90,6 +99,7 @@ impl SlamPacing {
 mod tests {
     use super::*;
     use crate::estimator::test_scene::scene;
+    use common::camera::CameraModel;
 
     #[test]
     fn only_a_keyframe_window_of_tracked_images_paces_the_slam_updates() {
@@ -122,19 +132,52 @@ mod tests {
     }
 
     #[test]
+    fn intrinsics_that_move_the_rays_of_a_still_pixel_do_not_make_its_view_due() {
+        let before = CameraModel::euroc_cam0();
+        let mut after = before.clone();
+        after.distortion += nalgebra::Vector4::new(0.0016, 0.0021, 0.0028, -0.0067);
+        let corner = Vector2::new(5.0, 8.0);
+        let shift = (after.undistort(&corner).expect("ray")
+            - before.undistort(&corner).expect("ray"))
+        .norm()
+            * before.fx();
+        assert!(shift > 4.0, "{shift} px");
+        let mut p = SlamPacing::default();
+        let min = 4.0 / before.fx();
+        assert_eq!(
+            p.due([(1, corner)], |uv| before.undistort(uv).ok(), min),
+            vec![1]
+        );
+        // The pixel stays: its ray moved only with the intrinsics.
+        assert!(p
+            .due([(1, corner)], |uv| after.undistort(uv).ok(), min)
+            .is_empty());
+        // It moves the parallax in the image: due.
+        let moved = corner + Vector2::new(5.0, 0.0);
+        assert_eq!(
+            p.due([(1, moved)], |uv| after.undistort(uv).ok(), min),
+            vec![1]
+        );
+    }
+
+    #[test]
     fn a_feature_takes_a_view_only_once_its_point_moved_the_parallax() {
         let mut p = SlamPacing::default();
         let at = |x: f64| Vector2::new(x, 0.0);
+        let same = |uv: &Vector2<f64>| Some(*uv);
         // New features are due.
-        assert_eq!(p.due([(1, at(0.0)), (2, at(0.5))], 0.01), vec![1, 2]);
+        assert_eq!(p.due([(1, at(0.0)), (2, at(0.5))], same, 0.01), vec![1, 2]);
         // Feature 1 moved less than the parallax: not due, and its last view
         // stays the one it took, so small moves add up.
-        assert_eq!(p.due([(1, at(0.006)), (2, at(0.52))], 0.01), vec![2]);
-        assert_eq!(p.due([(1, at(0.012)), (2, at(0.525))], 0.01), vec![1]);
+        assert_eq!(p.due([(1, at(0.006)), (2, at(0.52))], same, 0.01), vec![2]);
+        assert_eq!(p.due([(1, at(0.012)), (2, at(0.525))], same, 0.01), vec![1]);
         // No pacing: every feature, every frame.
-        assert_eq!(p.due([(1, at(0.012)), (2, at(0.525))], 0.0), vec![1, 2]);
+        assert_eq!(
+            p.due([(1, at(0.012)), (2, at(0.525))], same, 0.0),
+            vec![1, 2]
+        );
         // A feature that left the state starts afresh if its id comes back.
         p.retain(|id| id != 1);
-        assert_eq!(p.due([(1, at(0.012))], 0.01), vec![1]);
+        assert_eq!(p.due([(1, at(0.012))], same, 0.01), vec![1]);
     }
 }

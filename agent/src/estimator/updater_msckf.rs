@@ -648,13 +648,26 @@ mod tests {
         }
     }
 
+    /// Track `id`'s window views in `s`, as rays retired a second time.
+    fn retired_again(
+        s: &crate::estimator::test_scene::Scene,
+        id: u64,
+    ) -> Vec<crate::estimator::feature_db::RetiredRay> {
+        use crate::estimator::feature_system::camera_observations;
+        let f = s.db.get(id).expect("track");
+        camera_observations(&s.state.means, f)
+            .into_iter()
+            .zip(&f.measurements)
+            .map(|(view, m)| crate::estimator::feature_db::RetiredRay { view, uv: m.uv })
+            .collect()
+    }
+
     /// A starved update (nearly every candidate fails) asks a track with
     /// retired rays for the window's depth precision: the same spread from
     /// twice the rays passes under twice the condition number. A later update
     /// with candidates that pass keeps the plain limit.
     #[test]
     fn a_starved_update_takes_retired_rays_by_their_depth_precision() {
-        use crate::estimator::feature_system::camera_observations;
         let mut s = scene(8, 1, 1e-4, 1e-4);
         let cond = window_condition(&s, 0);
         let tri = TriangulationOptions {
@@ -663,8 +676,7 @@ mod tests {
         };
         // The window's own views, retired a second time: the rays' spread,
         // hence the condition number, is the same; the depth is √2 as precise.
-        let obs = camera_observations(&s.state.means, s.db.get(0).expect("track"));
-        s.db.get_mut(0).expect("track").retired = obs;
+        s.db.get_mut(0).expect("track").retired = retired_again(&s, 0);
         let cols = Columns::window(&s.state);
         let f = s.db.get(0).expect("track");
         assert!(build(&s.state.means, f, &cols, true, &tri).is_none());
@@ -688,8 +700,7 @@ mod tests {
             max_condition_number: (second + conds[worst]) / 2.0,
             ..TriangulationOptions::default()
         };
-        let obs = camera_observations(&s.state.means, s.db.get(worst as u64).expect("track"));
-        s.db.get_mut(worst as u64).expect("track").retired = obs;
+        s.db.get_mut(worst as u64).expect("track").retired = retired_again(&s, worst as u64);
         let ids: Vec<u64> = (0..12).collect();
         let mut failed = Vec::new();
         let (stats, _) = update_scene(&mut s, &ids, &tri, &mut failed);
