@@ -486,6 +486,12 @@ pub struct EstimatorSection {
     /// `zupt_max_disparity`).
     #[serde(default)]
     pub zupt_max_disparity_px: Option<f64>,
+    /// Pixel noise of the MSCKF updates and of SLAM initialization, px
+    /// (OpenVINS's `up_msckf_sigma_px`; default 1). Tracks held to their
+    /// first patch (`images.frontend.first_patch: drop`) are measured at 0.5
+    /// with `up_slam_sigma_px` 1 (README, "Tracks held to their first patch").
+    #[serde(default)]
+    pub up_msckf_sigma_px: Option<f64>,
     /// Pixel noise of the SLAM features' updates, px (OpenVINS's
     /// `up_slam_sigma_px`; default 2 on camera images, where it keeps 50
     /// SLAM features consistent, and the pixel noise in simulation).
@@ -636,6 +642,9 @@ impl EstimatorSection {
         if let Some(v) = self.zupt_max_disparity_px {
             o.zupt_max_disparity_px = v;
         }
+        if let Some(v) = self.up_msckf_sigma_px {
+            o.pixel_sigma_px = v;
+        }
         if let Some(v) = self.up_slam_sigma_px {
             o.slam_pixel_sigma_px = Some(v);
         }
@@ -732,6 +741,7 @@ impl Default for EstimatorSection {
             calib_cam_timeoffset: None,
             try_zupt: None,
             zupt_max_disparity_px: None,
+            up_msckf_sigma_px: None,
             up_slam_sigma_px: None,
             slam_keyframe_updates: None,
             feat_rep_slam: None,

@@ -187,7 +187,7 @@ fn the_dataset_takes_the_imu_noise_of_its_sensor_file_and_the_estimator_override
     let yaml = dir.path().join("estimator.yaml");
     std::fs::write(
         &yaml,
-        "variant: indp\nzupt_max_disparity_px: 0.5\nmax_clones: 8\nup_slam_sigma_px: 1.5\n",
+        "variant: indp\nzupt_max_disparity_px: 0.5\nmax_clones: 8\nup_msckf_sigma_px: 0.5\nup_slam_sigma_px: 1.5\n",
     )
     .unwrap();
     let (o, v) = dataset_options(ds.imu_noise, Some(&yaml)).expect("options");
@@ -196,12 +196,17 @@ fn the_dataset_takes_the_imu_noise_of_its_sensor_file_and_the_estimator_override
         ("indp", 0, 8)
     );
     assert_eq!(o.zupt_max_disparity_px, 0.5);
-    assert_eq!(o.slam_sigma_px(), 1.5);
+    assert_eq!((o.pixel_sigma_px, o.slam_sigma_px()), (0.5, 1.5));
     std::fs::write(&yaml, "up_slam_sigma_px: 0\n").unwrap();
     let e = dataset_options(ds.imu_noise, Some(&yaml))
         .expect_err("a zero pixel noise")
         .to_string();
     assert!(e.contains("slam_pixel_sigma_px"), "{e}");
+    std::fs::write(&yaml, "up_msckf_sigma_px: -1\n").unwrap();
+    let e = dataset_options(ds.imu_noise, Some(&yaml))
+        .expect_err("a negative pixel noise")
+        .to_string();
+    assert!(e.contains("pixel_sigma_px"), "{e}");
     assert_eq!(
         o.imu.gyro_noise_density, 1.0e-3,
         "the sensor file's noise stays"
@@ -291,4 +296,17 @@ fn images_that_cannot_be_used_are_skipped_with_the_reason() {
     assert!(s.estimates > 40, "{s:?}");
     assert!(m.ate_pos_m.expect("ATE") < 0.05, "{m:?}");
     assert!(m.ate_ori_deg.expect("ATE") < 1.0, "{m:?}");
+}
+
+/// The shipped settings for held tracks (`deploy/config/held-tracks/`) load
+/// through `agent dataset`'s own readers and say what their comments say.
+#[test]
+fn the_held_track_example_settings_load() {
+    use agent::dataset_cli::{dataset_options, frontend_options};
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../deploy/config/held-tracks");
+    let f = frontend_options(Some(&dir.join("frontend.yaml"))).expect("frontend.yaml");
+    assert_eq!(f.first_patch, FirstPatch::Drop);
+    let (o, v) = dataset_options(None, Some(&dir.join("estimator.yaml"))).expect("estimator.yaml");
+    assert_eq!(v.name(), "indp-slam");
+    assert_eq!((o.pixel_sigma_px, o.slam_sigma_px()), (0.5, 1.0));
 }
