@@ -206,7 +206,10 @@ fn the_dataset_takes_the_imu_noise_of_its_sensor_file_and_the_estimator_override
     let e = dataset_options(ds.imu_noise, Some(&yaml))
         .expect_err("a negative pixel noise")
         .to_string();
-    assert!(e.contains("pixel_sigma_px"), "{e}");
+    assert!(
+        e.contains("pixel_sigma_px") && !e.contains("slam_pixel_sigma_px"),
+        "{e}"
+    );
     assert_eq!(
         o.imu.gyro_noise_density, 1.0e-3,
         "the sensor file's noise stays"
