@@ -236,17 +236,23 @@ impl FeatureDb {
     /// cannot undistort now keeps its coordinates.
     pub fn follow_intrinsics(&mut self, camera: &CameraModel) -> bool {
         let fx = camera.fx();
-        // No probe the intrinsics could undistort (a fisheye's corners beyond
-        // its field of view): every call refreshes.
-        let moved = self.probe_rays.as_ref().is_none_or(|probes| {
-            probes.is_empty()
-                || probes.iter().any(|(uv, ray)| {
-                    camera
-                        .undistort(uv)
-                        .is_ok_and(|now| (now - ray).norm() * fx > RAY_REFRESH_PX)
+        // The largest probe move, pixels. With no probe the intrinsics could
+        // undistort (a fisheye's corners beyond its field of view) it is
+        // infinite: every call refreshes.
+        let moved_px = self.probe_rays.as_ref().map_or(f64::INFINITY, |probes| {
+            let none = if probes.is_empty() {
+                f64::INFINITY
+            } else {
+                0.0
+            };
+            probes
+                .iter()
+                .filter_map(|(uv, ray)| {
+                    camera.undistort(uv).ok().map(|now| (now - ray).norm() * fx)
                 })
+                .fold(none, f64::max)
         });
-        if !moved {
+        if moved_px <= RAY_REFRESH_PX {
             return false;
         }
         let (w, h) = (f64::from(camera.width), f64::from(camera.height));
@@ -272,6 +278,14 @@ impl FeatureDb {
                 }
             }
         }
+        let rays: usize = (self.features.values())
+            .map(|f| f.measurements.len() + f.retired.len())
+            .sum();
+        tracing::debug!(
+            moved_px,
+            rays,
+            "stored rays undistorted again: the intrinsics moved them"
+        );
         true
     }
 
