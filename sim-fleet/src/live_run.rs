@@ -62,6 +62,17 @@ pub struct LiveRunArgs {
     /// which needs `--variant dc-full-history`); it is scored in that frame.
     #[arg(long)]
     pub own_frames: bool,
+    /// Image frontend settings of every agent (YAML): the keys of an agent
+    /// configuration's `images.frontend:` block, e.g.
+    /// `deploy/config/held-tracks/frontend.yaml`.
+    #[arg(long, value_name = "YAML")]
+    pub frontend: Option<PathBuf>,
+    /// Estimator settings of every agent (YAML): keys of an agent
+    /// configuration's `estimator:` block, e.g.
+    /// `deploy/config/held-tracks/estimator.yaml`; a key this command sets
+    /// too (`variant`, `align_peer_frames`) must agree with it.
+    #[arg(long, value_name = "YAML")]
+    pub estimator: Option<PathBuf>,
     /// Where the rendered sequences are kept (`seq<r>/`), and reused when they
     /// were made of the same scenario, seed and duration (default:
     /// `OUT/sequences`).
@@ -277,6 +288,81 @@ clock:
     )
 }
 
+/// What `--frontend` and `--estimator` add to every agent's configuration.
+#[derive(Debug, Default)]
+struct AgentSettings {
+    /// The `images.frontend:` block.
+    frontend: Option<serde_yaml::Mapping>,
+    /// Keys of the `estimator:` block.
+    estimator: Option<serde_yaml::Mapping>,
+}
+
+impl AgentSettings {
+    fn read(args: &LiveRunArgs) -> Result<Self> {
+        let read = |path: &Option<PathBuf>| -> Result<Option<serde_yaml::Mapping>> {
+            let Some(path) = path else { return Ok(None) };
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            // An empty file (or one of comments only) adds nothing.
+            let value: Option<serde_yaml::Value> = serde_yaml::from_str(&text)
+                .with_context(|| format!("parsing {}", path.display()))?;
+            match value {
+                None => Ok(Some(serde_yaml::Mapping::new())),
+                Some(serde_yaml::Value::Mapping(m)) => Ok(Some(m)),
+                Some(_) => bail!("{}: expected a mapping of settings", path.display()),
+            }
+        };
+        Ok(Self {
+            frontend: read(&args.frontend)?,
+            estimator: read(&args.estimator)?,
+        })
+    }
+
+    /// `config` (an agent configuration) with the settings added. The agent
+    /// checks the keys when it loads the file.
+    fn apply(&self, config: &str) -> Result<String> {
+        if self.frontend.is_none() && self.estimator.is_none() {
+            return Ok(config.to_owned());
+        }
+        let mut doc: serde_yaml::Mapping = serde_yaml::from_str(config)?;
+        if let Some(keys) = &self.estimator {
+            let block = doc
+                .entry("estimator".into())
+                .or_insert_with(|| serde_yaml::Mapping::new().into());
+            let block = block
+                .as_mapping_mut()
+                .context("the configuration's `estimator` is not a mapping")?;
+            for (k, v) in keys {
+                match block.get(k) {
+                    Some(ours) if ours != v => bail!(
+                        "--estimator sets `{}` to {}, but this run sets it to {}",
+                        yaml_inline(k),
+                        yaml_inline(v),
+                        yaml_inline(ours)
+                    ),
+                    _ => {
+                        block.insert(k.clone(), v.clone());
+                    }
+                }
+            }
+        }
+        if let Some(frontend) = &self.frontend {
+            let mut images = serde_yaml::Mapping::new();
+            images.insert("frontend".into(), frontend.clone().into());
+            doc.insert("images".into(), images.into());
+        }
+        Ok(format!(
+            "# Written by sim-fleet live-run.\n{}",
+            serde_yaml::to_string(&doc)?
+        ))
+    }
+}
+
+/// A YAML value on one line, for messages.
+fn yaml_inline(v: &serde_yaml::Value) -> String {
+    serde_yaml::to_string(v).map_or_else(|_| format!("{v:?}"), |s| s.trim().to_owned())
+}
+
 /// Waits for `child` at most `limit`, killing it past that.
 fn wait(mut child: Child, what: &str, limit: Duration) -> Result<()> {
     let start = Instant::now();
@@ -322,6 +408,7 @@ pub fn run_live(args: &LiveRunArgs) -> Result<()> {
     .heading_axis_i()
     .map_err(anyhow::Error::msg)?;
     let bin = agent_binary(args.agent_bin.as_deref())?;
+    let settings = AgentSettings::read(args)?;
     let mut scenario = Scenario::load(&args.scenario)
         .with_context(|| format!("loading {}", args.scenario.display()))?;
     scenario.render.enabled = true;
@@ -345,6 +432,12 @@ pub fn run_live(args: &LiveRunArgs) -> Result<()> {
     };
     let ports = common::loopback_ports::free_loopback_ports(2 * n)?;
     let fleet_id = format!("live-{}", std::process::id());
+    // The settings checked against what this run sets before anything is
+    // rendered: robot 0's configuration, its start aside.
+    let start = (&Vector3::zeros(), 0.0);
+    settings.apply(&config(
+        args, 0, n, &sequences, &out, &ports, start, &fleet_id,
+    ))?;
     let mut truths = Vec::with_capacity(n);
     let mut agents = Vec::with_capacity(n);
     let mut offsets = Vec::with_capacity(n);
@@ -389,6 +482,7 @@ pub fn run_live(args: &LiveRunArgs) -> Result<()> {
             (&start.0, start.1),
             &fleet_id,
         );
+        let text = settings.apply(&text)?;
         std::fs::write(&cfg, text)?;
         let child = Command::new(&bin)
             .arg("--config")
@@ -620,4 +714,55 @@ fn print_table(robots: &[LiveRobot], args: &LiveRunArgs) {
         robots.iter().map(|r| r.ate_ori_deg).sum::<f64>() / n,
         robots.iter().map(|r| r.ate_pos_m).sum::<f64>() / n
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn mapping(yaml: &str) -> serde_yaml::Mapping {
+        serde_yaml::from_str(yaml).unwrap()
+    }
+
+    const CONFIG: &str =
+        "# Written by sim-fleet live-run.\nrobot_id: 0\nestimator:\n  variant: indp-slam\n";
+
+    #[test]
+    fn no_settings_leave_the_configuration_as_written() {
+        assert_eq!(AgentSettings::default().apply(CONFIG).unwrap(), CONFIG);
+    }
+
+    #[test]
+    fn settings_join_the_estimator_block_and_make_the_frontend_block() {
+        let settings = AgentSettings {
+            frontend: Some(mapping("first_patch: drop")),
+            estimator: Some(mapping("variant: indp-slam\nup_msckf_sigma_px: 0.5")),
+        };
+        let text = settings.apply(CONFIG).unwrap();
+        assert!(
+            text.starts_with("# Written by sim-fleet live-run.\n"),
+            "{text}"
+        );
+        let doc: serde_yaml::Value = serde_yaml::from_str(&text).unwrap();
+        assert_eq!(doc["robot_id"].as_u64(), Some(0));
+        assert_eq!(doc["estimator"]["variant"].as_str(), Some("indp-slam"));
+        assert_eq!(doc["estimator"]["up_msckf_sigma_px"].as_f64(), Some(0.5));
+        assert_eq!(
+            doc["images"]["frontend"]["first_patch"].as_str(),
+            Some("drop")
+        );
+    }
+
+    #[test]
+    fn a_setting_against_the_runs_own_is_refused_by_name() {
+        let settings = AgentSettings {
+            frontend: None,
+            estimator: Some(mapping("variant: dc-full-history")),
+        };
+        let err = settings.apply(CONFIG).unwrap_err().to_string();
+        assert_eq!(
+            err,
+            "--estimator sets `variant` to dc-full-history, but this run sets it to indp-slam"
+        );
+    }
 }

@@ -68,13 +68,57 @@ fn live_run_scores_a_fleet_on_live_sensors_and_reuses_its_sequences() {
         .unwrap()
         .modified()
         .unwrap();
-    // The same sequences serve another variant, from moved starts.
-    let (summary, _) = run("alone", &["--variant", "indp-slam", "--perturb-start"]);
+    // The same sequences serve another variant, from moved starts, with the
+    // held-track settings given to every agent.
+    let held = repo("deploy/config/held-tracks");
+    let (held_frontend, held_estimator) = (held.join("frontend.yaml"), held.join("estimator.yaml"));
+    let held_args = [
+        "--frontend",
+        held_frontend.to_str().unwrap(),
+        "--estimator",
+        held_estimator.to_str().unwrap(),
+    ];
+    let (summary, _) = run(
+        "alone",
+        &[
+            &["--variant", "indp-slam", "--perturb-start"],
+            &held_args[..],
+        ]
+        .concat(),
+    );
     for r in summary["robots"].as_array().unwrap() {
         assert!(r["loop_closures"].is_null(), "{r}");
         let offset = r["start_offset"][0].as_f64().unwrap();
         assert!(offset > 0.0 && offset < 0.5, "{r}");
     }
+    let config = std::fs::read_to_string(dir.path().join("alone/robot0/config.yaml")).unwrap();
+    let config: serde_yaml::Value = serde_yaml::from_str(&config).unwrap();
+    assert_eq!(
+        config["images"]["frontend"]["first_patch"].as_str(),
+        Some("drop")
+    );
+    assert_eq!(config["estimator"]["up_msckf_sigma_px"].as_f64(), Some(0.5));
+    assert_eq!(config["estimator"]["variant"].as_str(), Some("indp-slam"));
+    // A setting that contradicts the run's own is refused before anything runs.
+    let refused = Command::new(bin("sim-fleet"))
+        .arg("live-run")
+        .arg(repo("sim-fleet/scenarios/euroc_vicon_room1.yaml"))
+        .args(["--duration-s", "15", "--seed", "3"])
+        .args(held_args)
+        .arg("--sequences")
+        .arg(&sequences)
+        .arg("--out")
+        .arg(dir.path().join("refused"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success());
+    assert!(
+        stderr.contains(
+            "--estimator sets `variant` to indp-slam, but this run sets it to dc-full-history"
+        ),
+        "{stderr}"
+    );
     let again = std::fs::metadata(sequences.join("seq0/made.json"))
         .unwrap()
         .modified()
