@@ -266,7 +266,9 @@ impl FeatureDb {
             .filter_map(|uv| Some((uv, camera.undistort(&uv).ok()?)))
             .collect();
         self.probe_rays = Some(probes);
+        let mut rays = 0;
         for f in self.features.values_mut() {
+            rays += f.measurements.len() + f.retired.len();
             for m in &mut f.measurements {
                 if let Ok(uvn) = camera.undistort(&m.uv) {
                     m.uvn = uvn;
@@ -278,9 +280,6 @@ impl FeatureDb {
                 }
             }
         }
-        let rays: usize = (self.features.values())
-            .map(|f| f.measurements.len() + f.retired.len())
-            .sum();
         tracing::debug!(
             moved_px,
             rays,
