@@ -234,17 +234,21 @@ fn peer_intrinsics_part(
     ci_split::peer_intrinsics_factor(cov, offsets[at])
 }
 
-/// Stacks `rows` and applies one CI-EKF update. `Ok(None)` when there is
-/// nothing to do.
-pub fn update(
-    state: &mut State,
-    rows: &[CiRows],
-    participants: &[PeerWindow],
-    opts: &CooperationOptions,
-) -> Result<Option<CiOutcome>, StateError> {
+/// `rows` stacked over one set of columns: ours (`cols`) and each
+/// participant's items.
+struct Stacked {
+    cols: Columns,
+    h: DMatrix<f64>,
+    parts: Vec<(Part, Vec<usize>)>,
+    h_parts: Vec<DMatrix<f64>>,
+    res: DVector<f64>,
+}
+
+/// Stacks `rows`; `None` when there are none.
+fn stack(rows: &[CiRows], participants: &[PeerWindow]) -> Option<Stacked> {
     let m: usize = rows.iter().map(|r| r.res.len()).sum();
     if m == 0 {
-        return Ok(None);
+        return None;
     }
     let mut vars: Vec<Var> = Vec::new();
     let mut parts: Vec<(Part, Vec<usize>)> = Vec::new();
@@ -305,6 +309,52 @@ pub fn update(
         }
         r0 += k;
     }
+    Some(Stacked {
+        cols,
+        h,
+        parts,
+        h_parts,
+        res,
+    })
+}
+
+/// `rᵀ S⁻¹ r` and the rows of `rows` stacked, with `S` the innovation
+/// covariance the blocks' own gates take: robots not correlated (every CI
+/// weight 1). The blocks are gated one by one; stacked, the rows that share
+/// a peer's pose see its error whole.
+pub fn independent_mahalanobis(
+    state: &State,
+    rows: &[CiRows],
+    participants: &[PeerWindow],
+) -> Option<(f64, usize)> {
+    let st = stack(rows, participants)?;
+    let m = st.res.len();
+    let mut s = state.covariance().projected(&st.cols.vars, &st.h).ok()? + DMatrix::identity(m, m);
+    for ((p, items), hp) in st.parts.iter().zip(&st.h_parts) {
+        s += hp * part_covariance(*p, items, participants) * hp.transpose();
+    }
+    let chol = s.cholesky()?;
+    Some((st.res.dot(&chol.solve(&st.res)), m))
+}
+
+/// Stacks `rows` and applies one CI-EKF update. `Ok(None)` when there is
+/// nothing to do.
+pub fn update(
+    state: &mut State,
+    rows: &[CiRows],
+    participants: &[PeerWindow],
+    opts: &CooperationOptions,
+) -> Result<Option<CiOutcome>, StateError> {
+    let Some(Stacked {
+        cols,
+        h,
+        parts,
+        h_parts,
+        res,
+    }) = stack(rows, participants)
+    else {
+        return Ok(None);
+    };
     let (h, h_parts, res) = compress_joint(h, h_parts, res);
     // Whitened rows; with `split_calibration`, plus the peers' intrinsics'
     // part that is not inflated (`ci_split::peer_intrinsics_factor`).

@@ -3,6 +3,7 @@
 //! common updates, what each did and what it cost.
 
 use super::chi2::Chi2Table;
+use super::ci_diagnostics;
 use super::ci_system;
 use super::feature_db::FeatureDb;
 use super::options::EstimatorOptions;
@@ -122,14 +123,24 @@ pub fn update(
     stats.constraint_ms = ms(t);
     let t = Instant::now();
     slam_rows.extend(constraint_rows);
+    let debug = tracing::enabled!(tracing::Level::DEBUG);
+    let before = debug.then(|| state.means.imu.clone());
     let own_applied = updater_common::apply_own_rows(state, &mut vio, &mut slam_rows);
+    let after_own = debug.then(|| state.means.imu.clone());
     let mut rows = std::mem::take(&mut vio.ci);
+    let n_vio = rows.len();
     rows.extend(slam_rows);
+    if debug {
+        ci_diagnostics::log_consistency(state, &rows, n_vio, p);
+    }
     let result = ci_system::update(state, &rows, p, &opts.cooperation);
     let ok = result.is_ok();
     if let Ok(Some(o)) = &result {
         stats.ci_participants = o.omega_peers.len();
         stats.omega_own = o.omega_own;
+        if let (Some(b), Some(a)) = (&before, &after_own) {
+            ci_diagnostics::log_moves(state, &rows, o, b, a);
+        }
     }
     stats.ci_update_ms = ms(t);
     if !ok {

@@ -7,6 +7,7 @@
 
 pub mod camera_window;
 pub mod chi2;
+pub mod ci_diagnostics;
 pub mod ci_split;
 pub mod ci_system;
 pub mod cooperative;

@@ -355,6 +355,37 @@ mod tests {
     }
 
     #[test]
+    fn the_stacked_distance_is_zero_for_true_views_and_at_least_each_blocks() {
+        let mut sc = scene(6, 8, 1e-4, 1e-5);
+        sc.add_slam_features(&[0, 1, 2, 3], 1e-2);
+        let tracks: Vec<CommonTrack> = (0..4)
+            .map(|l| CommonTrack {
+                id: l as u64,
+                peer_obs: sc.peer_obs(l),
+            })
+            .collect();
+        let p = std::slice::from_ref(&sc.peer);
+        let opts = EstimatorOptions::default();
+        let (mut rows, _) = measurement_blocks(&sc.state, &tracks, p, &opts, &chi2());
+        assert_eq!(rows.len(), 4);
+        let d = |r: &[CiRows]| ci_system::independent_mahalanobis(&sc.state, r, p).unwrap();
+        let (zero, m) = d(&rows);
+        assert!(zero < 1e-9, "{zero}");
+        assert_eq!(m, rows.iter().map(|r| r.res.len()).sum::<usize>());
+        // Every view one pixel off the same way: a marginal's distance is never
+        // more than the whole stack's, whatever the correlations.
+        for r in rows.iter_mut() {
+            r.res.add_scalar_mut(1.0);
+        }
+        let (all, _) = d(&rows);
+        for r in &rows {
+            let (one, k) = d(std::slice::from_ref(r));
+            assert_eq!(k, r.res.len());
+            assert!(one > 0.0 && one <= all + 1e-9, "{one} > {all}");
+        }
+    }
+
+    #[test]
     fn the_constraint_pulls_our_feature_to_the_peers_and_rejects_a_wrong_one() {
         // The thesis' fixed weights (the peer's landmark at 0.005) and the
         // determinant over our pose and the measured features: both move our
