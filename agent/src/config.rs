@@ -499,6 +499,11 @@ pub struct EstimatorSection {
     /// SLAM features consistent, and the pixel noise in simulation).
     #[serde(default)]
     pub up_slam_sigma_px: Option<f64>,
+    /// A peer's track gives a common SLAM update only its newest unused view
+    /// (`cooperation.peer_slam_newest_view`; default: on camera images, as
+    /// `slam_keyframe_updates`).
+    #[serde(default)]
+    pub peer_slam_newest_view: Option<bool>,
     /// On a keyframe window, a SLAM feature takes a view only once its image
     /// point moved the keyframe parallax (default on camera images, where a
     /// track's error persists from image to image; off in simulation).
@@ -699,6 +704,9 @@ impl EstimatorSection {
         if let Some(s) = self.split_calibration {
             c.split_calibration = s;
         }
+        if let Some(v) = self.peer_slam_newest_view {
+            c.peer_slam_newest_view = Some(v);
+        }
     }
 }
 
@@ -745,6 +753,7 @@ impl Default for EstimatorSection {
             zupt_max_disparity_px: None,
             up_msckf_sigma_px: None,
             up_slam_sigma_px: None,
+            peer_slam_newest_view: None,
             slam_keyframe_updates: None,
             feat_rep_slam: None,
             fi_max_cond_number: None,
@@ -1415,6 +1424,26 @@ mod tests {
         std::fs::write(&p, with("  ci_weighting: best\n")).unwrap();
         let e = AgentConfig::load(&p).unwrap_err().to_string();
         assert!(e.contains("best") && e.contains("min_pose_trace"), "{e}");
+    }
+
+    #[test]
+    fn peer_slam_newest_view_follows_the_keyframe_updates_unless_set() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.yaml");
+        let with =
+            |extra: &str| format!("{MINIMAL}estimator:\n  variant: dc-full-history\n{extra}");
+        let load = |o: &mut EstimatorOptions| AgentConfig::load(&p).unwrap().estimator.apply(o);
+        std::fs::write(&p, with("")).unwrap();
+        let mut tracked = EstimatorOptions::for_tracked_images();
+        load(&mut tracked);
+        assert!(tracked.peer_slam_newest_view());
+        let mut simulated = EstimatorOptions::default();
+        load(&mut simulated);
+        assert!(!simulated.peer_slam_newest_view());
+        std::fs::write(&p, with("  peer_slam_newest_view: false\n")).unwrap();
+        let mut tracked = EstimatorOptions::for_tracked_images();
+        load(&mut tracked);
+        assert!(!tracked.peer_slam_newest_view());
     }
 
     #[test]

@@ -351,6 +351,17 @@ pub struct CooperationOptions {
     /// Largest root summed translation variance of an alignment
     /// measurement, m.
     pub max_alignment_translation_sigma_m: f64,
+    /// A peer's track gives a common SLAM update only its newest view not
+    /// yet used, not every view of its window (`None`: as
+    /// `slam_keyframe_updates`, so on tracked images and off for simulated
+    /// features; [`EstimatorOptions::peer_slam_newest_view`]). An image
+    /// tracker's error persists along a track, and a link made to a window
+    /// of eleven views counts that one error eleven times as independent
+    /// evidence: rendered three-robot fleets with held tracks were pulled
+    /// 1-2 deg off in one CI update when the robots set off (README,
+    /// "Held tracks on live sensors").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub peer_slam_newest_view: Option<bool>,
 }
 
 impl Default for CooperationOptions {
@@ -394,6 +405,7 @@ impl Default for CooperationOptions {
             alignment_confirmations: 2,
             max_alignment_yaw_sigma_deg: 2.0,
             max_alignment_translation_sigma_m: 0.5,
+            peer_slam_newest_view: None,
         }
     }
 }
@@ -717,6 +729,15 @@ impl EstimatorOptions {
     /// The pixel noise of the SLAM features' updates, px.
     pub fn slam_sigma_px(&self) -> f64 {
         self.slam_pixel_sigma_px.unwrap_or(self.pixel_sigma_px)
+    }
+
+    /// Whether a peer's track gives a common SLAM update only its newest
+    /// unused view (`cooperation.peer_slam_newest_view`, by default as
+    /// `slam_keyframe_updates`: an image tracker's error persists).
+    pub fn peer_slam_newest_view(&self) -> bool {
+        self.cooperation
+            .peer_slam_newest_view
+            .unwrap_or(self.slam_keyframe_updates)
     }
 
     /// The defaults for features tracked in camera images (`agent dataset`,

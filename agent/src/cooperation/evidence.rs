@@ -100,13 +100,20 @@ impl Cooperation {
                 let measured = measurements(h, link, &ev.participants[p]);
                 let span = key_span(measured.iter().map(|m| m.1));
                 let mut cursor = used.zip(span).map(|(u, (lo, hi))| u.cursor(lo, hi));
-                for (pose, t_s, xy) in measured {
+                let newest_only = slam && self.opts.peer_slam_newest_view == Some(true);
+                let before = obs.len();
+                for (pose, t_s, xy) in measured.into_iter().rev() {
                     let key = (time_key(t_s), link.peer_track);
                     let used = cursor.as_mut().is_some_and(|c| c.contains(key.0, key.1));
                     if used || !taken.insert((link.peer, key.0, key.1)) {
                         continue;
                     }
                     consumed.keys.push((link.peer, key.0, key.1));
+                    if newest_only && obs.len() > before {
+                        // An older view of the same peer track: set aside for
+                        // good (marked used with the update), not counted again.
+                        continue;
+                    }
                     obs.push(PeerObservation {
                         participant: p,
                         pose,

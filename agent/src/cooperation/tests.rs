@@ -184,6 +184,40 @@ fn our_tracks_are_linked_to_the_peers_tracks_of_the_same_landmarks() {
 }
 
 #[test]
+fn a_peer_track_gives_a_common_slam_update_its_newest_view_only_when_asked() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let w = world(40, &mut rng);
+    let peers: Peers = [(7u32, peer_history(&w, &mut rng))].into_iter().collect();
+    let frame = our_frame(&w, &(5..35).collect::<Vec<_>>(), &mut rng);
+    let views = |newest: Option<bool>| {
+        let opts = CooperationOptions {
+            peer_slam_newest_view: newest,
+            ..options()
+        };
+        let mut coop = Cooperation::new(opts, None, 460.0);
+        coop.match_frame(&frame, &peers, 1);
+        let id = (1..=30u64)
+            .find(|id| !coop.links_of(*id).is_empty())
+            .expect("a linked track");
+        let ev = coop.evidence(&[], &[id], &peers);
+        let obs = ev.slam[0].peer_obs.clone();
+        coop.mark_used(&ev, &[], &[id], &[]);
+        let again = coop.evidence(&[], &[id], &peers);
+        (obs, ev.participants, again.slam.len())
+    };
+    // Every view of the peer's 11-frame window, as independent measurements.
+    let (all, _, _) = views(None);
+    assert_eq!(all.len(), 11);
+    // Only the newest; the older views are used up with it, never counted.
+    let (newest, participants, again) = views(Some(true));
+    assert_eq!(newest.len(), 1);
+    let last = participants[newest[0].participant].poses.len() - 1;
+    assert_eq!(newest[0].pose, last);
+    assert_eq!(newest[0].xy, all.iter().max_by_key(|o| o.pose).unwrap().xy);
+    assert_eq!(again, 0);
+}
+
+#[test]
 fn a_peer_that_stopped_publishing_has_no_current_window_only_history() {
     let mut rng = ChaCha8Rng::seed_from_u64(14);
     let w = world(40, &mut rng);

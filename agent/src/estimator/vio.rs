@@ -180,11 +180,9 @@ impl Estimator {
         self.start_t = init.t;
         self.coop = self.opts.cooperation.any().then(|| {
             let k = &self.calib.camera.intrinsics;
-            Cooperation::new(
-                self.opts.cooperation.clone(),
-                self.vocabulary.clone(),
-                (k[0] * k[1]).abs().sqrt(),
-            )
+            let mut c = self.opts.cooperation.clone();
+            c.peer_slam_newest_view = Some(self.opts.peer_slam_newest_view());
+            Cooperation::new(c, self.vocabulary.clone(), (k[0] * k[1]).abs().sqrt())
         });
         self.state = Some(State::new(
             init.t,
