@@ -100,11 +100,15 @@ fn live_run_scores_a_fleet_on_live_sensors_and_reuses_its_sequences() {
     assert_eq!(config["estimator"]["up_msckf_sigma_px"].as_f64(), Some(0.5));
     assert_eq!(config["estimator"]["variant"].as_str(), Some("indp-slam"));
     // A setting that contradicts the run's own is refused before anything runs.
+    let conflicting = dir.path().join("conflicting.yaml");
+    let held_settings = std::fs::read_to_string(&held_estimator).unwrap();
+    std::fs::write(&conflicting, format!("{held_settings}variant: indp-slam\n")).unwrap();
     let refused = Command::new(bin("sim-fleet"))
         .arg("live-run")
         .arg(repo("sim-fleet/scenarios/euroc_vicon_room1.yaml"))
         .args(["--duration-s", "15", "--seed", "3"])
-        .args(held_args)
+        .arg("--estimator")
+        .arg(&conflicting)
         .arg("--sequences")
         .arg(&sequences)
         .arg("--out")
