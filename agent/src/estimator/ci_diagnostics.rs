@@ -1,5 +1,5 @@
 //! What a frame's CI-EKF update did, at debug level
-//! (`RUST_LOG=agent::estimator::cooperative=debug`): how far it and our own
+//! (`RUST_LOG=agent::estimator::ci_diagnostics=debug`): how far it and our own
 //! rows moved the pose, and whether the stacked rows agree with the
 //! covariances. Each block of rows passes its own chi-square gate; stacked,
 //! the rows that share a peer's window see that window's error whole, and a
@@ -15,6 +15,12 @@ use nalgebra::Matrix3;
 /// A window's stacked distance beyond this many times its rows is logged
 /// block by block.
 const SUSPECT_PER_ROW: f64 = 3.0;
+
+/// Whether this module's debug events are wanted: the diagnostics cost a
+/// stack of the frame's rows per peer window, and copies of the IMU state.
+pub fn enabled() -> bool {
+    tracing::enabled!(tracing::Level::DEBUG)
+}
 
 /// The rotation from `a` to `b` (`b aᵀ`, global frame) as a rotation vector, deg.
 fn rotation_deg(a: &Matrix3<f64>, b: &Matrix3<f64>) -> [f64; 3] {

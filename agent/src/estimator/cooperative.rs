@@ -123,7 +123,7 @@ pub fn update(
     stats.constraint_ms = ms(t);
     let t = Instant::now();
     slam_rows.extend(constraint_rows);
-    let debug = tracing::enabled!(tracing::Level::DEBUG);
+    let debug = ci_diagnostics::enabled();
     let before = debug.then(|| state.means.imu.clone());
     let own_applied = updater_common::apply_own_rows(state, &mut vio, &mut slam_rows);
     let after_own = debug.then(|| state.means.imu.clone());

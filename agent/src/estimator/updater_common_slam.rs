@@ -313,23 +313,30 @@ pub fn constraint_update(
 mod tests {
     use super::*;
     use crate::estimator::peer_window::PeerLandmark;
-    use crate::estimator::test_scene::scene;
+    use crate::estimator::test_scene::{scene, Scene};
     use crate::estimator::updater_common::CommonTrack;
 
     fn chi2() -> Chi2Table {
         Chi2Table::new(0.95, 500)
     }
 
-    #[test]
-    fn peer_measurements_of_our_slam_features_keep_the_truth_and_shrink_them() {
+    /// A scene with SLAM features 0-3, and our track `l` given the peer's
+    /// views of landmark `view_of(l)`.
+    fn four_slam_tracks(view_of: impl Fn(usize) -> usize) -> (Scene, Vec<CommonTrack>) {
         let mut sc = scene(6, 8, 1e-4, 1e-5);
         sc.add_slam_features(&[0, 1, 2, 3], 1e-2);
-        let tracks: Vec<CommonTrack> = (0..4)
+        let tracks = (0..4)
             .map(|l| CommonTrack {
                 id: l as u64,
-                peer_obs: sc.peer_obs(if l == 2 { 6 } else { l }),
+                peer_obs: sc.peer_obs(view_of(l)),
             })
             .collect();
+        (sc, tracks)
+    }
+
+    #[test]
+    fn peer_measurements_of_our_slam_features_keep_the_truth_and_shrink_them() {
+        let (mut sc, tracks) = four_slam_tracks(|l| if l == 2 { 6 } else { l });
         let before = sc.state.block(Var::Feature(0), Var::Feature(0)).unwrap();
         let out = measurement_update(
             &mut sc.state,
@@ -356,14 +363,7 @@ mod tests {
 
     #[test]
     fn the_stacked_distance_is_zero_for_true_views_and_at_least_each_blocks() {
-        let mut sc = scene(6, 8, 1e-4, 1e-5);
-        sc.add_slam_features(&[0, 1, 2, 3], 1e-2);
-        let tracks: Vec<CommonTrack> = (0..4)
-            .map(|l| CommonTrack {
-                id: l as u64,
-                peer_obs: sc.peer_obs(l),
-            })
-            .collect();
+        let (sc, tracks) = four_slam_tracks(|l| l);
         let p = std::slice::from_ref(&sc.peer);
         let opts = EstimatorOptions::default();
         let (mut rows, _) = measurement_blocks(&sc.state, &tracks, p, &opts, &chi2());
