@@ -1394,12 +1394,16 @@ mod tests {
         assert!(e.contains("GLOBAL_FULL_INVERSE_DEPTH"), "{e}");
     }
 
+    /// A configuration of a `dc-full-history` agent with `extra` estimator keys.
+    fn dc_full_history_with(extra: &str) -> String {
+        format!("{MINIMAL}estimator:\n  variant: dc-full-history\n{extra}")
+    }
+
     #[test]
     fn ci_weighting_overrides_apply_and_bad_weights_are_reported() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.yaml");
-        let with =
-            |extra: &str| format!("{MINIMAL}estimator:\n  variant: dc-full-history\n{extra}");
+        let with = dc_full_history_with;
         std::fs::write(
             &p,
             with("  ci_weighting: fixed_peer\n  ci_peer_weight: 0.005\n"),
@@ -1430,8 +1434,7 @@ mod tests {
     fn peer_slam_newest_view_follows_the_keyframe_updates_unless_set() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.yaml");
-        let with =
-            |extra: &str| format!("{MINIMAL}estimator:\n  variant: dc-full-history\n{extra}");
+        let with = dc_full_history_with;
         let load = |o: &mut EstimatorOptions| AgentConfig::load(&p).unwrap().estimator.apply(o);
         std::fs::write(&p, with("")).unwrap();
         let mut tracked = EstimatorOptions::for_tracked_images();

@@ -101,24 +101,27 @@ impl Cooperation {
                 let span = key_span(measured.iter().map(|m| m.1));
                 let mut cursor = used.zip(span).map(|(u, (lo, hi))| u.cursor(lo, hi));
                 let newest_only = slam && self.opts.peer_slam_newest_view == Some(true);
-                let before = obs.len();
-                for (pose, t_s, xy) in measured.into_iter().rev() {
+                let first = obs.len();
+                // Oldest first, as the used marks' cursor reads fastest.
+                for (pose, t_s, xy) in measured {
                     let key = (time_key(t_s), link.peer_track);
                     let used = cursor.as_mut().is_some_and(|c| c.contains(key.0, key.1));
                     if used || !taken.insert((link.peer, key.0, key.1)) {
                         continue;
                     }
                     consumed.keys.push((link.peer, key.0, key.1));
-                    if newest_only && obs.len() > before {
-                        // An older view of the same peer track: set aside for
-                        // good (marked used with the update), not counted again.
-                        continue;
-                    }
-                    obs.push(PeerObservation {
+                    let o = PeerObservation {
                         participant: p,
                         pose,
                         xy,
-                    });
+                    };
+                    if newest_only && obs.len() > first {
+                        // A newer view replaces the older one, which is marked
+                        // used with the update and never counted.
+                        obs[first] = o;
+                    } else {
+                        obs.push(o);
+                    }
                 }
             }
             if let Some(c) = constraint {
