@@ -228,7 +228,10 @@ pub fn peer_measurement(
     let pose = w.poses.get(pose)?;
     let lin = project_normalized(pose, p_lin)?;
     let cur = project_normalized(pose, p_cur)?;
-    let (_, dz_dn, dz_dintr) = w.camera.distort_with_jacobians(&lin.xy);
+    let (uv, dz_dn, dz_dintr) = w.camera.distort_with_jacobians(&lin.xy);
+    if !near_image(&w.camera, &uv) || !near_image(&w.camera, &w.camera.distort(&cur.xy)) {
+        return None;
+    }
     let white = dz_dn / pixel_sigma;
     Some(PeerMeasurement {
         res: white * (xy - cur.xy),
@@ -236,6 +239,24 @@ pub fn peer_measurement(
         h_feature: white * lin.h_feature,
         h_intrinsics: dz_dintr / pixel_sigma,
     })
+}
+
+/// How far outside the image, as a fraction of its size, a predicted point
+/// may fall and still be measured: the state's uncertainty moves predictions
+/// near the border a little outside it.
+const PREDICTION_MARGIN: f64 = 0.1;
+
+/// Whether the pixel `uv` lies in the image grown by [`PREDICTION_MARGIN`]
+/// on every side (false for NaN). Beyond it the distortion polynomial was
+/// never fitted and grows without bound: a point predicted at a normalized
+/// radius of a few hundred (a landmark nearly in the camera's plane, from a
+/// wrong link) got a distortion Jacobian near 10⁸, a residual of 10¹⁰ pixel
+/// sigmas and an innovation covariance to match, so the gate passed it
+/// (d = 1.3 over 2 rows) and the stacked update took it as exact.
+fn near_image(camera: &CameraModel, uv: &Vector2<f64>) -> bool {
+    let (w, h) = (f64::from(camera.width), f64::from(camera.height));
+    let (mu, mv) = (PREDICTION_MARGIN * w, PREDICTION_MARGIN * h);
+    uv.x >= -mu && uv.x <= w + mu && uv.y >= -mv && uv.y <= h + mv
 }
 
 /// A feature seen from a peer camera, in normalized coordinates, and its
@@ -376,6 +397,35 @@ mod tests {
         assert_eq!(exact.h_feature, moved.h_feature);
         assert_eq!(exact.h_intrinsics, moved.h_intrinsics);
         assert!(exact.res.norm() < 1e-12 && moved.res.norm() > 1.0);
+    }
+
+    /// A point predicted far outside the peer's image is not measured: the
+    /// distortion there is outside its fit, and its Jacobian unbounded.
+    #[test]
+    fn a_point_predicted_far_outside_the_image_is_not_measured() {
+        let w = PeerWindow {
+            peer: 1,
+            key: 0,
+            poses: vec![PeerPose {
+                t_s: 0.0,
+                rot: Matrix3::identity(),
+                pos: Vector3::zeros(),
+            }],
+            cov: Arc::new(DMatrix::identity(14, 14)),
+            camera: CameraModel::euroc_cam0(),
+            landmarks: Vec::new(),
+            frame: None,
+        };
+        let xy = Vector2::new(0.1, -0.05);
+        let at = |p: Vector3<f64>| peer_measurement(&w, 0, &xy, &p, &p, 1.0);
+        // In view, and just outside the image's right edge (x/z = 1.2 is
+        // 25 px beyond it): measured.
+        assert!(at(Vector3::new(0.3, -0.15, 3.0)).is_some());
+        assert!(at(Vector3::new(3.6, 0.0, 3.0)).is_some());
+        // Nearly in the camera's plane: predicted at x/z = 300.
+        assert!(at(Vector3::new(3.0, 0.0, 0.01)).is_none());
+        // Far beyond the right edge (x/z = 2, 580 px beyond it).
+        assert!(at(Vector3::new(6.0, 0.0, 3.0)).is_none());
     }
 
     fn sample_snapshot() -> StateSnapshot {
