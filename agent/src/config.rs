@@ -504,6 +504,10 @@ pub struct EstimatorSection {
     /// `slam_keyframe_updates`).
     #[serde(default)]
     pub peer_slam_newest_view: Option<bool>,
+    /// Gate each peer window's stacked rows (`cooperation.window_gate`,
+    /// default on).
+    #[serde(default)]
+    pub window_gate: Option<bool>,
     /// On a keyframe window, a SLAM feature takes a view only once its image
     /// point moved the keyframe parallax (default on camera images, where a
     /// track's error persists from image to image; off in simulation).
@@ -707,6 +711,9 @@ impl EstimatorSection {
         if let Some(v) = self.peer_slam_newest_view {
             c.peer_slam_newest_view = Some(v);
         }
+        if let Some(g) = self.window_gate {
+            c.window_gate = g;
+        }
     }
 }
 
@@ -754,6 +761,7 @@ impl Default for EstimatorSection {
             up_msckf_sigma_px: None,
             up_slam_sigma_px: None,
             peer_slam_newest_view: None,
+            window_gate: None,
             slam_keyframe_updates: None,
             feat_rep_slam: None,
             fi_max_cond_number: None,

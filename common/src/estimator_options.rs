@@ -362,6 +362,15 @@ pub struct CooperationOptions {
     /// "Held tracks on live sensors").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub peer_slam_newest_view: Option<bool>,
+    /// Gate each peer window's rows stacked, not only block by block: a
+    /// window whose stacked distance fails the chi-square test loses its
+    /// blocks one at a time, the one whose removal lowers the distance
+    /// most first, until it passes. A block's own innovation covariance
+    /// holds the robots' whole relative pose uncertainty, which the other
+    /// blocks of the window pin down, so a wrong link passes its own gate
+    /// (distances 0.0-1.4 over 3 rows on rendered flights) and pulls
+    /// against every other row of the window.
+    pub window_gate: bool,
 }
 
 impl Default for CooperationOptions {
@@ -406,6 +415,7 @@ impl Default for CooperationOptions {
             max_alignment_yaw_sigma_deg: 2.0,
             max_alignment_translation_sigma_m: 0.5,
             peer_slam_newest_view: None,
+            window_gate: true,
         }
     }
 }

@@ -6,7 +6,7 @@
 //! window whose rows disagree far beyond their dimension is the first thing
 //! to look for when a fleet is pulled off in one frame.
 
-use super::ci_system::{self, CiRows, Part};
+use super::ci_system::{self, CiRows};
 use super::peer_window::PeerWindow;
 use super::state::{ImuState, State};
 use super::updater_ci::CiOutcome;
@@ -50,55 +50,52 @@ pub fn log_moves(
     );
 }
 
-fn window_of(part: Part) -> usize {
-    match part {
-        Part::Poses(w) | Part::Landmarks(w) => w,
-    }
-}
-
 /// Logs the stacked rows' Mahalanobis distance with uncorrelated robots
 /// (`ci_system::independent_mahalanobis`): all of them, the common VIO rows
 /// (the first `n_vio`), the SLAM rows (measurements and constraints), and
 /// each participant window's; the blocks of a suspect window one by one.
 pub fn log_consistency(state: &State, rows: &[CiRows], n_vio: usize, p: &[PeerWindow]) {
-    let d = |r: &[CiRows]| ci_system::independent_mahalanobis(state, r, p);
-    let involves = |r: &CiRows, w: usize| r.peers.iter().any(|q| window_of(q.part) == w);
-    let mut windows: Vec<usize> = rows
-        .iter()
-        .flat_map(|r| r.peers.iter().map(|q| window_of(q.part)))
-        .collect();
-    windows.sort_unstable();
-    windows.dedup();
-    let per_window: Vec<(usize, Option<(f64, usize)>)> = windows
-        .iter()
-        .map(|&w| {
-            let of: Vec<CiRows> = rows.iter().filter(|r| involves(r, w)).cloned().collect();
-            (w, d(&of))
-        })
+    let d = |r: &[&CiRows]| ci_system::independent_mahalanobis(state, r, p);
+    let of = |w: usize| -> Vec<&CiRows> { rows.iter().filter(|r| r.involves(w)).collect() };
+    let per_window: Vec<(usize, Option<(f64, usize)>)> = ci_system::windows(rows)
+        .into_iter()
+        .map(|w| (w, d(&of(w))))
         .collect();
     for (w, dw) in &per_window {
         let Some((dist, m)) = dw else { continue };
         if *dist <= SUSPECT_PER_ROW * *m as f64 {
             continue;
         }
-        for (i, r) in rows.iter().enumerate().filter(|(_, r)| involves(r, *w)) {
+        let blocks: Vec<(usize, &CiRows)> = rows
+            .iter()
+            .enumerate()
+            .filter(|(_, r)| r.involves(*w))
+            .collect();
+        for &(i, r) in &blocks {
+            let without: Vec<&CiRows> = blocks
+                .iter()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, r)| *r)
+                .collect();
             tracing::debug!(
                 t = state.means.t,
                 window = w,
                 block = i,
                 vio = i < n_vio,
                 peers = ?r.peers.iter().map(|q| (q.part, q.items.clone())).collect::<Vec<_>>(),
-                d = ?d(std::slice::from_ref(r)),
+                d = ?d(&[r]),
+                window_without = ?d(&without),
                 res = ?r.res.as_slice(),
                 "suspect window block"
             );
         }
     }
+    let all: Vec<&CiRows> = rows.iter().collect();
     tracing::debug!(
         t = state.means.t,
-        all = ?d(rows),
-        vio = ?d(&rows[..n_vio]),
-        slam = ?d(&rows[n_vio..]),
+        all = ?d(&all),
+        vio = ?d(&all[..n_vio]),
+        slam = ?d(&all[n_vio..]),
         ?per_window,
         "independent mahalanobis"
     );

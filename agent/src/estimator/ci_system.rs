@@ -31,6 +31,13 @@ pub enum Part {
 }
 
 impl Part {
+    /// The participant window it belongs to.
+    pub fn window(self) -> usize {
+        match self {
+            Part::Poses(w) | Part::Landmarks(w) => w,
+        }
+    }
+
     /// Columns of item `item`: a pose (6) or the intrinsics (8) of a window, a
     /// landmark (3).
     pub fn item_size(self, item: usize, participants: &[PeerWindow]) -> usize {
@@ -78,6 +85,24 @@ pub struct CiRows {
     pub peers: Vec<PeerRows>,
 }
 
+impl CiRows {
+    /// Whether the block involves participant window `w`.
+    pub fn involves(&self, w: usize) -> bool {
+        self.peers.iter().any(|p| p.part.window() == w)
+    }
+}
+
+/// The participant windows `rows` involve, sorted.
+pub fn windows(rows: &[CiRows]) -> Vec<usize> {
+    let mut out: Vec<usize> = rows
+        .iter()
+        .flat_map(|r| r.peers.iter().map(|p| p.part.window()))
+        .collect();
+    out.sort_unstable();
+    out.dedup();
+    out
+}
+
 /// The columns a block's Jacobian `h_p` over `items` of participant `part`
 /// gives our peer frame, when the window was taken into our frame through a
 /// frame our state holds: `h_p G` (m x 4), `G` the items' rows of the
@@ -89,12 +114,8 @@ pub fn frame_columns<'w>(
     h_p: &DMatrix<f64>,
     participants: &'w [PeerWindow],
 ) -> Option<(&'w FrameLink, DMatrix<f64>)> {
-    let (w, link) = match part {
-        Part::Poses(w) | Part::Landmarks(w) => {
-            let win = participants.get(w)?;
-            (win, win.frame.as_ref()?)
-        }
-    };
+    let w = participants.get(part.window())?;
+    let link = w.frame.as_ref()?;
     let (offsets, total) = part.layout(items, participants);
     if h_p.ncols() != total {
         return None;
@@ -245,7 +266,7 @@ struct Stacked {
 }
 
 /// Stacks `rows`; `None` when there are none.
-fn stack(rows: &[CiRows], participants: &[PeerWindow]) -> Option<Stacked> {
+fn stack(rows: &[&CiRows], participants: &[PeerWindow]) -> Option<Stacked> {
     let m: usize = rows.iter().map(|r| r.res.len()).sum();
     if m == 0 {
         return None;
@@ -324,7 +345,7 @@ fn stack(rows: &[CiRows], participants: &[PeerWindow]) -> Option<Stacked> {
 /// a peer's pose see its error whole.
 pub fn independent_mahalanobis(
     state: &State,
-    rows: &[CiRows],
+    rows: &[&CiRows],
     participants: &[PeerWindow],
 ) -> Option<(f64, usize)> {
     let st = stack(rows, participants)?;
@@ -351,7 +372,7 @@ pub fn update(
         parts,
         h_parts,
         res,
-    }) = stack(rows, participants)
+    }) = stack(&rows.iter().collect::<Vec<_>>(), participants)
     else {
         return Ok(None);
     };
@@ -386,10 +407,9 @@ pub fn update(
     // each came into our frame through a peer frame our state holds.
     let through_held_frames = !parts.is_empty()
         && parts.iter().all(|(p, _)| {
-            let w = match p {
-                Part::Poses(w) | Part::Landmarks(w) => *w,
-            };
-            participants.get(w).is_some_and(|pw| pw.frame.is_some())
+            participants
+                .get(p.window())
+                .is_some_and(|pw| pw.frame.is_some())
         });
     let unobserved = split_factor(state, opts, through_held_frames);
     updater_ci::update(

@@ -4,13 +4,14 @@
 
 use super::chi2::Chi2Table;
 use super::ci_diagnostics;
-use super::ci_system;
+use super::ci_system::{self, CiRows};
 use super::feature_db::FeatureDb;
 use super::options::EstimatorOptions;
 use super::state::State;
 use super::triangulation::TriangulationOptions;
-use super::updater_common::{self, CommonStats};
+use super::updater_common::{self, CommonOutcome, CommonStats};
 use super::updater_common_slam;
+use super::window_gate;
 use crate::cooperation::loop_closure::FrameFeatures;
 use crate::cooperation::{Cooperation, Evidence};
 use common::measurement::FeatureFrame;
@@ -114,14 +115,15 @@ pub fn update(
     let mut vio = updater_common::rows(state, db, &ev.vio, p, opts, chi2, tri);
     stats.common_vio_ms = ms(t);
     let t = Instant::now();
-    let (mut slam_rows, slam) =
+    let (mut slam_rows, mut slam) =
         updater_common_slam::measurement_blocks(state, &ev.slam, p, opts, chi2);
     stats.common_slam_ms = ms(t);
     let t = Instant::now();
-    let (constraint_rows, constraints) =
+    let (constraint_rows, mut constraints) =
         updater_common_slam::constraint_blocks(state, &ev.constraints, p, opts, chi2);
     stats.constraint_ms = ms(t);
     let t = Instant::now();
+    let n_slam = slam_rows.len();
     slam_rows.extend(constraint_rows);
     let debug = ci_diagnostics::enabled();
     let before = debug.then(|| state.means.imu.clone());
@@ -132,6 +134,14 @@ pub fn update(
     rows.extend(slam_rows);
     if debug {
         ci_diagnostics::log_consistency(state, &rows, n_vio, p);
+    }
+    if opts.cooperation.window_gate {
+        let limit = |m: usize| opts.chi2_multiplier * chi2.get(m);
+        let out = window_gate::rejected(state, &rows, p, limit);
+        if !out.is_empty() {
+            let (v, s, c) = (&mut vio.outcome, &mut slam, &mut constraints);
+            leave_out(&mut rows, &out, [(n_vio, v), (n_slam, s)], c, own_applied);
+        }
     }
     let result = ci_system::update(state, &rows, p, &opts.cooperation);
     let ok = result.is_ok();
@@ -161,9 +171,105 @@ pub fn update(
     used
 }
 
+/// Removes blocks `out` (ascending) of `rows`, which hold the common VIO
+/// blocks, then the SLAM measurement blocks, then the constraint blocks, in
+/// the orders of their outcomes' `used` lists (the first two kinds with their
+/// counts): each left-out block is counted as gated out. A common VIO track
+/// whose own rows were applied does not fall back to the MSCKF (its
+/// measurements are spent).
+fn leave_out(
+    rows: &mut Vec<CiRows>,
+    out: &[usize],
+    counted: [(usize, &mut CommonOutcome); 2],
+    constraints: &mut CommonOutcome,
+    own_applied: bool,
+) {
+    let [(n_vio, vio), (n_slam, slam)] = counted;
+    // From the last, so that the indices before stay valid.
+    for &i in out.iter().rev() {
+        let (outcome, j, falls_back) = if i < n_vio {
+            (&mut *vio, i, !own_applied)
+        } else if i < n_vio + n_slam {
+            (&mut *slam, i - n_vio, true)
+        } else {
+            (&mut *constraints, i - n_vio - n_slam, true)
+        };
+        let block = rows.remove(i);
+        if j < outcome.used.len() {
+            let id = outcome.used.remove(j);
+            if falls_back {
+                outcome.fallback.push(id);
+            }
+            outcome.stats.used = outcome.stats.used.saturating_sub(1);
+            outcome.stats.rejected_chi2 += 1;
+            outcome.stats.ci_rows = outcome.stats.ci_rows.saturating_sub(block.res.len());
+        }
+    }
+}
+
 /// Records which participants were involved, and marks the used measurements.
 pub fn finish(coop: &mut Cooperation, ev: &Evidence, used: &CoopUse, stats: &mut CoopFrameStats) {
     stats.participants = ev.participants.len();
     stats.historical_participants = ev.historical.iter().filter(|h| **h).count();
     coop.mark_used(ev, &used.vio, &used.slam, &used.constraints);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{DMatrix, DVector};
+
+    fn block(m: usize) -> CiRows {
+        CiRows {
+            vars: Vec::new(),
+            h: DMatrix::zeros(m, 0),
+            res: DVector::zeros(m),
+            peers: Vec::new(),
+        }
+    }
+
+    fn outcome(ids: &[u64], rows: usize) -> CommonOutcome {
+        let mut o = CommonOutcome {
+            used: ids.to_vec(),
+            ..CommonOutcome::default()
+        };
+        o.stats.used = ids.len();
+        o.stats.ci_rows = rows;
+        o
+    }
+
+    /// Blocks left out by the window gate leave their outcome's used list and
+    /// count as gated out; a common VIO track whose own rows were applied
+    /// does not fall back to the MSCKF, the rest do.
+    #[test]
+    fn blocks_left_out_are_counted_as_gated_out_of_their_kind() {
+        // Common VIO 10, 11 (3 rows each), SLAM 20, 21, 22 (2), constraint 30 (3).
+        let sizes = [3, 3, 2, 2, 2, 3];
+        for own_applied in [true, false] {
+            let mut rows: Vec<CiRows> = sizes.iter().map(|&m| block(m)).collect();
+            let mut vio = outcome(&[10, 11], 6);
+            let mut slam = outcome(&[20, 21, 22], 6);
+            let mut constraints = outcome(&[30], 3);
+            leave_out(
+                &mut rows,
+                &[1, 3, 5],
+                [(2, &mut vio), (3, &mut slam)],
+                &mut constraints,
+                own_applied,
+            );
+            assert_eq!(rows.len(), 3);
+            assert_eq!((vio.used.clone(), vio.stats.used), (vec![10], 1));
+            assert_eq!((slam.used.clone(), slam.stats.used), (vec![20, 22], 2));
+            assert!(constraints.used.is_empty() && constraints.stats.used == 0);
+            assert_eq!(vio.fallback.is_empty(), own_applied);
+            assert_eq!(
+                (slam.fallback.clone(), constraints.fallback.clone()),
+                (vec![21], vec![30])
+            );
+            for (o, rows_left) in [(&vio, 3), (&slam, 4), (&constraints, 0)] {
+                assert_eq!(o.stats.rejected_chi2, 1);
+                assert_eq!(o.stats.ci_rows, rows_left);
+            }
+        }
+    }
 }

@@ -42,6 +42,7 @@ pub mod updater_slam;
 pub mod updater_zupt;
 pub mod vio;
 mod weight_search;
+pub mod window_gate;
 
 pub use options::EstimatorOptions;
 pub use vio::{Estimator, FrameError, FrameOutput, FrameRecord, InitialState, InputError};

@@ -368,7 +368,10 @@ mod tests {
         let opts = EstimatorOptions::default();
         let (mut rows, _) = measurement_blocks(&sc.state, &tracks, p, &opts, &chi2());
         assert_eq!(rows.len(), 4);
-        let d = |r: &[CiRows]| ci_system::independent_mahalanobis(&sc.state, r, p).unwrap();
+        let d = |r: &[CiRows]| {
+            let refs: Vec<&CiRows> = r.iter().collect();
+            ci_system::independent_mahalanobis(&sc.state, &refs, p).unwrap()
+        };
         let (zero, m) = d(&rows);
         assert!(zero < 1e-9, "{zero}");
         assert_eq!(m, rows.iter().map(|r| r.res.len()).sum::<usize>());
