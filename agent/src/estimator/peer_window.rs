@@ -229,7 +229,9 @@ pub fn peer_measurement(
     let lin = project_normalized(pose, p_lin)?;
     let cur = project_normalized(pose, p_cur)?;
     let (uv, dz_dn, dz_dintr) = w.camera.distort_with_jacobians(&lin.xy);
-    if !near_image(&w.camera, &uv) || !near_image(&w.camera, &w.camera.distort(&cur.xy)) {
+    // A wrong link can put our landmark nearly in the peer camera's plane
+    // (a whitened residual of 1.3e10 passed its gate at d = 1.3 over 2 rows).
+    if !w.camera.near_image(&uv) || !w.camera.near_image(&w.camera.distort(&cur.xy)) {
         return None;
     }
     let white = dz_dn / pixel_sigma;
@@ -239,24 +241,6 @@ pub fn peer_measurement(
         h_feature: white * lin.h_feature,
         h_intrinsics: dz_dintr / pixel_sigma,
     })
-}
-
-/// How far outside the image, as a fraction of its size, a predicted point
-/// may fall and still be measured: the state's uncertainty moves predictions
-/// near the border a little outside it.
-const PREDICTION_MARGIN: f64 = 0.1;
-
-/// Whether the pixel `uv` lies in the image grown by [`PREDICTION_MARGIN`]
-/// on every side (false for NaN). Beyond it the distortion polynomial was
-/// never fitted and grows without bound: a point predicted at a normalized
-/// radius of a few hundred (a landmark nearly in the camera's plane, from a
-/// wrong link) got a distortion Jacobian near 10⁸, a residual of 10¹⁰ pixel
-/// sigmas and an innovation covariance to match, so the gate passed it
-/// (d = 1.3 over 2 rows) and the stacked update took it as exact.
-fn near_image(camera: &CameraModel, uv: &Vector2<f64>) -> bool {
-    let (w, h) = (f64::from(camera.width), f64::from(camera.height));
-    let (mu, mv) = (PREDICTION_MARGIN * w, PREDICTION_MARGIN * h);
-    uv.x >= -mu && uv.x <= w + mu && uv.y >= -mv && uv.y <= h + mv
 }
 
 /// A feature seen from a peer camera, in normalized coordinates, and its

@@ -37,7 +37,8 @@ pub fn point_in_camera(
 }
 
 /// Predicted pixel of `p_FinG` seen from the clone `(R_ItoG, p_IinG)`; `None` when
-/// the point is not in front of the camera.
+/// the point is not in front of the camera, or falls far outside the image
+/// (`CameraModel::near_image`: no update linearizes there).
 pub fn predict(
     rot_i_to_g: &Matrix3<f64>,
     p_i_in_g: &Vector3<f64>,
@@ -48,15 +49,15 @@ pub fn predict(
     if p_c.z < 1e-3 {
         return None;
     }
-    Some(
-        calib
-            .camera
-            .distort(&Vector2::new(p_c.x / p_c.z, p_c.y / p_c.z)),
-    )
+    let uv = calib
+        .camera
+        .distort(&Vector2::new(p_c.x / p_c.z, p_c.y / p_c.z));
+    calib.camera.near_image(&uv).then_some(uv)
 }
 
 /// Prediction and Jacobians, evaluated at the given linearization point (the
-/// caller passes first estimates for FEJ). `None` when the point is behind.
+/// caller passes first estimates for FEJ). `None` when the point is behind, or
+/// falls far outside the image (`CameraModel::near_image`).
 pub fn project(
     rot_i_to_g: &Matrix3<f64>,
     p_i_in_g: &Vector3<f64>,
@@ -71,6 +72,9 @@ pub fn project(
     }
     let n = Vector2::new(p_c.x / p_c.z, p_c.y / p_c.z);
     let (uv, dz_dn, dz_dintr) = calib.camera.distort_with_jacobians(&n);
+    if !calib.camera.near_image(&uv) {
+        return None;
+    }
     let iz = 1.0 / p_c.z;
     let dn_dpc = Matrix2x3::new(iz, 0.0, -p_c.x * iz * iz, 0.0, iz, -p_c.y * iz * iz);
     let dz_dpc = dz_dn * dn_dpc;
@@ -117,6 +121,23 @@ mod tests {
         let p_i = calib.rot_c_to_i * p_c + calib.p_c_in_i;
         let p_f = rot * p_i + pos;
         (rot, pos, p_f, calib)
+    }
+
+    /// No prediction or linearization far outside the image, where the
+    /// distortion polynomial was never fitted.
+    #[test]
+    fn a_point_far_outside_the_image_is_not_predicted() {
+        let (rot, pos, _, calib) = setup();
+        let at = |p_c: Vector3<f64>| {
+            let p_f = rot * (calib.rot_c_to_i * p_c + calib.p_c_in_i) + pos;
+            (
+                predict(&rot, &pos, &p_f, &calib).is_some(),
+                project(&rot, &pos, &p_f, &calib).is_some(),
+            )
+        };
+        assert_eq!(at(Vector3::new(0.8, -0.5, 4.0)), (true, true));
+        // Nearly in the camera's plane: x/z = 300.
+        assert_eq!(at(Vector3::new(3.0, 0.0, 0.01)), (false, false));
     }
 
     #[test]

@@ -27,6 +27,11 @@ use serde::{Deserialize, Serialize};
 /// Points closer than this to the camera plane (`z`, metres) do not project.
 pub const MIN_DEPTH_M: f64 = 1e-6;
 
+/// How far outside the image, as a fraction of its size, a predicted point
+/// may fall and still be linearized ([`CameraModel::near_image`]): a state's
+/// uncertainty moves predictions near the border a little outside it.
+pub const PREDICTION_MARGIN: f64 = 0.1;
+
 /// [`CameraModel::undistort`] stops when a Gauss-Newton step is shorter than
 /// this (normalized units).
 pub const UNDISTORT_TOLERANCE: f64 = 1e-12;
@@ -290,6 +295,20 @@ impl CameraModel {
         Err(not_converged(UNDISTORT_MAX_ITERATIONS, residual.norm()))
     }
 
+    /// Whether the pixel `uv` lies in the image grown by [`PREDICTION_MARGIN`]
+    /// of its size on every side (false for NaN): where a filter may still
+    /// linearize a predicted point. Beyond it the distortion polynomial was
+    /// never fitted and grows without bound: a point predicted at a
+    /// normalized radius of a few hundred (nearly in the camera's plane)
+    /// gets a distortion Jacobian near 10⁸, and its residual and innovation
+    /// covariance grow together, so a chi-square gate passes it and the
+    /// update takes it as exact.
+    pub fn near_image(&self, uv: &Vector2<f64>) -> bool {
+        let (w, h) = (f64::from(self.width), f64::from(self.height));
+        let (mu, mv) = (PREDICTION_MARGIN * w, PREDICTION_MARGIN * h);
+        uv.x >= -mu && uv.x <= w + mu && uv.y >= -mv && uv.y <= h + mv
+    }
+
     /// Whether the pixel `uv` lies in the image: `0 <= u < width`,
     /// `0 <= v < height` (false for NaN).
     pub fn in_image(&self, uv: &Vector2<f64>) -> bool {
@@ -537,6 +556,21 @@ mod tests {
         ] {
             assert!(camera.project(&p).is_none(), "{p}");
             assert!(camera.project_with_jacobian(&p).is_none(), "{p}");
+        }
+    }
+
+    #[test]
+    fn near_image_is_the_image_grown_by_a_tenth_and_refuses_nan() {
+        let c = CameraModel::euroc_cam0();
+        for (u, v, near) in [
+            (376.0, 240.0, true),
+            (-75.0, 240.0, true),
+            (827.0, 528.0, true),
+            (-76.0, 240.0, false),
+            (376.0, 529.0, false),
+            (f64::NAN, 240.0, false),
+        ] {
+            assert_eq!(c.near_image(&Vector2::new(u, v)), near, "({u}, {v})");
         }
     }
 
