@@ -312,16 +312,29 @@ mod tests {
         }
     }
 
+    /// A window of one pose at the origin, looking along +z, with `camera`
+    /// and its intrinsics in the covariance (6 + 8 columns).
+    fn one_pose_window(camera: CameraModel) -> PeerWindow {
+        PeerWindow {
+            peer: 1,
+            key: 0,
+            poses: vec![PeerPose {
+                t_s: 0.0,
+                rot: Matrix3::identity(),
+                pos: Vector3::zeros(),
+            }],
+            cov: Arc::new(DMatrix::identity(14, 14)),
+            camera,
+            landmarks: Vec::new(),
+            frame: None,
+        }
+    }
+
     /// A peer whose intrinsics estimate is off by `δθ` reports coordinates that
     /// the measurement's intrinsics Jacobian predicts: `res ≈ H_θ δθ`.
     #[test]
     fn the_intrinsics_jacobian_predicts_the_coordinates_a_miscalibrated_peer_reports() {
         let truth = CameraModel::euroc_cam0();
-        let pose = PeerPose {
-            t_s: 0.0,
-            rot: Matrix3::identity(),
-            pos: Vector3::zeros(),
-        };
         let p_f = Vector3::new(1.2, -0.7, 3.0);
         let n_true = Vector2::new(p_f.x / p_f.z, p_f.y / p_f.z);
         let uv = truth.distort(&n_true);
@@ -332,15 +345,7 @@ mod tests {
             estimate.distortion[k] -= delta[4 + k] * 1e-3;
         }
         let xy = estimate.undistort(&uv).unwrap();
-        let w = PeerWindow {
-            peer: 1,
-            key: 0,
-            poses: vec![pose],
-            cov: Arc::new(DMatrix::identity(14, 14)),
-            camera: estimate,
-            landmarks: Vec::new(),
-            frame: None,
-        };
+        let w = one_pose_window(estimate);
         assert_eq!(w.intrinsics_item(), Some(1));
         let m = peer_measurement(&w, 0, &xy, &p_f, &p_f, 1.0).unwrap();
         let d = nalgebra::SVector::<f64, 8>::from_column_slice(&delta) * 1e-3;
@@ -360,19 +365,7 @@ mod tests {
     fn the_jacobians_do_not_depend_on_the_measured_point() {
         let camera = CameraModel::euroc_cam0();
         assert!(camera.distortion.norm() > 0.1);
-        let w = PeerWindow {
-            peer: 1,
-            key: 0,
-            poses: vec![PeerPose {
-                t_s: 0.0,
-                rot: Matrix3::identity(),
-                pos: Vector3::zeros(),
-            }],
-            cov: Arc::new(DMatrix::identity(14, 14)),
-            camera,
-            landmarks: Vec::new(),
-            frame: None,
-        };
+        let w = one_pose_window(camera);
         let p_f = Vector3::new(1.2, -0.7, 3.0);
         let xy = Vector2::new(p_f.x / p_f.z, p_f.y / p_f.z);
         let at = |xy: Vector2<f64>| peer_measurement(&w, 0, &xy, &p_f, &p_f, 1.0).unwrap();
@@ -387,19 +380,7 @@ mod tests {
     /// distortion there is outside its fit, and its Jacobian unbounded.
     #[test]
     fn a_point_predicted_far_outside_the_image_is_not_measured() {
-        let w = PeerWindow {
-            peer: 1,
-            key: 0,
-            poses: vec![PeerPose {
-                t_s: 0.0,
-                rot: Matrix3::identity(),
-                pos: Vector3::zeros(),
-            }],
-            cov: Arc::new(DMatrix::identity(14, 14)),
-            camera: CameraModel::euroc_cam0(),
-            landmarks: Vec::new(),
-            frame: None,
-        };
+        let w = one_pose_window(CameraModel::euroc_cam0());
         let xy = Vector2::new(0.1, -0.05);
         let at = |p: Vector3<f64>| peer_measurement(&w, 0, &xy, &p, &p, 1.0);
         // In view, and just outside the image's right edge (x/z = 1.2 is
