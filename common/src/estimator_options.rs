@@ -368,7 +368,7 @@ pub struct CooperationOptions {
     /// most first, until it passes. A block's own innovation covariance
     /// holds the robots' whole relative pose uncertainty, which the other
     /// blocks of the window pin down, so a wrong link passes its own gate
-    /// (distances 0.0-1.4 over 3 rows on rendered flights) and pulls
+    /// (mostly 0.0-1.4 over 3 rows on rendered flights) and pulls
     /// against every other row of the window.
     pub window_gate: bool,
 }

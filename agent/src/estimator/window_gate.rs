@@ -14,7 +14,7 @@
 //! fraction of its limit), until it passes: a failure detection and
 //! exclusion, as satellite navigation does with its pseudoranges. Rendered
 //! three-robot flights showed it: windows at 30-170 over 8-24 rows fell to
-//! 0.2-15 without one block that alone gave 0.0-1.4 over 3 rows.
+//! 0.2-15 without one block that alone gave, in most, 0.0-1.4 over 3 rows.
 
 use super::ci_system::{self, CiRows};
 use super::peer_window::PeerWindow;
