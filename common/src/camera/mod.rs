@@ -298,9 +298,9 @@ impl CameraModel {
     /// Whether the pixel `uv` lies in the image grown by [`PREDICTION_MARGIN`]
     /// of its size on every side (false for NaN): where a filter may still
     /// linearize a predicted point. Beyond it the distortion polynomial was
-    /// never fitted and grows without bound: a point predicted at a
-    /// normalized radius of a few hundred (nearly in the camera's plane)
-    /// gets a distortion Jacobian near 10⁸, and its residual and innovation
+    /// never fitted and grows without bound: radtan's fifth-power term gives
+    /// a point predicted at a normalized radius of 40 (far off the axis) a
+    /// distortion Jacobian near 4·10⁸, and its residual and innovation
     /// covariance grow together, so a chi-square gate passes it and the
     /// update takes it as exact.
     pub fn near_image(&self, uv: &Vector2<f64>) -> bool {
