@@ -48,10 +48,9 @@ pub fn rejected(
                 ci_system::independent_mahalanobis(state, &kept, participants)
                     .map(|(d, m)| d / limit(m))
             };
-            match fraction(None) {
-                Some(f) if f > 1.0 => {}
-                _ => break,
-            }
+            let Some(before) = fraction(None).filter(|f| *f > 1.0) else {
+                break;
+            };
             let worst = of
                 .iter()
                 .filter_map(|&i| fraction(Some(i)).map(|f| (i, f)))
@@ -62,7 +61,7 @@ pub fn rejected(
                 window = w,
                 block = i,
                 rows = rows[i].res.len(),
-                before = ?fraction(None),
+                before,
                 after,
                 "window gate left a block out (distances as fractions of the limit)"
             );
