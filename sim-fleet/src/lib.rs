@@ -2,6 +2,7 @@
 //! and the fleet launcher (`fleet_run`).
 #![warn(missing_docs)]
 
+pub mod anees;
 pub mod compare;
 pub mod convert;
 pub mod eval;

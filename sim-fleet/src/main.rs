@@ -2,6 +2,7 @@
 //! launch a fleet of agents).
 use anyhow::Result;
 use clap::{Parser, Subcommand};
+use sim_fleet::anees::{run_anees, AneesArgs};
 use sim_fleet::compare::{run_compare, CompareArgs};
 use sim_fleet::convert::{run_convert, ConvertArgs};
 use sim_fleet::eval::{run_eval, EvalArgs};
@@ -50,6 +51,9 @@ enum Command {
     /// EuRoC sequence, published over Zenoh as ROS 2 topics and run by an
     /// agent with `input.source: live`; scored against the truth.
     LiveRun(LiveRunArgs),
+    /// NEES averaged over runs at each epoch against the two-sided 95 % band
+    /// of a consistent filter: orientation, position, tilt and yaw.
+    Anees(AneesArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -82,5 +86,6 @@ fn run_main() -> Result<()> {
         Command::ConvertEuroc(args) => run_convert(&args),
         Command::ExportEuroc(args) => run_export(&args),
         Command::LiveRun(args) => run_live(&args),
+        Command::Anees(args) => run_anees(&args),
     }
 }

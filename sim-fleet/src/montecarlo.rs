@@ -289,6 +289,41 @@ impl Study<'_> {
     }
 }
 
+/// The band test of robot `id` over the runs of `variant` that wrote their
+/// outputs (`DIR/anees/<variant>/robot<id>.csv`), one epoch per camera frame
+/// (`frame_s`);
+/// `None` when no run did, or (with a warning: the study's other results
+/// stand) when their files cannot be read back.
+fn anees_of(
+    out: &Path,
+    variant: Variant,
+    seeds: &[u64],
+    id: u32,
+    frame_s: f64,
+) -> Option<crate::anees::AneesSummary> {
+    let dirs: Vec<PathBuf> = seeds
+        .iter()
+        .map(|&s| seed_dir(out, variant, s).join(format!("robot{id}")))
+        .filter(|d| d.join("covariance.txt").is_file())
+        .collect();
+    if dirs.is_empty() {
+        return None;
+    }
+    let csv = out
+        .join("anees")
+        .join(variant.name())
+        .join(format!("robot{id}.csv"));
+    crate::anees::study(&dirs, frame_s, Some(&csv))
+        .map_err(|e| {
+            tracing::warn!(
+                variant = variant.name(),
+                robot = id,
+                "no NEES band test: {e}"
+            );
+        })
+        .ok()
+}
+
 /// `DIR/runs/<variant>/seed<k>`.
 fn seed_dir(out: &Path, variant: Variant, seed: u64) -> PathBuf {
     out.join("runs")
@@ -472,6 +507,8 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<(StudySummary, String), Monte
         .collect();
     let mut failures = Vec::new();
     let mut aggregates = Vec::with_capacity(variants.len());
+    // The band test's epoch: one camera frame.
+    let frame_s = 1.0 / scenario.sensors.camera.rate_hz;
     for (vi, variant) in variants.iter().enumerate() {
         let mut runs = Vec::with_capacity(seeds.len());
         for (si, &seed) in seeds.iter().enumerate() {
@@ -553,10 +590,11 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<(StudySummary, String), Monte
             summary.write_json(dir.join("summary.json"))?;
             runs.push(outcomes);
         }
-        aggregates.push((
-            variant.name().to_string(),
-            aggregate_variant(&robot_ids, &runs),
-        ));
+        let mut aggregate = aggregate_variant(&robot_ids, &runs);
+        for robot in &mut aggregate.robots {
+            robot.anees = anees_of(&args.out, *variant, &seeds, robot.id, frame_s);
+        }
+        aggregates.push((variant.name().to_string(), aggregate));
     }
     if failures.len() == robot_runs {
         if let Some(first) = failures.first() {

@@ -172,6 +172,40 @@ fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_
         }
     }
 
+    // The NEES averaged over the runs at each camera frame against the band
+    // of a consistent filter, per robot: in the summary, as CSV, and from
+    // `sim-fleet anees` on any runs.
+    let band = &slam_robot["anees"];
+    assert_eq!(band["runs"], 2, "{band}");
+    for kind in ["ori", "pos", "tilt", "yaw"] {
+        let share = &band[kind];
+        assert!(share["epochs"].as_u64().is_some_and(|n| n > 10), "{band}");
+        let total: f64 = ["inside", "below", "above"]
+            .iter()
+            .map(|k| share[k].as_f64().unwrap_or(f64::NAN))
+            .sum();
+        assert!((total - 1.0).abs() < 1e-9, "{kind}: {share}");
+    }
+    let csv = std::fs::read_to_string(out1.join("anees/indp-slam/robot0.csv")).unwrap();
+    assert!(csv.starts_with("t_s,ori,ori_runs,ori_low,ori_high,"), "{csv}");
+    let runs = out1.join("runs/indp-slam");
+    let output = Command::new(bin("sim-fleet"))
+        .arg("anees")
+        .args([runs.join("seed1/robot0"), runs.join("seed2/robot0")])
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "anees failed: {output:?}");
+    let again: Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(&again, band, "the subcommand and the study agree");
+    let output = Command::new(bin("sim-fleet"))
+        .args(["anees", &out1.join("no-such-run").display().to_string()])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let err = String::from_utf8_lossy(&output.stderr);
+    assert!(err.contains("no-such-run"), "{err}");
+
     let two = montecarlo(&scenario, "2", &dir.path().join("mc2")).unwrap();
     assert_eq!(means_without_timing(&one).len(), 2);
     assert_eq!(means_without_timing(&one), means_without_timing(&two));

@@ -7,6 +7,7 @@
 //! not depend on the order in which the runs finished.
 
 use super::stats::mean_ci95;
+use crate::anees::AneesSummary;
 use common::summary::{MetricSet, RpeEntry};
 use serde::{Deserialize, Serialize};
 
@@ -184,6 +185,10 @@ pub struct RobotAggregate {
     pub diverged: usize,
     /// Runs that failed (estimator error or panic; their metrics are `null`).
     pub failed: usize,
+    /// The NEES averaged over the runs at each epoch against the band of a
+    /// consistent filter ([`crate::anees`]; `null` without runs to read).
+    #[serde(default)]
+    pub anees: Option<AneesSummary>,
 }
 
 /// One variant of the study, aggregated over the runs.
@@ -284,6 +289,7 @@ pub fn aggregate_variant(robots: &[(u32, String)], runs: &[Vec<RobotOutcome>]) -
                 runs: outcomes.len(),
                 diverged: outcomes.iter().filter(|o| diverged(&o.metrics)).count(),
                 failed: outcomes.iter().filter(|o| o.error.is_some()).count(),
+                anees: None,
             }
         })
         .collect();

@@ -54,7 +54,40 @@ pub fn render_table(study: &StudySummary) -> String {
     }
     traffic_table(&mut out, study);
     frames_table(&mut out, study);
+    anees_table(&mut out, study);
     out
+}
+
+/// The NEES averaged over the runs at each camera frame against the band of
+/// a consistent filter ([`crate::anees`]), per robot.
+fn anees_table(out: &mut String, study: &StudySummary) {
+    let rows: Vec<_> = study
+        .variants
+        .iter()
+        .flat_map(|(name, v)| v.robots.iter().map(move |r| (name, r)))
+        .filter_map(|(name, r)| Some((name, r, r.anees.as_ref()?)))
+        .collect();
+    if rows.is_empty() {
+        return;
+    }
+    out.push_str(
+        "\nNEES averaged over the runs at each camera frame: its mean, then the share of frames inside / below / above the two-sided 95 % band of a consistent filter, % (tilt: roll and pitch in the world frame, yaw: about gravity; from a start at the truth the unobservable yaw and position sit below it):\n\n",
+    );
+    out.push_str("| variant | robot | runs | orientation | position | tilt | yaw |\n");
+    out.push_str("| --- | --- | ---: | --- | --- | --- | --- |\n");
+    for (name, r, a) in rows {
+        let _ = writeln!(
+            out,
+            "| {name} | {} {} | {} | {} | {} | {} | {} |",
+            r.id,
+            r.trajectory,
+            a.runs,
+            crate::anees::cell(&a.ori),
+            crate::anees::cell(&a.pos),
+            crate::anees::cell(&a.tilt),
+            crate::anees::cell(&a.yaw),
+        );
+    }
 }
 
 /// For agents that found their peers' frames from loop closures
@@ -332,5 +365,42 @@ mod tests {
             Some("| dc-full-history | 2 | 2.0 | 0.300 | 0.060 | 3.00 |"),
             "{table}"
         );
+    }
+    #[test]
+    fn robots_with_a_band_test_get_a_row_with_its_shares() {
+        use crate::anees::{AneesSummary, BandShare};
+        let robots = vec![(0, "a".to_string()), (1, "b".to_string())];
+        let mut v = aggregate_variant(&robots, &[vec![outcome(0.1), outcome(0.2)]]);
+        let share = |mean: f64, inside: f64, below: f64, above: f64| BandShare {
+            mean: Some(mean),
+            epochs: 100,
+            inside,
+            below,
+            above,
+        };
+        v.robots[1].anees = Some(AneesSummary {
+            runs: 2,
+            bin_s: 0.1,
+            ori: share(2.5, 0.9, 0.1, 0.0),
+            pos: share(0.3, 0.0, 1.0, 0.0),
+            tilt: share(1.9, 0.95, 0.0, 0.05),
+            yaw: BandShare::default(),
+        });
+        let table = render_table(&study_of(vec![("indp".into(), v)]));
+        let rows: Vec<&str> = table
+            .lines()
+            .skip_while(|l| !l.starts_with("NEES averaged"))
+            .filter(|l| l.starts_with("| "))
+            .collect();
+        // The robot without a test has no row.
+        assert_eq!(rows.len(), 3, "{table}");
+        assert_eq!(
+            rows[2],
+            "| indp | 1 b | 2 | 2.50: 90 / 10 / 0 | 0.30: 0 / 100 / 0 | 1.90: 95 / 0 / 5 | - |",
+            "{table}"
+        );
+        let mut none = aggregate_variant(&robots, &[vec![outcome(0.1), outcome(0.2)]]);
+        none.robots[0].anees = None;
+        assert!(!render_table(&study_of(vec![("indp".into(), none)])).contains("NEES averaged"));
     }
 }
