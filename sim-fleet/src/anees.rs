@@ -26,7 +26,7 @@ use common::metrics::{associate, find_covariance, nees_of, pose_error, DEFAULT_M
 use common::trajectory::{
     read_covariances, read_trajectory, StampedCovariance, StampedPose, TrajectoryError,
 };
-use nalgebra::{Matrix2, Vector2};
+use nalgebra::Vector2;
 use serde::{Deserialize, Serialize};
 
 /// The error kinds, in the order of [`PoseNees::values`] and of the CSV.
@@ -96,7 +96,7 @@ pub fn pose_nees(e: &StampedPose, g: &StampedPose, cov: &StampedCovariance) -> P
     // covariance, z along gravity.
     let e_w = e.rot * d_theta;
     let p_w = e.rot * cov.ori * e.rot.transpose();
-    let tilt = nees_2(
+    let tilt = nees_of(
         &Vector2::new(e_w.x, e_w.y),
         &p_w.fixed_view::<2, 2>(0, 0).into_owned(),
     );
@@ -112,15 +112,6 @@ pub fn pose_nees(e: &StampedPose, g: &StampedPose, cov: &StampedCovariance) -> P
             yaw,
         ],
     }
-}
-
-/// `eᵀ P⁻¹ e` for a 2-DoF error, or `None` if `P` is not positive definite.
-fn nees_2(e: &Vector2<f64>, p: &Matrix2<f64>) -> Option<f64> {
-    let sym = (p + p.transpose()) * 0.5;
-    let chol = sym.cholesky()?;
-    let y = chol.l().solve_lower_triangular(e)?;
-    let value = y.norm_squared();
-    value.is_finite().then_some(value)
 }
 
 /// The average over the runs of one kind at one epoch.

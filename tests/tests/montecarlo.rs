@@ -187,7 +187,10 @@ fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_
         assert!((total - 1.0).abs() < 1e-9, "{kind}: {share}");
     }
     let csv = std::fs::read_to_string(out1.join("anees/indp-slam/robot0.csv")).unwrap();
-    assert!(csv.starts_with("t_s,ori,ori_runs,ori_low,ori_high,"), "{csv}");
+    assert!(
+        csv.starts_with("t_s,ori,ori_runs,ori_low,ori_high,"),
+        "{csv}"
+    );
     let runs = out1.join("runs/indp-slam");
     let output = Command::new(bin("sim-fleet"))
         .arg("anees")

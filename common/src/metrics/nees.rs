@@ -1,6 +1,6 @@
 //! Normalized estimation error squared (filter consistency).
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{SMatrix, SVector, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::PosePair;
@@ -40,8 +40,9 @@ pub fn pose_error(est: &StampedPose, gt: &StampedPose) -> (Vector3<f64>, Vector3
     (log_so3(&(est.rot.transpose() * gt.rot)), gt.pos - est.pos)
 }
 
-/// `eᵀ P⁻¹ e`, or `None` if `P` (symmetrized) is not positive definite.
-pub fn nees_of(e: &Vector3<f64>, p: &Matrix3<f64>) -> Option<f64> {
+/// `eᵀ P⁻¹ e` for an error of any fixed size (a 3-D orientation or position,
+/// a 2-D tilt), or `None` if `P` (symmetrized) is not positive definite.
+pub fn nees_of<const D: usize>(e: &SVector<f64, D>, p: &SMatrix<f64, D, D>) -> Option<f64> {
     let sym = (p + p.transpose()) * 0.5;
     let chol = sym.cholesky()?;
     let y = chol.l().solve_lower_triangular(e)?;
@@ -94,6 +95,7 @@ mod tests {
     use super::super::test_util::wiggly;
     use super::*;
     use crate::so3::exp_so3;
+    use nalgebra::Matrix3;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
