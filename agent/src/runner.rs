@@ -9,7 +9,7 @@ use common::measurement::FeatureFrame;
 use common::metrics::{ate, nees, rpe, Alignment, PosePair, DEFAULT_RPE_SEGMENTS_M};
 use common::so3::exp_so3;
 use common::summary::MetricSet;
-use common::trajectory::{StampedCovariance, StampedPose};
+use common::trajectory::{ImuStateRecord, ImuTruth, StampedCovariance, StampedPose};
 use simulator::camera_sim::{CameraEvent, TruthState};
 use simulator::scenario::{EstimatorSpec, StartFrame};
 use simulator::{Fleet, SimEvent};
@@ -194,7 +194,20 @@ pub struct RobotRun {
     /// CPU time of the run, s, simulating the sensors included (`None` where
     /// the platform has no thread clock). See [`MetricSet::cpu_s`].
     pub cpu_s: Option<f64>,
+    /// Velocity and biases after each frame, with their covariances and the
+    /// truth (simulated runs; `imu_state.txt`).
+    pub imu_states: Vec<ImuStateRecord>,
+    /// The simulator's true biases at the camera times not yet recorded.
+    pub pending_biases: std::collections::VecDeque<(f64, simulator::imu::Biases)>,
 }
+
+/// Largest time difference (s) between an estimate and the camera time whose
+/// true biases it is scored against: the estimate's time moves with the
+/// estimated camera-IMU time offset, the biases change little within it.
+const BIAS_MATCH_TOL_S: f64 = 0.02;
+
+/// Camera times whose true biases wait for their estimate, at most.
+const PENDING_BIASES_MAX: usize = 64;
 
 /// Inputs the estimator rejected: all counted, the first
 /// [`Rejections::KEPT`] reasons kept. A sensor that sends bad data for hours
@@ -319,6 +332,7 @@ pub fn run_stream(
             }
             SimEvent::Camera(c) => {
                 let state = c.truth;
+                run.note_true_biases(state.t, state.biases);
                 let frame = frames(*c)?;
                 if !initialized {
                     if state.t < start {
@@ -384,11 +398,22 @@ pub fn truth_twist(t: f64, s: &simulator::bspline::SplineState) -> StampedTwist 
     }
 }
 
-/// Appends a frame's output to `run`, with the truth at the estimate's time.
+/// Appends a frame's output to `run`, with the truth at the estimate's time
+/// (and its velocity and biases when [`RobotRun::note_true_biases`] gave them).
 pub fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: FrameOutput) {
     let Some(gt) = truth.spline.pose(o.t()) else {
         return;
     };
+    if let (Some(biases), Some(state)) = (run.true_biases_at(o.t()), truth.spline.state(o.t())) {
+        run.imu_states.push(ImuStateRecord {
+            estimate: o.imu,
+            truth: ImuTruth {
+                vel: state.vel,
+                bias_gyro: biases.gyro,
+                bias_accel: biases.accel,
+            },
+        });
+    }
     run.estimate.push(o.pose());
     run.truth.push(StampedPose {
         t: o.t(),
@@ -402,6 +427,31 @@ pub fn record(run: &mut RobotRun, truth: &simulator::truth::RobotTruth, o: Frame
 }
 
 impl RobotRun {
+    /// Keeps the simulator's true biases at a camera time for the estimate of
+    /// that frame, which [`record`] takes when the estimator returns it.
+    pub fn note_true_biases(&mut self, t: f64, biases: simulator::imu::Biases) {
+        // Estimates trail their frames by a few frames at most; frames the
+        // estimator refused never come back, so the queue stays short.
+        if self.pending_biases.len() >= PENDING_BIASES_MAX {
+            self.pending_biases.pop_front();
+        }
+        self.pending_biases.push_back((t, biases));
+    }
+
+    /// The true biases noted nearest to `t` (within [`BIAS_MATCH_TOL_S`]);
+    /// those noted before it are dropped, as estimates come in time order.
+    fn true_biases_at(&mut self, t: f64) -> Option<simulator::imu::Biases> {
+        while self
+            .pending_biases
+            .get(1)
+            .is_some_and(|(next, _)| (next - t).abs() <= (self.pending_biases[0].0 - t).abs())
+        {
+            self.pending_biases.pop_front();
+        }
+        let &(at, biases) = self.pending_biases.front()?;
+        ((at - t).abs() <= BIAS_MATCH_TOL_S).then_some(biases)
+    }
+
     /// Records an estimate of a run [`RobotRun::without_truth`].
     pub fn record_without_truth(&mut self, o: FrameOutput) {
         debug_assert!(self.without_truth && self.truth.is_empty());
@@ -507,7 +557,18 @@ pub fn timing_row(f: &FrameRecord) -> String {
 /// Writes a run's estimate and ground truth (TUM), per-pose covariances and
 /// per-frame timing (`timing.csv`) into `dir`.
 pub fn write_run_outputs(run: &RobotRun, dir: &std::path::Path) -> std::io::Result<()> {
-    crate::run_files::write_all(run, dir)
+    crate::run_files::write_all(run, dir)?;
+    write_imu_states(run, dir)
+}
+
+/// Writes `DIR/imu_state.txt` when the run recorded velocities and biases
+/// against a truth (simulated runs).
+pub fn write_imu_states(run: &RobotRun, dir: &std::path::Path) -> std::io::Result<()> {
+    if run.imu_states.is_empty() {
+        return Ok(());
+    }
+    common::trajectory::write_imu_states(dir.join("imu_state.txt"), &run.imu_states)
+        .map_err(std::io::Error::other)
 }
 
 #[cfg(test)]

@@ -21,6 +21,7 @@ use crate::so3::{exp_so3, log_so3};
 
 mod covariance;
 mod euroc;
+mod imu_state;
 mod parse;
 #[cfg(test)]
 mod tests;
@@ -28,6 +29,9 @@ mod tum;
 
 pub use covariance::{covariance_row, read_covariances, write_covariances, COVARIANCE_HEADER};
 pub use euroc::read_euroc_csv;
+pub use imu_state::{
+    read_imu_states, write_imu_states, ImuEstimate, ImuStateRecord, ImuTruth, IMU_STATE_HEADER,
+};
 pub use tum::{read_tum, tum_row, write_tum, TUM_HEADER};
 
 /// One pose of a trajectory at time `t` (seconds).

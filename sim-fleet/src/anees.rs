@@ -22,15 +22,31 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use agent::estimator::chi2::chi2_quantile;
-use common::metrics::{associate, find_covariance, nees_of, pose_error, DEFAULT_MAX_DT_S};
+use common::metrics::{
+    associate, find_covariance, nees_of, pose_error, COVARIANCE_MATCH_TOL_S, DEFAULT_MAX_DT_S,
+};
 use common::trajectory::{
-    read_covariances, read_trajectory, StampedCovariance, StampedPose, TrajectoryError,
+    read_covariances, read_imu_states, read_trajectory, ImuStateRecord, StampedCovariance,
+    StampedPose, TrajectoryError,
 };
 use nalgebra::Vector2;
 use serde::{Deserialize, Serialize};
 
-/// The error kinds, in the order of [`PoseNees::values`] and of the CSV.
-pub const KINDS: [(&str, usize); 4] = [("ori", 3), ("pos", 3), ("tilt", 2), ("yaw", 1)];
+/// The error kinds with their DoF, in the order of [`PoseNees::values`] and of
+/// the CSV. The last three come from `imu_state.txt`, which simulated runs
+/// write.
+pub const KINDS: [(&str, usize); 7] = [
+    ("ori", 3),
+    ("pos", 3),
+    ("tilt", 2),
+    ("yaw", 1),
+    ("vel", 3),
+    ("bias_gyro", 3),
+    ("bias_accel", 3),
+];
+
+/// Number of [`KINDS`].
+const N: usize = KINDS.len();
 
 /// Probability outside the band on each side.
 const TAIL: f64 = 0.025;
@@ -67,13 +83,15 @@ pub enum AneesError {
 pub struct PoseNees {
     /// Time of the estimate (s).
     pub t: f64,
-    /// Orientation (3 DoF), position (3), tilt (2), yaw (1).
-    pub values: [Option<f64>; 4],
+    /// Orientation (3 DoF), position (3), tilt (2), yaw (1), velocity (3),
+    /// gyro bias (3), accelerometer bias (3).
+    pub values: [Option<f64>; N],
 }
 
 /// The NEES of each estimate of the run in `dir` (`estimate.txt`,
 /// `groundtruth.txt`, `covariance.txt`, as `agent run` and `sim-fleet run`
-/// write them). Estimates without ground truth or covariance are skipped.
+/// write them, and `imu_state.txt` when there is one). Estimates without
+/// ground truth or covariance are skipped.
 pub fn run_nees(dir: &Path) -> Result<Vec<PoseNees>, AneesError> {
     let err = |source| AneesError::Run {
         dir: dir.to_path_buf(),
@@ -82,11 +100,37 @@ pub fn run_nees(dir: &Path) -> Result<Vec<PoseNees>, AneesError> {
     let est = read_trajectory(dir.join("estimate.txt")).map_err(err)?;
     let gt = read_trajectory(dir.join("groundtruth.txt")).map_err(err)?;
     let covs = read_covariances(dir.join("covariance.txt")).map_err(err)?;
+    let imu_path = dir.join("imu_state.txt");
+    let imu = match imu_path.is_file() {
+        true => read_imu_states(&imu_path).map_err(err)?,
+        false => Vec::new(),
+    };
     let pairs = associate(&est, &gt, DEFAULT_MAX_DT_S);
     Ok(pairs
         .iter()
-        .filter_map(|(e, g)| Some(pose_nees(e, g, find_covariance(&covs, e.t)?)))
+        .filter_map(|(e, g)| {
+            let mut nees = pose_nees(e, g, find_covariance(&covs, e.t)?);
+            // Both files are in time order, one line per estimate.
+            let j = imu.partition_point(|r| r.estimate.t < e.t - COVARIANCE_MATCH_TOL_S);
+            if let Some(r) = imu
+                .get(j)
+                .filter(|r| (r.estimate.t - e.t).abs() <= COVARIANCE_MATCH_TOL_S)
+            {
+                nees.values[4..].copy_from_slice(&imu_nees(r));
+            }
+            Some(nees)
+        })
         .collect())
+}
+
+/// The NEES of the velocity and of the two biases of one IMU-state line.
+pub fn imu_nees(r: &ImuStateRecord) -> [Option<f64>; 3] {
+    let (e, t) = (&r.estimate, &r.truth);
+    [
+        nees_of(&(t.vel - e.vel), &e.cov_vel),
+        nees_of(&(t.bias_gyro - e.bias_gyro), &e.cov_bias_gyro),
+        nees_of(&(t.bias_accel - e.bias_accel), &e.cov_bias_accel),
+    ]
 }
 
 /// The NEES of estimate `e` against the truth `g` with its covariance.
@@ -110,6 +154,9 @@ pub fn pose_nees(e: &StampedPose, g: &StampedPose, cov: &StampedCovariance) -> P
             nees_of(&d_p, &cov.pos),
             tilt,
             yaw,
+            None,
+            None,
+            None,
         ],
     }
 }
@@ -129,7 +176,7 @@ pub struct Epoch {
     /// Centre of the epoch (s, on the runs' clock).
     pub t: f64,
     /// Per kind of [`KINDS`]; `None` where fewer than the minimum of runs had it.
-    pub averages: [Option<Average>; 4],
+    pub averages: [Option<Average>; N],
 }
 
 /// The two-sided 95 % band of the average of `runs` NEES values of `dof` DoF.
@@ -159,7 +206,7 @@ pub fn epochs(runs: &[Vec<PoseNees>], bin_s: f64) -> Result<Vec<Epoch>, AneesErr
         return Ok(Vec::new());
     };
     let min_runs = runs.len().div_ceil(2).max(2);
-    let mut sums: BTreeMap<i64, [(f64, usize); 4]> = BTreeMap::new();
+    let mut sums: BTreeMap<i64, [(f64, usize); N]> = BTreeMap::new();
     for run in runs {
         let mut last = None;
         for p in run {
@@ -223,6 +270,15 @@ pub struct AneesSummary {
     pub tilt: BandShare,
     /// Yaw about gravity, 1 DoF.
     pub yaw: BandShare,
+    /// Velocity, 3 DoF (runs with `imu_state.txt`).
+    #[serde(default)]
+    pub vel: BandShare,
+    /// Gyro bias, 3 DoF.
+    #[serde(default)]
+    pub bias_gyro: BandShare,
+    /// Accelerometer bias, 3 DoF.
+    #[serde(default)]
+    pub bias_accel: BandShare,
 }
 
 impl AneesSummary {
@@ -254,12 +310,23 @@ impl AneesSummary {
             pos: share(1),
             tilt: share(2),
             yaw: share(3),
+            vel: share(4),
+            bias_gyro: share(5),
+            bias_accel: share(6),
         }
     }
 
     /// The kinds in the order of [`KINDS`].
-    pub fn shares(&self) -> [&BandShare; 4] {
-        [&self.ori, &self.pos, &self.tilt, &self.yaw]
+    pub fn shares(&self) -> [&BandShare; N] {
+        [
+            &self.ori,
+            &self.pos,
+            &self.tilt,
+            &self.yaw,
+            &self.vel,
+            &self.bias_gyro,
+            &self.bias_accel,
+        ]
     }
 }
 
@@ -380,7 +447,7 @@ mod tests {
     fn pose(t: f64, v: f64) -> PoseNees {
         PoseNees {
             t,
-            values: [Some(v), Some(2.0 * v), None, Some(v)],
+            values: [Some(v), Some(2.0 * v), None, Some(v), None, None, None],
         }
     }
 
@@ -437,12 +504,7 @@ mod tests {
                     (0..500)
                         .map(|i| PoseNees {
                             t: i as f64 * 0.1,
-                            values: [
-                                Some(scale * draw(&mut rng, 3)),
-                                Some(scale * draw(&mut rng, 3)),
-                                Some(scale * draw(&mut rng, 2)),
-                                Some(scale * draw(&mut rng, 1)),
-                            ],
+                            values: KINDS.map(|(_, dof)| Some(scale * draw(&mut rng, dof))),
                         })
                         .collect()
                 })
@@ -485,12 +547,72 @@ mod tests {
             ori: Matrix3::from_diagonal(&Vector3::new(1e-6, 4e-4, 9e-6)),
             pos: Matrix3::from_diagonal(&Vector3::new(1e-4, 1e-4, 1e-4)),
         };
-        let n = pose_nees(&est, &gt, &cov).values.map(Option::unwrap);
+        let v = pose_nees(&est, &gt, &cov).values;
+        assert_eq!(v[4..], [None; 3], "no IMU state from a pose");
+        let n: Vec<f64> = v[..4].iter().map(|x| x.unwrap()).collect();
         // World yaw has the body-y variance, 4e-4: 1e-4 / 4e-4.
         assert!((n[0] - 0.25).abs() < 1e-9, "{n:?}");
         assert!((n[1] - 9.0).abs() < 1e-9, "{n:?}");
         assert!(n[2].abs() < 1e-12, "{n:?}");
         assert!((n[3] - 0.25).abs() < 1e-9, "{n:?}");
+    }
+
+    #[test]
+    fn a_run_folder_gives_the_imu_states_nees_where_it_has_the_file() {
+        use common::trajectory::{
+            write_covariances, write_imu_states, write_tum, ImuEstimate, ImuTruth,
+        };
+        use nalgebra::{Matrix3, Vector3};
+        let dir = tempfile::tempdir().unwrap();
+        let pose = |t: f64| StampedPose {
+            t,
+            rot: Matrix3::identity(),
+            pos: Vector3::new(t, 0.0, 0.0),
+        };
+        let poses: Vec<StampedPose> = (0..3).map(|k| pose(k as f64 * 0.1)).collect();
+        write_tum(dir.path().join("estimate.txt"), &poses).unwrap();
+        write_tum(dir.path().join("groundtruth.txt"), &poses).unwrap();
+        let covs: Vec<StampedCovariance> = poses
+            .iter()
+            .map(|p| StampedCovariance {
+                t: p.t,
+                ori: Matrix3::identity() * 1e-4,
+                pos: Matrix3::identity() * 1e-2,
+            })
+            .collect();
+        write_covariances(dir.path().join("covariance.txt"), &covs).unwrap();
+        let first = run_nees(dir.path()).unwrap();
+        assert_eq!(first.len(), 3);
+        assert!(first.iter().all(|p| p.values[4..] == [None; 3]));
+        // The velocity 0.2 m/s off at a 0.1 m/s sigma: NEES 4; the biases exact.
+        let states: Vec<ImuStateRecord> = poses[1..]
+            .iter()
+            .map(|p| ImuStateRecord {
+                estimate: ImuEstimate {
+                    t: p.t,
+                    vel: Vector3::new(1.0, 0.0, 0.0),
+                    cov_vel: Matrix3::identity() * 0.01,
+                    cov_bias_gyro: Matrix3::identity() * 1e-6,
+                    cov_bias_accel: Matrix3::identity() * 1e-4,
+                    ..Default::default()
+                },
+                truth: ImuTruth {
+                    vel: Vector3::new(1.0, 0.2, 0.0),
+                    ..Default::default()
+                },
+            })
+            .collect();
+        write_imu_states(dir.path().join("imu_state.txt"), &states).unwrap();
+        let n = run_nees(dir.path()).unwrap();
+        assert_eq!(
+            n[0].values[4..],
+            [None; 3],
+            "no line for the first estimate"
+        );
+        for p in &n[1..] {
+            assert!((p.values[4].unwrap() - 4.0).abs() < 1e-9, "{p:?}");
+            assert_eq!(p.values[5..], [Some(0.0), Some(0.0)]);
+        }
     }
 
     #[test]
@@ -501,10 +623,12 @@ mod tests {
         assert_eq!(
             lines.next().unwrap(),
             "t_s,ori,ori_runs,ori_low,ori_high,pos,pos_runs,pos_low,pos_high,\
-             tilt,tilt_runs,tilt_low,tilt_high,yaw,yaw_runs,yaw_low,yaw_high"
+             tilt,tilt_runs,tilt_low,tilt_high,yaw,yaw_runs,yaw_low,yaw_high,\
+             vel,vel_runs,vel_low,vel_high,bias_gyro,bias_gyro_runs,bias_gyro_low,bias_gyro_high,\
+             bias_accel,bias_accel_runs,bias_accel_low,bias_accel_high"
         );
         let row: Vec<&str> = lines.next().unwrap().split(',').collect();
-        assert_eq!(row.len(), 17);
+        assert_eq!(row.len(), 29);
         assert_eq!((row[1], row[2], row[5]), ("2", "2", "4"));
         assert_eq!(&row[9..13], &["", "", "", ""]);
     }

@@ -22,7 +22,7 @@ pub mod table;
 use agent::runner::{options_for, run_robot, Variant};
 use aggregate::{aggregate_variant, RobotOutcome, RunFailure, StudySummary, DIVERGED_ATE_POS_M};
 use common::summary::{MetricSet, RobotSummary, RunSummary, SummaryError};
-use common::trajectory::{write_covariances, write_tum, TrajectoryError};
+use common::trajectory::{write_covariances, write_imu_states, write_tum, TrajectoryError};
 use indicatif::{ProgressBar, ProgressStyle};
 use simulator::scenario::ScenarioError;
 use simulator::{Fleet, Scenario};
@@ -253,6 +253,9 @@ impl Study<'_> {
             write_tum(dir.join("estimate.txt"), &run.estimate)?;
             write_tum(dir.join("groundtruth.txt"), &run.truth)?;
             write_covariances(dir.join("covariance.txt"), &run.covariance)?;
+            if !run.imu_states.is_empty() {
+                write_imu_states(dir.join("imu_state.txt"), &run.imu_states)?;
+            }
             Ok(())
         });
         if let Err(e) = written {

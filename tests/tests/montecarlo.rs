@@ -159,7 +159,12 @@ fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_
     for variant in ["indp", "indp-slam"] {
         for seed in ["seed1", "seed2"] {
             let run = out1.join("runs").join(variant).join(seed);
-            for file in ["estimate.txt", "groundtruth.txt", "covariance.txt"] {
+            for file in [
+                "estimate.txt",
+                "groundtruth.txt",
+                "covariance.txt",
+                "imu_state.txt",
+            ] {
                 assert!(
                     run.join("robot0").join(file).is_file(),
                     "{variant}/{seed}/{file}"
@@ -177,7 +182,15 @@ fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_
     // `sim-fleet anees` on any runs.
     let band = &slam_robot["anees"];
     assert_eq!(band["runs"], 2, "{band}");
-    for kind in ["ori", "pos", "tilt", "yaw"] {
+    for kind in [
+        "ori",
+        "pos",
+        "tilt",
+        "yaw",
+        "vel",
+        "bias_gyro",
+        "bias_accel",
+    ] {
         let share = &band[kind];
         assert!(share["epochs"].as_u64().is_some_and(|n| n > 10), "{band}");
         let total: f64 = ["inside", "below", "above"]
@@ -331,10 +344,12 @@ fn cooperative_variants_run_whole_fleets_and_aggregate_per_robot() {
     assert!(published > 5, "{}", dc["mean"]);
     assert_eq!(dc["mean"]["peer_windows_whole"].as_u64(), Some(published));
     let table = std::fs::read_to_string(dir.path().join("one/table.md")).unwrap();
+    // The traffic section's rows: up to the blank line that ends them.
     let traffic: Vec<&str> = table
         .lines()
         .skip_while(|l| !l.starts_with("Traffic"))
-        .filter(|l| l.starts_with("| "))
+        .skip(2)
+        .take_while(|l| l.starts_with("| "))
         .collect();
     assert_eq!(traffic.len(), 3, "{table}");
     assert!(traffic[2].starts_with("| dc-full-history |"), "{table}");

@@ -75,6 +75,7 @@ pub fn run_central(fleet: &Fleet, variant: Variant) -> Result<Vec<RobotRun>, Run
                 }
             }
             SimEvent::Camera(c) => {
+                runs[r].note_true_biases(c.truth.t, c.truth.biases);
                 if !initialized[r] {
                     if c.truth.t >= starts[r] {
                         est.initialize(r, &initial_state(fleet, r, &c.truth));

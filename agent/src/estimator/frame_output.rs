@@ -5,7 +5,7 @@ use super::cooperative::CoopFrameStats;
 use super::state::{ImuState, Means};
 use super::{updater_msckf, updater_slam};
 use common::so3::skew;
-use common::trajectory::{StampedCovariance, StampedPose};
+use common::trajectory::{ImuEstimate, StampedCovariance, StampedPose};
 use nalgebra::{Matrix3, Matrix6, SMatrix, Vector3};
 
 /// The covariance of the IMU state's 15 error coordinates: orientation (local,
@@ -146,6 +146,9 @@ pub struct FrameOutput {
     pub cov_ori: Matrix3<f64>,
     /// Position covariance (m²).
     pub cov_pos: Matrix3<f64>,
+    /// The velocity and the biases with their covariances, for consistency
+    /// studies against a simulator's truth.
+    pub imu: ImuEstimate,
     /// Velocity and angular rate in the body (IMU) frame, with their covariance.
     pub twist: BodyTwist,
     /// Its time, what the updates did and what the frame cost.
@@ -173,6 +176,15 @@ impl FrameOutput {
             vel: means.imu.vel,
             cov_ori: cov_imu.fixed_view::<3, 3>(0, 0).into_owned(),
             cov_pos: cov_imu.fixed_view::<3, 3>(3, 3).into_owned(),
+            imu: ImuEstimate {
+                t: means.t,
+                vel: means.imu.vel,
+                bias_gyro: means.imu.bias_gyro,
+                bias_accel: means.imu.bias_accel,
+                cov_vel: cov_imu.fixed_view::<3, 3>(6, 6).into_owned(),
+                cov_bias_gyro: cov_imu.fixed_view::<3, 3>(9, 9).into_owned(),
+                cov_bias_accel: cov_imu.fixed_view::<3, 3>(12, 12).into_owned(),
+            },
             twist: body_twist(&means.imu, cov_imu, gyro),
             record: FrameRecord {
                 t: means.t,

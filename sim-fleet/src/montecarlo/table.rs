@@ -73,19 +73,17 @@ fn anees_table(out: &mut String, study: &StudySummary) {
     out.push_str(
         "\nNEES averaged over the runs at each camera frame: its mean, then the share of frames inside / below / above the two-sided 95 % band of a consistent filter, % (tilt: roll and pitch in the world frame, yaw: about gravity; from a start at the truth the unobservable yaw and position sit below it):\n\n",
     );
-    out.push_str("| variant | robot | runs | orientation | position | tilt | yaw |\n");
-    out.push_str("| --- | --- | ---: | --- | --- | --- | --- |\n");
+    out.push_str("| variant | robot | runs | orientation | position | tilt | yaw | velocity | gyro bias | accel bias |\n");
+    out.push_str("| --- | --- | ---: | --- | --- | --- | --- | --- | --- | --- |\n");
     for (name, r, a) in rows {
+        let cells: Vec<String> = a.shares().into_iter().map(crate::anees::cell).collect();
         let _ = writeln!(
             out,
-            "| {name} | {} {} | {} | {} | {} | {} | {} |",
+            "| {name} | {} {} | {} | {} |",
             r.id,
             r.trajectory,
             a.runs,
-            crate::anees::cell(&a.ori),
-            crate::anees::cell(&a.pos),
-            crate::anees::cell(&a.tilt),
-            crate::anees::cell(&a.yaw),
+            cells.join(" | ")
         );
     }
 }
@@ -384,7 +382,7 @@ mod tests {
             ori: share(2.5, 0.9, 0.1, 0.0),
             pos: share(0.3, 0.0, 1.0, 0.0),
             tilt: share(1.9, 0.95, 0.0, 0.05),
-            yaw: BandShare::default(),
+            ..Default::default()
         });
         let table = render_table(&study_of(vec![("indp".into(), v)]));
         let rows: Vec<&str> = table
@@ -396,7 +394,7 @@ mod tests {
         assert_eq!(rows.len(), 3, "{table}");
         assert_eq!(
             rows[2],
-            "| indp | 1 b | 2 | 2.50: 90 / 10 / 0 | 0.30: 0 / 100 / 0 | 1.90: 95 / 0 / 5 | - |",
+            "| indp | 1 b | 2 | 2.50: 90 / 10 / 0 | 0.30: 0 / 100 / 0 | 1.90: 95 / 0 / 5 | - | - | - | - |",
             "{table}"
         );
         let mut none = aggregate_variant(&robots, &[vec![outcome(0.1), outcome(0.2)]]);
