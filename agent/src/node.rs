@@ -1325,6 +1325,9 @@ pub fn run_node(
                     }
                     let index = frames_seen;
                     frames_seen += 1;
+                    if c.truth.t.is_finite() {
+                        node.report.run.note_true_biases(c.truth.t, c.truth.biases);
+                    }
                     if !initialized {
                         if c.truth.t.is_finite() && c.truth.t >= start_t {
                             est.initialize(&initial_state(fleet, robot, &c.truth));
@@ -1531,6 +1534,9 @@ impl Node {
             match f.finish(&self.report.run) {
                 Ok(()) => self.report.run_files_in = Some(cfg.output_dir.clone()),
                 Err(e) => tracing::warn!("{}: {e}", cfg.output_dir.display()),
+            }
+            if let Err(e) = crate::runner::write_imu_states(&self.report.run, &cfg.output_dir) {
+                tracing::warn!("{}: {e}", cfg.output_dir.display());
             }
         }
         self.report.wall_s = self.wall_s();

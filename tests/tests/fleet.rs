@@ -146,16 +146,19 @@ fn lockstep_runs_are_identical_across_runs_and_transports() {
     assert_same_estimates(&dir.path().join("a"), &dir.path().join("c"), 3);
 }
 
-/// The robots' estimates of two runs, bit for bit.
+/// The robots' estimates of two runs, bit for bit: poses, and velocities and
+/// biases with their truth.
 fn assert_same_estimates(a: &Path, b: &Path, robots: usize) {
     for i in 0..robots {
-        let est = |run: &Path| std::fs::read(run.join(format!("robot{i}/estimate.txt"))).unwrap();
-        assert!(
-            est(a) == est(b),
-            "robot {i}: {} and {} differ",
-            a.display(),
-            b.display()
-        );
+        for file in ["estimate.txt", "imu_state.txt"] {
+            let est = |run: &Path| std::fs::read(run.join(format!("robot{i}/{file}"))).unwrap();
+            assert!(
+                est(a) == est(b),
+                "robot {i}: {file} of {} and {} differ",
+                a.display(),
+                b.display()
+            );
+        }
     }
 }
 
