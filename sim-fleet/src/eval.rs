@@ -12,7 +12,9 @@ use common::metrics::{
 };
 use common::so3::xyzw_from_rot;
 use common::summary::MetricSet;
-use common::trajectory::{read_covariances, read_trajectory, StampedCovariance, StampedPose};
+use common::trajectory::{
+    read_covariances, read_imu_states, read_trajectory, StampedCovariance, StampedPose,
+};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
@@ -54,6 +56,11 @@ pub struct EvalArgs {
     /// bins (CPU ms mean, p95 and largest; matching and evidence ms).
     #[arg(long, requires = "bins_s")]
     pub timing: Option<PathBuf>,
+    /// The run's `imu_state.txt` (simulated runs): the velocity and both
+    /// biases against the truth, RMS error and mean NEES, with plots of their
+    /// errors and ±3σ.
+    #[arg(long)]
+    pub imu_state: Option<PathBuf>,
 }
 
 /// Errors of one associated pose, for plots (see [`EvalReport::per_pose`]).
@@ -312,10 +319,26 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
         }
         None => None,
     };
+    let imu = match &args.imu_state {
+        Some(path) => Some(read_imu_states(path).context("reading the IMU states")?),
+        None => None,
+    };
+    let imu_report = imu.as_deref().map(imu_state::evaluate);
     if args.json {
-        println!("{}", report.to_json_with(bins.as_deref())?);
+        let text = report.to_json_with(bins.as_deref())?;
+        match &imu_report {
+            Some(r) => {
+                let mut value: serde_json::Value = serde_json::from_str(&text)?;
+                value["imu_state"] = serde_json::to_value(r)?;
+                println!("{value}");
+            }
+            None => println!("{text}"),
+        }
     } else {
         print!("{}", report.table());
+        if let Some(r) = &imu_report {
+            print!("{}", r.table());
+        }
         if let Some(b) = &bins {
             print!("{}", bins::table(b));
         }
@@ -325,7 +348,10 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
             .plots_dir
             .clone()
             .unwrap_or_else(|| default_plots_dir(&args.est));
-        let files = crate::plots::write_plots(&report, &dir)?;
+        let mut files = crate::plots::write_plots(&report, &dir)?;
+        if let Some(records) = &imu {
+            files.extend(crate::plots::write_imu_plots(records, &dir)?);
+        }
         tracing::info!("wrote {} plots into {}", files.len(), dir.display());
     }
     Ok(())
@@ -350,6 +376,7 @@ fn span(traj: &[StampedPose]) -> String {
 }
 
 pub mod bins;
+pub mod imu_state;
 
 #[cfg(test)]
 mod tests;

@@ -10,6 +10,8 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 
 use crate::eval::{EvalReport, PoseError};
+use common::trajectory::ImuStateRecord;
+use nalgebra::Matrix3;
 
 /// Why a plot could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -58,31 +60,20 @@ pub fn write_plots(report: &EvalReport, dir: &Path) -> Result<Vec<PathBuf>, Plot
     let t0 = poses.first().map_or(0.0, |p| p.t);
     let mut written = Vec::new();
     let mut draw = |name: &str, size: (u32, u32), f: &dyn Fn(&Area) -> DrawResult| {
-        let path = dir.join(name);
-        let result = {
-            let root = SVGBackend::new(&path, size).into_drawing_area();
-            root.fill(&WHITE)
-                .map_err(Into::into)
-                .and_then(|()| f(&root))
-                .and_then(|()| root.present().map_err(Into::into))
-        };
-        result.map_err(|source| PlotError::Draw {
-            path: path.clone(),
-            source,
-        })?;
-        written.push(path);
+        written.push(draw_svg(&dir.join(name), size, f)?);
         Ok::<(), PlotError>(())
     };
     draw("trajectory_xy.svg", (900, 900), &|root| {
         trajectory_xy(root, report)
     })?;
+    let at = |p: &PoseError| p.t - t0;
     draw("error_pos.svg", SIZE, &|root| {
-        errors(root, poses, t0, "position error", "m", |p| {
+        errors(root, poses, at, "position error", "m", |p| {
             (p.pos_err, p.pos_sigma)
         })
     })?;
     draw("error_ori.svg", SIZE, &|root| {
-        errors(root, poses, t0, "orientation error", "deg", |p| {
+        errors(root, poses, at, "orientation error", "deg", |p| {
             (p.ori_err_deg, p.ori_sigma_deg)
         })
     })?;
@@ -94,6 +85,72 @@ pub fn write_plots(report: &EvalReport, dir: &Path) -> Result<Vec<PathBuf>, Plot
     }
     Ok(written)
 }
+
+/// Draws one SVG file with `f`; returns its path.
+fn draw_svg(
+    path: &Path,
+    size: (u32, u32),
+    f: &dyn Fn(&Area) -> DrawResult,
+) -> Result<PathBuf, PlotError> {
+    let result = {
+        let root = SVGBackend::new(path, size).into_drawing_area();
+        root.fill(&WHITE)
+            .map_err(Into::into)
+            .and_then(|()| f(&root))
+            .and_then(|()| root.present().map_err(Into::into))
+    };
+    result.map_err(|source| PlotError::Draw {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    Ok(path.to_path_buf())
+}
+
+/// Writes `error_vel.svg`, `error_bias_gyro.svg` and `error_bias_accel.svg`
+/// (each axis's error with ±3σ, from `imu_state.txt`) into `dir`, creating it;
+/// returns the files.
+pub fn write_imu_plots(records: &[ImuStateRecord], dir: &Path) -> Result<Vec<PathBuf>, PlotError> {
+    std::fs::create_dir_all(dir).map_err(|source| PlotError::Folder {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let t0 = records.first().map_or(0.0, |r| r.estimate.t);
+    let at = |r: &ImuStateRecord| r.estimate.t - t0;
+    let sigma = |m: &Matrix3<f64>| Some([0, 1, 2].map(|k| m[(k, k)].max(0.0).sqrt()));
+    let panels: [(&str, &str, &str, ErrorOf<ImuStateRecord>); 3] = [
+        ("error_vel.svg", "velocity error", "m/s", |r| {
+            let e = r.truth.vel - r.estimate.vel;
+            ([e.x, e.y, e.z], r.estimate.cov_vel)
+        }),
+        ("error_bias_gyro.svg", "gyro bias error", "rad/s", |r| {
+            let e = r.truth.bias_gyro - r.estimate.bias_gyro;
+            ([e.x, e.y, e.z], r.estimate.cov_bias_gyro)
+        }),
+        (
+            "error_bias_accel.svg",
+            "accelerometer bias error",
+            "m/s²",
+            |r| {
+                let e = r.truth.bias_accel - r.estimate.bias_accel;
+                ([e.x, e.y, e.z], r.estimate.cov_bias_accel)
+            },
+        ),
+    ];
+    panels
+        .into_iter()
+        .map(|(name, what, unit, get)| {
+            draw_svg(&dir.join(name), SIZE, &|root| {
+                errors(root, records, at, what, unit, |r| {
+                    let (e, cov) = get(r);
+                    (e, sigma(&cov))
+                })
+            })
+        })
+        .collect()
+}
+
+/// An item's error per axis and its covariance.
+type ErrorOf<T> = fn(&T) -> ([f64; 3], Matrix3<f64>);
 
 /// Top-down view of the aligned estimate and the ground truth, equal axes.
 fn trajectory_xy(root: &Area, report: &EvalReport) -> DrawResult {
@@ -153,22 +210,23 @@ pub(crate) fn draw_xy(
     Ok(())
 }
 
-/// One panel per axis: the error and, where known, ±3σ.
-fn errors(
+/// One panel per axis: the error of each item at its time `at` and, where
+/// known, ±3σ.
+fn errors<T>(
     root: &Area,
-    poses: &[PoseError],
-    t0: f64,
+    items: &[T],
+    at: impl Fn(&T) -> f64,
     what: &str,
     unit: &str,
-    get: impl Fn(&PoseError) -> ([f64; 3], Option<[f64; 3]>),
+    get: impl Fn(&T) -> ([f64; 3], Option<[f64; 3]>),
 ) -> DrawResult {
     let panels = root.split_evenly((3, 1));
-    let t_range = range(poses.iter().map(|p| p.t - t0));
+    let t_range = range(items.iter().map(&at));
     for (k, panel) in panels.iter().enumerate() {
-        let err: Vec<(f64, f64)> = poses.iter().map(|p| (p.t - t0, get(p).0[k])).collect();
-        let bound: Vec<(f64, f64)> = poses
+        let err: Vec<(f64, f64)> = items.iter().map(|p| (at(p), get(p).0[k])).collect();
+        let bound: Vec<(f64, f64)> = items
             .iter()
-            .filter_map(|p| get(p).1.map(|s| (p.t - t0, 3.0 * s[k])))
+            .filter_map(|p| get(p).1.map(|s| (at(p), 3.0 * s[k])))
             .collect();
         let y = range(
             err.iter()

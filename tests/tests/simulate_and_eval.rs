@@ -87,6 +87,61 @@ fn simulate_writes_measurements_ground_truth_and_a_summary_with_null_unknowns() 
 }
 
 #[test]
+fn eval_scores_a_runs_velocity_and_biases_and_plots_their_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    write_loop_trajectory(&dir.path().join("loop.txt"), 20.0).unwrap();
+    let scenario = dir.path().join("loop.yaml");
+    std::fs::write(&scenario, "name: loop\nrobots:\n  - trajectory: loop.txt\n").unwrap();
+    let out = dir.path().join("run");
+    let status = Command::new(bin("agent"))
+        .arg("run")
+        .arg("--scenario")
+        .arg(&scenario)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(status.status.success(), "{status:?}");
+    let plots = dir.path().join("plots");
+    let output = Command::new(bin("sim-fleet"))
+        .arg("eval")
+        .arg("--gt")
+        .arg(out.join("groundtruth.txt"))
+        .arg("--est")
+        .arg(out.join("estimate.txt"))
+        .arg("--cov")
+        .arg(out.join("covariance.txt"))
+        .arg("--imu-state")
+        .arg(out.join("imu_state.txt"))
+        .arg("--plots-dir")
+        .arg(&plots)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let imu = &report["imu_state"];
+    assert!(imu["records"].as_u64().unwrap_or(0) > 100, "{imu}");
+    let vel = imu["vel_rmse_mps"].as_f64().unwrap();
+    assert!(vel > 0.0 && vel < 0.1, "{imu}");
+    for key in ["nees_vel", "nees_bias_gyro", "nees_bias_accel"] {
+        let nees = imu[key].as_f64().unwrap();
+        assert!(nees > 0.1 && nees < 20.0, "{key}: {imu}");
+    }
+    for file in [
+        "error_vel.svg",
+        "error_bias_gyro.svg",
+        "error_bias_accel.svg",
+    ] {
+        assert!(plots.join(file).is_file(), "{file}");
+    }
+}
+
+#[test]
 fn a_scenario_with_an_unknown_key_fails_with_a_message_naming_it() {
     let dir = tempfile::tempdir().unwrap();
     write_loop_trajectory(&dir.path().join("loop.txt"), 10.0).unwrap();
