@@ -354,27 +354,29 @@ pub fn epochs_csv(epochs: &[Epoch]) -> String {
     out
 }
 
-/// Reads the runs in `dirs`, writes their epochs to `csv` (if given) and
-/// returns the summary.
-pub fn study(dirs: &[PathBuf], bin_s: f64, csv: Option<&Path>) -> Result<AneesSummary, AneesError> {
+/// Reads the runs in `dirs` and cuts them into epochs of `bin_s` seconds;
+/// returns the summary and the epochs.
+pub fn study(dirs: &[PathBuf], bin_s: f64) -> Result<(AneesSummary, Vec<Epoch>), AneesError> {
     let runs = dirs
         .iter()
         .map(|d| run_nees(d))
         .collect::<Result<Vec<_>, _>>()?;
     let epochs = epochs(&runs, bin_s)?;
-    if let Some(path) = csv {
-        let write = |path: &Path| -> std::io::Result<()> {
-            if let Some(parent) = path.parent() {
-                std::fs::create_dir_all(parent)?;
-            }
-            std::fs::write(path, epochs_csv(&epochs))
-        };
-        write(path).map_err(|source| AneesError::Write {
-            path: path.to_path_buf(),
-            source,
-        })?;
-    }
-    Ok(AneesSummary::of(&epochs, runs.len(), bin_s))
+    Ok((AneesSummary::of(&epochs, runs.len(), bin_s), epochs))
+}
+
+/// Writes the epochs as CSV ([`epochs_csv`]) to `path`, creating its folder.
+pub fn write_csv(path: &Path, epochs: &[Epoch]) -> Result<(), AneesError> {
+    let write = || -> std::io::Result<()> {
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent)?;
+        }
+        std::fs::write(path, epochs_csv(epochs))
+    };
+    write().map_err(|source| AneesError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 /// One cell of a table: `mean: inside / below / above %`.
@@ -403,6 +405,9 @@ pub struct AneesArgs {
     /// Write the epochs to this CSV file.
     #[arg(long)]
     pub csv: Option<PathBuf>,
+    /// Draw the averages and their bands over time into this SVG file.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
@@ -410,7 +415,13 @@ pub struct AneesArgs {
 
 /// Runs `sim-fleet anees`.
 pub fn run_anees(args: &AneesArgs) -> anyhow::Result<()> {
-    let summary = study(&args.runs, args.bin_s, args.csv.as_deref())?;
+    let (summary, epochs) = study(&args.runs, args.bin_s)?;
+    if let Some(path) = &args.csv {
+        write_csv(path, &epochs)?;
+    }
+    if let Some(path) = &args.plot {
+        crate::plots::write_anees_plot(path, &epochs, summary.runs)?;
+    }
     if args.json {
         println!("{}", serde_json::to_string_pretty(&summary)?);
         return Ok(());

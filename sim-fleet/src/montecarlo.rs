@@ -293,7 +293,7 @@ impl Study<'_> {
 }
 
 /// The band test of robot `id` over the runs of `variant` that wrote their
-/// outputs (`DIR/anees/<variant>/robot<id>.csv`), one epoch per camera frame
+/// outputs (`DIR/anees/<variant>/robot<id>.csv` and `.svg`), one epoch per camera frame
 /// (`frame_s`);
 /// `None` when no run did, or (with a warning: the study's other results
 /// stand) when their files cannot be read back.
@@ -312,19 +312,25 @@ fn anees_of(
     if dirs.is_empty() {
         return None;
     }
-    let csv = out
+    let warn = |e: &dyn std::fmt::Display| {
+        tracing::warn!(variant = variant.name(), robot = id, "NEES band test: {e}");
+    };
+    let (summary, epochs) = crate::anees::study(&dirs, frame_s)
+        .map_err(|e| warn(&e))
+        .ok()?;
+    let file = out
         .join("anees")
         .join(variant.name())
-        .join(format!("robot{id}.csv"));
-    crate::anees::study(&dirs, frame_s, Some(&csv))
-        .map_err(|e| {
-            tracing::warn!(
-                variant = variant.name(),
-                robot = id,
-                "no NEES band test: {e}"
-            );
-        })
-        .ok()
+        .join(format!("robot{id}"));
+    if let Err(e) = crate::anees::write_csv(&file.with_extension("csv"), &epochs) {
+        warn(&e);
+    }
+    if let Err(e) =
+        crate::plots::write_anees_plot(&file.with_extension("svg"), &epochs, summary.runs)
+    {
+        warn(&e);
+    }
+    Some(summary)
 }
 
 /// `DIR/runs/<variant>/seed<k>`.

@@ -9,6 +9,7 @@ use common::metrics::{percentile, CHI2_3DOF_95_HIGH, CHI2_3DOF_95_LOW};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
+use crate::anees::{band, Epoch, KINDS};
 use crate::eval::{EvalReport, PoseError};
 use common::trajectory::ImuStateRecord;
 use nalgebra::Matrix3;
@@ -147,6 +148,81 @@ pub fn write_imu_plots(records: &[ImuStateRecord], dir: &Path) -> Result<Vec<Pat
             })
         })
         .collect()
+}
+
+/// Draws the NEES averaged over `runs` runs at each epoch with its two-sided
+/// 95 % band ([`crate::anees`]) into the SVG file `path`: one panel per kind
+/// that has values.
+pub fn write_anees_plot(path: &Path, epochs: &[Epoch], runs: usize) -> Result<PathBuf, PlotError> {
+    if let Some(parent) = path.parent() {
+        std::fs::create_dir_all(parent).map_err(|source| PlotError::Folder {
+            path: parent.to_path_buf(),
+            source,
+        })?;
+    }
+    let kinds: Vec<usize> = (0..KINDS.len())
+        .filter(|&k| epochs.iter().any(|e| e.averages[k].is_some()))
+        .collect();
+    let t0 = epochs.first().map_or(0.0, |e| e.t);
+    let height = 60 + 220 * kinds.len().max(1) as u32;
+    draw_svg(path, (1000, height), &|root| {
+        let panels = root.split_evenly((kinds.len().max(1), 1));
+        let t_range = range(epochs.iter().map(|e| e.t - t0));
+        for (panel, &k) in panels.iter().zip(&kinds) {
+            let (name, dof) = KINDS[k];
+            let points: Vec<(f64, f64, f64, f64)> = epochs
+                .iter()
+                .filter_map(|e| {
+                    let a = e.averages[k]?;
+                    let (lo, hi) = band(dof, a.runs);
+                    Some((e.t - t0, a.value, lo, hi))
+                })
+                .collect();
+            let high = points.iter().map(|p| p.3).fold(0.0, f64::max);
+            // Clip rare huge values so the band stays readable.
+            let top =
+                (1.1 * percentile(points.iter().map(|p| p.1), 0.99).unwrap_or(0.0)).max(1.3 * high);
+            let mut chart = ChartBuilder::on(panel)
+                .caption(
+                    format!("{name}: NEES averaged over {runs} runs ({dof} DoF) and its 95 % band"),
+                    ("sans-serif", 18),
+                )
+                .margin(8)
+                .x_label_area_size(35)
+                .y_label_area_size(60)
+                .build_cartesian_2d(t_range.clone(), 0.0..top)?;
+            chart
+                .configure_mesh()
+                .label_style(("sans-serif", 15))
+                .x_desc("time [s]")
+                .y_desc("NEES")
+                .draw()?;
+            chart
+                .draw_series(LineSeries::new(
+                    points.iter().map(|p| (p.0, p.1.min(top))),
+                    COLORS[2].stroke_width(2),
+                ))?
+                .label("average")
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], COLORS[2]));
+            chart
+                .draw_series(LineSeries::new(
+                    points.iter().map(|p| (p.0, p.2)),
+                    COLORS[0],
+                ))?
+                .label("95 % band")
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], COLORS[0]));
+            chart.draw_series(LineSeries::new(
+                points.iter().map(|p| (p.0, p.3)),
+                COLORS[0],
+            ))?;
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .draw()?;
+        }
+        Ok(())
+    })
 }
 
 /// An item's error per axis and its covariance.
@@ -349,6 +425,42 @@ pub(crate) fn range(values: impl Iterator<Item = f64>) -> Range<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_band_plot_has_a_panel_per_kind_with_values() {
+        use crate::anees::Average;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sub/robot0.svg");
+        let epochs: Vec<Epoch> = (0..50)
+            .map(|i| {
+                let mut averages = [None; KINDS.len()];
+                averages[0] = Some(Average {
+                    value: 3.0 + (i as f64 * 0.3).sin(),
+                    runs: 20,
+                });
+                averages[3] = Some(Average {
+                    value: 0.1,
+                    runs: 19,
+                });
+                Epoch {
+                    t: 5.0 + 0.1 * i as f64,
+                    averages,
+                }
+            })
+            .collect();
+        write_anees_plot(&path, &epochs, 20).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(
+            svg.contains("ori: NEES averaged over 20 runs (3 DoF)"),
+            "ori panel"
+        );
+        assert!(
+            svg.contains("yaw: NEES averaged over 20 runs (1 DoF)"),
+            "yaw panel"
+        );
+        assert!(!svg.contains("pos: NEES"), "no panel without values");
+        write_anees_plot(&dir.path().join("empty.svg"), &[], 0).unwrap();
+    }
 
     #[test]
     fn ranges_pad_the_data_and_survive_empty_or_constant_input() {

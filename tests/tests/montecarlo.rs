@@ -199,21 +199,26 @@ fn montecarlo_writes_every_run_an_aggregated_summary_and_a_table_independent_of_
             .sum();
         assert!((total - 1.0).abs() < 1e-9, "{kind}: {share}");
     }
+    assert!(out1.join("anees/indp-slam/robot0.svg").is_file());
     let csv = std::fs::read_to_string(out1.join("anees/indp-slam/robot0.csv")).unwrap();
     assert!(
         csv.starts_with("t_s,ori,ori_runs,ori_low,ori_high,"),
         "{csv}"
     );
     let runs = out1.join("runs/indp-slam");
+    let plot = dir.path().join("anees.svg");
     let output = Command::new(bin("sim-fleet"))
         .arg("anees")
         .args([runs.join("seed1/robot0"), runs.join("seed2/robot0")])
+        .arg("--plot")
+        .arg(&plot)
         .arg("--json")
         .output()
         .unwrap();
     assert!(output.status.success(), "anees failed: {output:?}");
     let again: Value = serde_json::from_slice(&output.stdout).unwrap();
     assert_eq!(&again, band, "the subcommand and the study agree");
+    assert!(plot.is_file());
     let output = Command::new(bin("sim-fleet"))
         .args(["anees", &out1.join("no-such-run").display().to_string()])
         .output()
