@@ -6,6 +6,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use common::metrics::{percentile, CHI2_3DOF_95_HIGH, CHI2_3DOF_95_LOW};
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
@@ -182,21 +183,12 @@ pub fn write_anees_plot(path: &Path, epochs: &[Epoch], runs: usize) -> Result<Pa
             // Clip rare huge values so the band stays readable.
             let top =
                 (1.1 * percentile(points.iter().map(|p| p.1), 0.99).unwrap_or(0.0)).max(1.3 * high);
-            let mut chart = ChartBuilder::on(panel)
-                .caption(
-                    format!("{name}: NEES averaged over {runs} runs ({dof} DoF) and its 95 % band"),
-                    ("sans-serif", 18),
-                )
-                .margin(8)
-                .x_label_area_size(35)
-                .y_label_area_size(60)
-                .build_cartesian_2d(t_range.clone(), 0.0..top)?;
-            chart
-                .configure_mesh()
-                .label_style(("sans-serif", 15))
-                .x_desc("time [s]")
-                .y_desc("NEES")
-                .draw()?;
+            let mut chart = nees_chart(
+                panel,
+                &format!("{name}: NEES averaged over {runs} runs ({dof} DoF) and its 95 % band"),
+                t_range.clone(),
+                top,
+            )?;
             chart
                 .draw_series(LineSeries::new(
                     points.iter().map(|p| (p.0, p.1.min(top))),
@@ -224,6 +216,32 @@ pub fn write_anees_plot(path: &Path, epochs: &[Epoch], runs: usize) -> Result<Pa
         Ok(())
     })
 }
+
+/// A NEES-over-time chart on `panel`: time on x, NEES from 0 to `top` on y.
+fn nees_chart<'a, 'b>(
+    panel: &'a Area<'b>,
+    caption: &str,
+    t_range: Range<f64>,
+    top: f64,
+) -> Result<NeesChart<'a, 'b>, Box<dyn std::error::Error + Send + Sync>> {
+    let mut chart = ChartBuilder::on(panel)
+        .caption(caption, ("sans-serif", 18))
+        .margin(8)
+        .x_label_area_size(35)
+        .y_label_area_size(60)
+        .build_cartesian_2d(t_range, 0.0..top)?;
+    chart
+        .configure_mesh()
+        .label_style(("sans-serif", 15))
+        .x_desc("time [s]")
+        .y_desc("NEES")
+        .draw()?;
+    Ok(chart)
+}
+
+/// The chart [`nees_chart`] makes.
+type NeesChart<'a, 'b> =
+    ChartContext<'a, SVGBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
 
 /// An item's error per axis and its covariance.
 type ErrorOf<T> = fn(&T) -> ([f64; 3], Matrix3<f64>);
@@ -361,21 +379,12 @@ fn nees(root: &Area, report: &EvalReport, t0: f64) -> DrawResult {
             .max(1.2 * CHI2_3DOF_95_HIGH);
         let values: Vec<(f64, f64)> = values.into_iter().map(|(t, v)| (t, v.min(top))).collect();
         let mean_text = mean.map_or_else(|| "-".to_string(), |m| format!("{m:.3}"));
-        let mut chart = ChartBuilder::on(panel)
-            .caption(
-                format!("{name} NEES (mean {mean_text}, 3 DoF)"),
-                ("sans-serif", 18),
-            )
-            .margin(8)
-            .x_label_area_size(35)
-            .y_label_area_size(60)
-            .build_cartesian_2d(t_range.clone(), 0.0..top)?;
-        chart
-            .configure_mesh()
-            .label_style(("sans-serif", 15))
-            .x_desc("time [s]")
-            .y_desc("NEES")
-            .draw()?;
+        let mut chart = nees_chart(
+            panel,
+            &format!("{name} NEES (mean {mean_text}, 3 DoF)"),
+            t_range.clone(),
+            top,
+        )?;
         chart
             .draw_series(LineSeries::new(values, COLORS[2].stroke_width(2)))?
             .label("NEES")

@@ -2,10 +2,8 @@
 
 use std::path::Path;
 
-use nalgebra::Matrix3;
-
-use super::parse::{need, number, parse_file, write_lines};
-use super::{LineError, StampedCovariance, TrajectoryError};
+use super::parse::{need, number, parse_file, symmetric, write_lines, UPPER};
+use super::{StampedCovariance, TrajectoryError};
 
 /// Header and format of the covariance file: one line per pose with the time
 /// (s) and the upper triangles, row by row, of the 3x3 orientation block
@@ -14,9 +12,6 @@ use super::{LineError, StampedCovariance, TrajectoryError};
 /// are handled as in the trajectory files; timestamps must increase.
 pub const COVARIANCE_HEADER: &str =
     "# timestamp ori_xx ori_xy ori_xz ori_yy ori_yz ori_zz pos_xx pos_xy pos_xz pos_yy pos_yz pos_zz";
-
-/// Row/column of the upper-triangle entries, in file order.
-const UPPER: [(usize, usize); 6] = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
 
 /// Reads a covariance file (format: [`COVARIANCE_HEADER`]); the blocks are
 /// filled symmetrically from their upper triangles.
@@ -58,15 +53,4 @@ pub fn covariance_row(c: &StampedCovariance) -> String {
         }
     }
     row
-}
-
-/// The symmetric matrix of the six upper-triangle values starting at `first`.
-fn symmetric(fields: &[&str], first: usize) -> Result<Matrix3<f64>, LineError> {
-    let mut m = Matrix3::zeros();
-    for (i, (r, k)) in UPPER.into_iter().enumerate() {
-        let v = number(fields, first + i)?;
-        m[(r, k)] = v;
-        m[(k, r)] = v;
-    }
-    Ok(m)
 }

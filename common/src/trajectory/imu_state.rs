@@ -7,7 +7,7 @@ use std::path::Path;
 
 use nalgebra::{Matrix3, Vector3};
 
-use super::parse::{need, number, parse_file, write_lines};
+use super::parse::{need, number, parse_file, symmetric, write_lines, UPPER};
 use super::{LineError, TrajectoryError};
 
 /// Header and format of the IMU-state file: the time (s), the estimated
@@ -24,9 +24,6 @@ true_vx true_vy true_vz true_bgx true_bgy true_bgz true_bax true_bay true_baz";
 
 /// Values on one line of the file.
 const COLUMNS: usize = 37;
-
-/// Row/column of the upper-triangle entries, in file order.
-const UPPER: [(usize, usize); 6] = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
 
 /// The velocity and biases an estimator holds at one time, with their
 /// covariance blocks.
@@ -131,17 +128,6 @@ fn vector(fields: &[&str], first: usize) -> Result<Vector3<f64>, LineError> {
         number(fields, first + 1)?,
         number(fields, first + 2)?,
     ))
-}
-
-/// The symmetric matrix of the six upper-triangle values starting at `first`.
-fn symmetric(fields: &[&str], first: usize) -> Result<Matrix3<f64>, LineError> {
-    let mut m = Matrix3::zeros();
-    for (i, (r, k)) in UPPER.into_iter().enumerate() {
-        let v = number(fields, first + i)?;
-        m[(r, k)] = v;
-        m[(k, r)] = v;
-    }
-    Ok(m)
 }
 
 #[cfg(test)]

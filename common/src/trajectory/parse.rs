@@ -96,6 +96,20 @@ pub(super) fn number(fields: &[&str], index: usize) -> Result<f64, LineError> {
 }
 
 /// The rotation of a (not necessarily unit) quaternion, rejecting tiny norms.
+/// Row/column of the upper-triangle entries of a 3x3 block, in file order.
+pub(super) const UPPER: [(usize, usize); 6] = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
+
+/// The symmetric matrix of the six upper-triangle values starting at `first`.
+pub(super) fn symmetric(fields: &[&str], first: usize) -> Result<Matrix3<f64>, LineError> {
+    let mut m = Matrix3::zeros();
+    for (i, (r, k)) in UPPER.into_iter().enumerate() {
+        let v = number(fields, first + i)?;
+        m[(r, k)] = v;
+        m[(k, r)] = v;
+    }
+    Ok(m)
+}
+
 pub(super) fn rotation(qx: f64, qy: f64, qz: f64, qw: f64) -> Result<Matrix3<f64>, LineError> {
     let norm = (qx * qx + qy * qy + qz * qz + qw * qw).sqrt();
     if !norm.is_finite() || norm < MIN_QUATERNION_NORM {
