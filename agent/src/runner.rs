@@ -576,6 +576,31 @@ mod tests {
     use super::*;
     use nalgebra::{Rotation3, Vector3};
 
+    /// Each estimate takes the true biases noted at the camera time nearest
+    /// to it, within 20 ms; older notes go, and a frame with none is skipped.
+    #[test]
+    fn an_estimate_is_scored_against_the_biases_of_its_nearest_camera_time() {
+        let biases = |x: f64| simulator::imu::Biases {
+            gyro: Vector3::new(x, 0.0, 0.0),
+            accel: Vector3::zeros(),
+        };
+        let mut run = RobotRun::default();
+        for k in 0..4 {
+            run.note_true_biases(0.1 * k as f64, biases(k as f64));
+        }
+        // An estimate 3 ms after the camera time (an estimated time offset).
+        assert_eq!(run.true_biases_at(0.103), Some(biases(1.0)));
+        assert_eq!(run.pending_biases.len(), 3, "the note at 0.0 is gone");
+        // No note within 20 ms of 0.25: nothing, and the queue keeps 0.3.
+        assert_eq!(run.true_biases_at(0.25), None);
+        assert_eq!(run.true_biases_at(0.3), Some(biases(3.0)));
+        // The queue stays bounded when no estimate comes.
+        for k in 0..200 {
+            run.note_true_biases(1.0 + 0.1 * k as f64, biases(0.0));
+        }
+        assert_eq!(run.pending_biases.len(), PENDING_BIASES_MAX);
+    }
+
     /// An estimate that is the truth turned by 2 deg of yaw and moved by 10 cm:
     /// the unaligned ATE sees both, the position-and-yaw aligned one neither.
     #[test]
