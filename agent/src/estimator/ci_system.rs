@@ -358,6 +358,48 @@ pub fn independent_mahalanobis(
     Some((st.res.dot(&chol.solve(&st.res)), m))
 }
 
+/// The innovation covariance of [`independent_mahalanobis`] as `I + V Vᵀ`
+/// (the rows are whitened), with `V = [H L, H_p L_p, ...]` and `L` a square
+/// root of each covariance: `V` has one column per variable dimension, far
+/// fewer than the rows of a window whose peers saw our features from every
+/// pose (stop 90: 400-1000 rows over 200-400 columns). Returns `V` and the
+/// residual, `rows` stacked in their order; a subset of the blocks has the
+/// subset of `V`'s rows.
+pub fn independent_factor(
+    state: &State,
+    rows: &[&CiRows],
+    participants: &[PeerWindow],
+) -> Option<(DMatrix<f64>, DVector<f64>)> {
+    let st = stack(rows, participants)?;
+    let ours = state.covariance().gather(&st.cols.vars).ok()?;
+    let mut factors = vec![&st.h * square_root(ours)?];
+    for ((p, items), hp) in st.parts.iter().zip(&st.h_parts) {
+        factors.push(hp * square_root(part_covariance(*p, items, participants))?);
+    }
+    let q = factors.iter().map(|f| f.ncols()).sum();
+    let mut v = DMatrix::zeros(st.res.len(), q);
+    let mut c0 = 0;
+    for f in &factors {
+        v.columns_mut(c0, f.ncols()).copy_from(f);
+        c0 += f.ncols();
+    }
+    Some((v, st.res))
+}
+
+/// `L` with `L Lᵀ = c`: the Cholesky factor, or from the eigenvalues (the
+/// negative ones of rounding at zero) when `c` is only semidefinite.
+fn square_root(c: DMatrix<f64>) -> Option<DMatrix<f64>> {
+    if c.iter().any(|x| !x.is_finite()) {
+        return None;
+    }
+    if let Some(chol) = c.clone().cholesky() {
+        return Some(chol.l());
+    }
+    let eig = c.symmetric_eigen();
+    let roots = eig.eigenvalues.map(|l| l.max(0.0).sqrt());
+    Some(eig.eigenvectors * DMatrix::from_diagonal(&roots))
+}
+
 /// Stacks `rows` and applies one CI-EKF update. `Ok(None)` when there is
 /// nothing to do.
 pub fn update(
@@ -507,4 +549,25 @@ fn compress_joint(
     let mut it = split.into_iter();
     let h = it.next().unwrap_or_else(|| DMatrix::zeros(res.len(), 0));
     (h, it.collect(), res)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_square_root_of_a_semidefinite_covariance_gives_it_back() {
+        let a = DMatrix::from_fn(5, 3, |i, j| ((i * 3 + j) as f64).sin());
+        // Positive definite: the Cholesky factor.
+        let pd = &a * a.transpose() + DMatrix::identity(5, 5);
+        let l = square_root(pd.clone()).unwrap();
+        assert!((&l * l.transpose() - &pd).norm() < 1e-12);
+        // Rank 3 of 5, its zero eigenvalues rounded below zero: no Cholesky
+        // factor, the eigenvalues' root.
+        let psd = &a * a.transpose() - DMatrix::identity(5, 5) * 1e-13;
+        assert!(psd.clone().cholesky().is_none());
+        let l = square_root(psd.clone()).unwrap();
+        assert!((&l * l.transpose() - &psd).norm() < 1e-10);
+        assert!(square_root(DMatrix::from_element(2, 2, f64::NAN)).is_none());
+    }
 }

@@ -467,8 +467,6 @@ impl<K: StateVar> Covariance<K> {
     }
 }
 
-/// Inverse of a lower-triangular matrix with a positive diagonal, by forward
-/// substitution on its columns (`m³/6` multiply-adds, contiguous accesses).
 /// `P ← P − Wᵀ W` (`P` n x n, `W` m x n) on the lower triangle only (the result
 /// is symmetric; the caller mirrors it), in column blocks of 32 so each block is
 /// one dense product: about half the work of the full product. The covariance
@@ -486,6 +484,8 @@ pub fn subtract_gram_lower(p: &mut DMatrix<f64>, w: &DMatrix<f64>) {
     }
 }
 
+/// Inverse of a lower-triangular matrix with a positive diagonal, by forward
+/// substitution on its columns (`m³/6` multiply-adds, contiguous accesses).
 pub(crate) fn lower_triangular_inverse(l: &DMatrix<f64>) -> DMatrix<f64> {
     let m = l.nrows();
     let mut inv = DMatrix::<f64>::zeros(m, m);
