@@ -349,28 +349,73 @@ pub fn independent_mahalanobis(
     participants: &[PeerWindow],
 ) -> Option<(f64, usize)> {
     let st = stack(rows, participants)?;
+    let s = independent_covariance(state, &st, participants)?;
+    let chol = s.cholesky()?;
+    Some((st.res.dot(&chol.solve(&st.res)), st.res.len()))
+}
+
+/// The innovation covariance `S` of [`independent_mahalanobis`], in the
+/// cheaper of two forms for what is done with it.
+#[derive(Clone, Debug)]
+pub enum Innovation {
+    /// `S` itself: no more rows than the variables' dimensions.
+    Covariance(DMatrix<f64>),
+    /// `V` with `S = I + V Vᵀ` (the rows are whitened): `V = [H L, H_p L_p,
+    /// ...]`, `L` a square root of each covariance, has one column per
+    /// variable dimension, far fewer than the rows of a window whose peers
+    /// saw our features from every pose (stop 90: 400-1000 rows over
+    /// 200-400 columns).
+    Factor(DMatrix<f64>),
+}
+
+/// [`Innovation`] of `rows` stacked in their order, and the residual. A
+/// subset of the blocks has the submatrix of `S`, or the subset of `V`'s
+/// rows (each term is `H C Hᵀ`, and a row's Jacobian is zero off its own
+/// variables).
+pub fn independent_innovation(
+    state: &State,
+    rows: &[&CiRows],
+    participants: &[PeerWindow],
+) -> Option<(Innovation, DVector<f64>)> {
+    independent_innovation_as(state, rows, participants, |m, q| m > q)
+}
+
+/// [`independent_innovation`] as a factor when `factor(m, q)` says so, for
+/// `m` rows over `q` variable dimensions.
+pub(crate) fn independent_innovation_as(
+    state: &State,
+    rows: &[&CiRows],
+    participants: &[PeerWindow],
+    factor: impl Fn(usize, usize) -> bool,
+) -> Option<(Innovation, DVector<f64>)> {
+    let st = stack(rows, participants)?;
+    let q = st.cols.dim + st.h_parts.iter().map(|h| h.ncols()).sum::<usize>();
+    let form = if !factor(st.res.len(), q) {
+        Innovation::Covariance(independent_covariance(state, &st, participants)?)
+    } else {
+        Innovation::Factor(independent_factor(state, &st, participants)?)
+    };
+    Some((form, st.res))
+}
+
+fn independent_covariance(
+    state: &State,
+    st: &Stacked,
+    participants: &[PeerWindow],
+) -> Option<DMatrix<f64>> {
     let m = st.res.len();
     let mut s = state.covariance().projected(&st.cols.vars, &st.h).ok()? + DMatrix::identity(m, m);
     for ((p, items), hp) in st.parts.iter().zip(&st.h_parts) {
         s += hp * part_covariance(*p, items, participants) * hp.transpose();
     }
-    let chol = s.cholesky()?;
-    Some((st.res.dot(&chol.solve(&st.res)), m))
+    Some(s)
 }
 
-/// The innovation covariance of [`independent_mahalanobis`] as `I + V Vᵀ`
-/// (the rows are whitened), with `V = [H L, H_p L_p, ...]` and `L` a square
-/// root of each covariance: `V` has one column per variable dimension, far
-/// fewer than the rows of a window whose peers saw our features from every
-/// pose (stop 90: 400-1000 rows over 200-400 columns). Returns `V` and the
-/// residual, `rows` stacked in their order; a subset of the blocks has the
-/// subset of `V`'s rows.
-pub fn independent_factor(
+fn independent_factor(
     state: &State,
-    rows: &[&CiRows],
+    st: &Stacked,
     participants: &[PeerWindow],
-) -> Option<(DMatrix<f64>, DVector<f64>)> {
-    let st = stack(rows, participants)?;
+) -> Option<DMatrix<f64>> {
     let ours = state.covariance().gather(&st.cols.vars).ok()?;
     let mut factors = vec![&st.h * square_root(ours)?];
     for ((p, items), hp) in st.parts.iter().zip(&st.h_parts) {
@@ -383,7 +428,7 @@ pub fn independent_factor(
         v.columns_mut(c0, f.ncols()).copy_from(f);
         c0 += f.ncols();
     }
-    Some((v, st.res))
+    Some(v)
 }
 
 /// `L` with `L Lᵀ = c`: the Cholesky factor, or from the eigenvalues (the

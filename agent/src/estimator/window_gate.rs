@@ -16,7 +16,7 @@
 //! three-robot flights showed it: windows at 30-170 over 8-24 rows fell to
 //! 0.2-15 without one block that alone gave, in most, 0.0-1.4 over 3 rows.
 
-use super::ci_system::{self, CiRows};
+use super::ci_system::{self, CiRows, Innovation};
 use super::covariance::lower_triangular_inverse;
 use super::peer_window::PeerWindow;
 use super::state::State;
@@ -27,10 +27,10 @@ use std::ops::Range;
 /// gate of `m` stacked rows (the blocks' own). A window whose distance
 /// cannot be computed is left as it is.
 ///
-/// The window's rows are stacked once, their innovation covariance as
-/// `I + V Vᵀ` ([`ci_system::independent_factor`]); every subset of its
-/// blocks has a subset of `V`'s rows, and each block's removal is weighed
-/// from the kept blocks' [`Kept::removals`]. Stacking and factoring every
+/// The window's rows are stacked once, with their innovation covariance
+/// ([`ci_system::independent_innovation`]); every subset of its blocks has
+/// a submatrix of it, and each block's removal is weighed from the kept
+/// blocks' inverse ([`Kept::removals`]). Stacking and factoring every
 /// candidate's `S` again took 1-9 s of one frame with 30-50 blocks over
 /// 400-1000 rows (stop 90: an agent fell that far behind the wall clock).
 pub fn rejected(
@@ -49,7 +49,8 @@ pub fn rejected(
             continue;
         }
         let stacked: Vec<&CiRows> = of.iter().map(|&i| &rows[i]).collect();
-        let Some((v, res)) = ci_system::independent_factor(state, &stacked, participants) else {
+        let Some((s, res)) = ci_system::independent_innovation(state, &stacked, participants)
+        else {
             continue;
         };
         let mut spans = Vec::with_capacity(of.len());
@@ -61,7 +62,7 @@ pub fn rejected(
         // Positions in `of` of the blocks still in.
         let mut kept: Vec<usize> = (0..of.len()).collect();
         while kept.len() >= 2 {
-            let Some(k) = Kept::new(&v, &res, &spans, &kept) else {
+            let Some(k) = Kept::new(&s, &res, &spans, &kept) else {
                 break;
             };
             let before = k.distance / limit(k.dim());
@@ -91,18 +92,17 @@ pub fn rejected(
     (0..rows.len()).filter(|&i| dropped[i]).collect()
 }
 
-/// The kept blocks' distance `rᵀ S⁻¹ r` with `S = I + V Vᵀ` (`m x m`, `V`
-/// `m x q`), and what it becomes without each of them. By the cheaper of
-/// two factorizations:
-/// - `m ≤ q`: `S = L Lᵀ`;
-/// - `m > q`: `M = I + Vᵀ V = L Lᵀ` and `S⁻¹ = I - V M⁻¹ Vᵀ` (Woodbury):
-///   everything is of `V`'s width, not of the rows'.
+/// The kept blocks' distance `rᵀ S⁻¹ r`, and what it becomes without each
+/// of them, from one Cholesky factor `L Lᵀ` of either
+/// - `S` (given, or `I + V Vᵀ` when `V` has at least as many columns as
+///   rows), or
+/// - `M = I + Vᵀ V`, with `S⁻¹ = I - V M⁻¹ Vᵀ` (Woodbury): everything is
+///   then of `V`'s width, not of the rows'.
 struct Kept {
     distance: f64,
-    /// The kept rows.
+    /// The kept rows of `V` in the Woodbury form (empty otherwise).
     v: DMatrix<f64>,
     res: DVector<f64>,
-    /// The Cholesky factor of `S`, or of `M` in the Woodbury form.
     l: DMatrix<f64>,
     woodbury: bool,
     /// Each kept block's rows, in the order of `kept`.
@@ -110,10 +110,11 @@ struct Kept {
 }
 
 impl Kept {
-    /// From the window's `v` and `res`, whose block `b` has rows `spans[b]`,
-    /// the blocks `kept`.
+    /// From the window's innovation `s` and `res`, whose block `b` has rows
+    /// `spans[b]`, the blocks `kept`. Only the distance: a window that
+    /// passes needs nothing more.
     fn new(
-        v: &DMatrix<f64>,
+        s: &Innovation,
         res: &DVector<f64>,
         spans: &[Range<usize>],
         kept: &[usize],
@@ -128,33 +129,33 @@ impl Kept {
         if idx.is_empty() {
             return None;
         }
-        let v = v.select_rows(&idx);
-        let woodbury = v.nrows() > v.ncols();
-        Self::of(v, res.select_rows(&idx), woodbury, local)
-    }
-
-    /// [`Kept::new`] of the kept rows `v` and `res`, in the form `woodbury`
-    /// says. Only the distance: a window that passes needs nothing more.
-    fn of(
-        v: DMatrix<f64>,
-        res: DVector<f64>,
-        woodbury: bool,
-        spans: Vec<Range<usize>>,
-    ) -> Option<Self> {
-        let (m, q) = v.shape();
-        // Dense products (`tr_mul` is not).
-        let (l, distance) = if woodbury {
-            let vt = v.transpose();
-            let l = (DMatrix::identity(q, q) + &vt * &v).cholesky()?.l();
-            let t = l.solve_lower_triangular(&(vt * &res))?;
-            (l, res.dot(&res) - t.dot(&t))
+        let res = res.select_rows(&idx);
+        let m = idx.len();
+        let (l, v, woodbury) = match s {
+            Innovation::Covariance(s) => {
+                let s = s.select_rows(&idx).select_columns(&idx);
+                (s.cholesky()?.l(), DMatrix::zeros(0, 0), false)
+            }
+            Innovation::Factor(v) => {
+                let v = v.select_rows(&idx);
+                // Dense products (`tr_mul` is not).
+                let vt = v.transpose();
+                if m > v.ncols() {
+                    let q = v.ncols();
+                    let l = (DMatrix::identity(q, q) + &vt * &v).cholesky()?.l();
+                    (l, v, true)
+                } else {
+                    let l = (DMatrix::identity(m, m) + &v * vt).cholesky()?.l();
+                    (l, DMatrix::zeros(0, 0), false)
+                }
+            }
+        };
+        let distance = if woodbury {
+            let t = l.solve_lower_triangular(&(v.transpose() * &res))?;
+            res.dot(&res) - t.dot(&t)
         } else {
-            let l = (DMatrix::identity(m, m) + &v * v.transpose())
-                .cholesky()?
-                .l();
             let t = l.solve_lower_triangular(&res)?;
-            let d = t.dot(&t);
-            (l, d)
+            t.dot(&t)
         };
         Some(Self {
             distance,
@@ -162,7 +163,7 @@ impl Kept {
             res,
             l,
             woodbury,
-            spans,
+            spans: local,
         })
     }
 
@@ -259,76 +260,59 @@ mod tests {
         (sc, rows)
     }
 
-    /// Both forms of [`Kept`] give the distance of the blocks stacked, and
+    /// Each block's rows in the stack of all.
+    fn spans_of(rows: &[CiRows]) -> Vec<Range<usize>> {
+        let mut spans: Vec<Range<usize>> = Vec::new();
+        for r in rows {
+            let r0 = spans.last().map_or(0, |s| s.end);
+            spans.push(r0..r0 + r.res.len());
+        }
+        spans
+    }
+
+    /// Every form of [`Kept`] gives the distance of the blocks stacked, and
     /// of every block left out, as stacking and factoring them anew does.
     #[test]
     fn each_removal_is_weighed_as_the_blocks_stacked_anew() {
         let (sc, rows) = scene_rows(Some(2), 0.05);
         let p = std::slice::from_ref(&sc.peer);
         let all: Vec<&CiRows> = rows.iter().collect();
-        let (v, res) = ci_system::independent_factor(&sc.state, &all, p).unwrap();
-        let mut spans = Vec::new();
-        for r in &rows {
-            let r0 = spans.last().map_or(0, |s: &Range<usize>| s.end);
-            spans.push(r0..r0 + r.res.len());
-        }
-        let direct = |skip: Option<usize>| {
-            let kept: Vec<&CiRows> = (0..rows.len())
-                .filter(|&i| Some(i) != skip)
-                .map(|i| &rows[i])
-                .collect();
+        let spans = spans_of(&rows);
+        let direct = |kept: &[usize]| {
+            let kept: Vec<&CiRows> = kept.iter().map(|&i| &rows[i]).collect();
             ci_system::independent_mahalanobis(&sc.state, &kept, p).unwrap()
         };
         let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * b.abs().max(1.0);
-        // The scene's rows outnumber V's columns: both forms can be asked for.
-        assert!(v.nrows() > v.ncols(), "{:?}", v.shape());
-        for woodbury in [false, true] {
-            let k = Kept::of(v.clone(), res.clone(), woodbury, spans.clone()).unwrap();
-            let (d, m) = direct(None);
-            assert_eq!(k.dim(), m);
-            assert!(
-                close(k.distance, d),
-                "{woodbury}: {} against {d}",
-                k.distance
-            );
-            for (j, r) in k.removals().into_iter().enumerate() {
-                let (d_j, m_j) = direct(Some(j));
-                let (got, m_got) = r.unwrap();
-                assert_eq!(m_got, m_j);
-                assert!(
-                    close(got, d_j),
-                    "{woodbury}, block {j}: {got} against {d_j}"
-                );
+        // All six blocks (more rows than V has columns: the factor is used
+        // in the Woodbury form), and two (fewer: as I + V Vᵀ).
+        for kept in [vec![0, 1, 2, 3, 4, 5], vec![1, 4]] {
+            for factor in [false, true] {
+                let (s, res) =
+                    ci_system::independent_innovation_as(&sc.state, &all, p, |_, _| factor)
+                        .unwrap();
+                let k = Kept::new(&s, &res, &spans, &kept).unwrap();
+                let (d, m) = direct(&kept);
+                assert_eq!(k.dim(), m);
+                assert_eq!(k.woodbury, factor && kept.len() == 6, "{kept:?}");
+                assert!(close(k.distance, d), "{factor}: {} against {d}", k.distance);
+                for (j, r) in k.removals().into_iter().enumerate() {
+                    let rest: Vec<usize> = kept.iter().copied().filter(|&b| b != kept[j]).collect();
+                    let (d_j, m_j) = direct(&rest);
+                    let (got, m_got) = r.unwrap();
+                    assert_eq!(m_got, m_j);
+                    assert!(
+                        close(got, d_j),
+                        "{factor}, {kept:?} without {j}: {got} against {d_j}"
+                    );
+                }
             }
         }
         // The wrong block is the one whose removal leaves the least.
-        let k = Kept::new(&v, &res, &spans, &[0, 1, 2, 3, 4, 5]).unwrap();
+        let (s, res) = ci_system::independent_innovation(&sc.state, &all, p).unwrap();
+        let k = Kept::new(&s, &res, &spans, &[0, 1, 2, 3, 4, 5]).unwrap();
         let left: Vec<f64> = k.removals().into_iter().map(|r| r.unwrap().0).collect();
         let least = (0..6).min_by(|&a, &b| left[a].total_cmp(&left[b])).unwrap();
         assert_eq!(least, 2, "{left:?}");
-    }
-
-    /// A subset of the blocks is a subset of `V`'s rows.
-    #[test]
-    fn kept_blocks_are_their_rows_of_the_window() {
-        let (sc, rows) = scene_rows(None, 0.05);
-        let p = std::slice::from_ref(&sc.peer);
-        let all: Vec<&CiRows> = rows.iter().collect();
-        let (v, res) = ci_system::independent_factor(&sc.state, &all, p).unwrap();
-        let mut spans = Vec::new();
-        for r in &rows {
-            let r0 = spans.last().map_or(0, |s: &Range<usize>| s.end);
-            spans.push(r0..r0 + r.res.len());
-        }
-        let k = Kept::new(&v, &res, &spans, &[1, 4]).unwrap();
-        let (d, m) =
-            ci_system::independent_mahalanobis(&sc.state, &[&rows[1], &rows[4]], p).unwrap();
-        assert_eq!(k.dim(), m);
-        assert!(
-            (k.distance - d).abs() <= 1e-9 * d.max(1.0),
-            "{} against {d}",
-            k.distance
-        );
     }
 
     #[test]
