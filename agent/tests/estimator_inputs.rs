@@ -166,7 +166,7 @@ fn assert_same_output(a: &FrameOutput, b: &FrameOutput) {
     assert_eq!(a.t().to_bits(), b.t().to_bits(), "time");
     assert_eq!(a.rot, b.rot, "orientation at t={}", a.t());
     assert_eq!(a.pos, b.pos, "position at t={}", a.t());
-    assert_eq!(a.vel, b.vel, "velocity at t={}", a.t());
+    assert_eq!(a.imu.vel, b.imu.vel, "velocity at t={}", a.t());
     assert_eq!(
         a.cov_ori,
         b.cov_ori,

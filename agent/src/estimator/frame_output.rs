@@ -140,8 +140,6 @@ pub struct FrameOutput {
     pub rot: Matrix3<f64>,
     /// `p_IinG`, m.
     pub pos: Vector3<f64>,
-    /// `v_IinG`, m/s.
-    pub vel: Vector3<f64>,
     /// Orientation covariance (local error, rad²).
     pub cov_ori: Matrix3<f64>,
     /// Position covariance (m²).
@@ -173,7 +171,6 @@ impl FrameOutput {
         Self {
             rot: means.imu.rot,
             pos: means.imu.pos,
-            vel: means.imu.vel,
             cov_ori: cov_imu.fixed_view::<3, 3>(0, 0).into_owned(),
             cov_pos: cov_imu.fixed_view::<3, 3>(3, 3).into_owned(),
             imu: ImuEstimate {
