@@ -8,7 +8,7 @@
 //! MB/s flooded, 30 000 messages per agent dropped by the rate limit).
 //! The stalls of 1-9 s that still failed it now and then (3 of 6 runs on
 //! stop 89's code) were one frame's window gate, not the flood: the robots
-//! fly one loop, and a failing window of 30-50 blocks was stacked and
+//! fly one loop, and a failing window of 30-70 blocks was stacked and
 //! factored anew for every candidate. Stop 90: 0.05-1.0 s in 18 runs.
 #![allow(clippy::unwrap_used)] // helpers outside #[test] functions
 

@@ -390,10 +390,10 @@ pub(crate) fn independent_innovation_as(
 ) -> Option<(Innovation, DVector<f64>)> {
     let st = stack(rows, participants)?;
     let q = st.cols.dim + st.h_parts.iter().map(|h| h.ncols()).sum::<usize>();
-    let form = if !factor(st.res.len(), q) {
-        Innovation::Covariance(independent_covariance(state, &st, participants)?)
-    } else {
+    let form = if factor(st.res.len(), q) {
         Innovation::Factor(independent_factor(state, &st, participants)?)
+    } else {
+        Innovation::Covariance(independent_covariance(state, &st, participants)?)
     };
     Some((form, st.res))
 }
@@ -431,8 +431,8 @@ fn independent_factor(
     Some(v)
 }
 
-/// `L` with `L Lᵀ = c`: the Cholesky factor, or from the eigenvalues (the
-/// negative ones of rounding at zero) when `c` is only semidefinite.
+/// `L` with `L Lᵀ = c`: the Cholesky factor, or from the eigenvalues (those
+/// below zero by rounding taken as zero) when `c` is only semidefinite.
 fn square_root(c: DMatrix<f64>) -> Option<DMatrix<f64>> {
     if c.iter().any(|x| !x.is_finite()) {
         return None;

@@ -31,8 +31,8 @@ use std::ops::Range;
 /// ([`ci_system::independent_innovation`]); every subset of its blocks has
 /// a submatrix of it, and each block's removal is weighed from the kept
 /// blocks' inverse ([`Kept::removals`]). Stacking and factoring every
-/// candidate's `S` again took 1-9 s of one frame with 30-50 blocks over
-/// 400-1000 rows (stop 90: an agent fell that far behind the wall clock).
+/// candidate's `S` again took 1-9 s of one frame with 30-70 blocks over
+/// up to 1000 rows (stop 90: an agent fell that far behind the wall clock).
 pub fn rejected(
     state: &State,
     rows: &[CiRows],
