@@ -53,12 +53,7 @@ pub fn rejected(
         else {
             continue;
         };
-        let mut spans = Vec::with_capacity(of.len());
-        let mut r0 = 0;
-        for r in &stacked {
-            spans.push(r0..r0 + r.res.len());
-            r0 += r.res.len();
-        }
+        let spans = block_spans(&stacked);
         // Positions in `of` of the blocks still in.
         let mut kept: Vec<usize> = (0..of.len()).collect();
         while kept.len() >= 2 {
@@ -90,6 +85,17 @@ pub fn rejected(
         }
     }
     (0..rows.len()).filter(|&i| dropped[i]).collect()
+}
+
+/// Each block's rows in `rows` stacked in their order.
+fn block_spans(rows: &[&CiRows]) -> Vec<Range<usize>> {
+    let mut spans = Vec::with_capacity(rows.len());
+    let mut r0 = 0;
+    for r in rows {
+        spans.push(r0..r0 + r.res.len());
+        r0 += r.res.len();
+    }
+    spans
 }
 
 /// The kept blocks' distance `rᵀ S⁻¹ r`, and what it becomes without each
@@ -260,16 +266,6 @@ mod tests {
         (sc, rows)
     }
 
-    /// Each block's rows in the stack of all.
-    fn spans_of(rows: &[CiRows]) -> Vec<Range<usize>> {
-        let mut spans: Vec<Range<usize>> = Vec::new();
-        for r in rows {
-            let r0 = spans.last().map_or(0, |s| s.end);
-            spans.push(r0..r0 + r.res.len());
-        }
-        spans
-    }
-
     /// Every form of [`Kept`] gives the distance of the blocks stacked, and
     /// of every block left out, as stacking and factoring them anew does.
     #[test]
@@ -277,7 +273,7 @@ mod tests {
         let (sc, rows) = scene_rows(Some(2), 0.05);
         let p = std::slice::from_ref(&sc.peer);
         let all: Vec<&CiRows> = rows.iter().collect();
-        let spans = spans_of(&rows);
+        let spans = block_spans(&all);
         let direct = |kept: &[usize]| {
             let kept: Vec<&CiRows> = kept.iter().map(|&i| &rows[i]).collect();
             ci_system::independent_mahalanobis(&sc.state, &kept, p).unwrap()
