@@ -317,6 +317,18 @@ pub struct CooperationOptions {
     /// frames"). The default 1 leaves fleets of up to six robots (five
     /// frames at 5 s) as they were.
     pub held_frame_measurements_per_s: f64,
+    /// How much more of the peer's anchor pose each later measurement of a
+    /// held frame counts: the k-th later measurement of a frame weighs that
+    /// share of its noise `growth^k` times (`updater_frame`). The anchor's
+    /// error is largely common to the seed and every later measurement (the
+    /// peer's anchor poses drift together), so together they tell at most
+    /// `1 + 1/(growth − 1)` times what the seed alone tells about it (3 at
+    /// the default 1.5). 1: every measurement takes its whole noise as
+    /// independent of our state (before stop 91), which left the last robot
+    /// of a twelve-robot fleet and one of six above the NEES band; 1.5 keeps
+    /// twelve robots' accuracy and costs six 6 % in orientation (README,
+    /// "Robots in their own frames").
+    pub held_frame_anchor_growth: f64,
     /// Most peer frames held in our state at once (with
     /// `peer_frame_state_s`); beyond it the longest held becomes a fixed
     /// alignment. Each adds 4 states to every update, and a peer that starts
@@ -408,6 +420,7 @@ impl Default for CooperationOptions {
             held_frame_measurement_period_s: 5.0,
             held_frame_measurement_window_s: 60.0,
             held_frame_measurements_per_s: 1.0,
+            held_frame_anchor_growth: 1.5,
             split_unobservable: true,
             split_calibration: true,
             min_alignment_inliers: 12,
@@ -541,6 +554,12 @@ impl CooperationOptions {
         if r.is_nan() || r <= 0.0 {
             return Err(format!(
                 "cooperation.held_frame_measurements_per_s must be above 0 (or .inf), not {r}"
+            ));
+        }
+        let g = self.held_frame_anchor_growth;
+        if !(g.is_finite() && g >= 1.0) {
+            return Err(format!(
+                "cooperation.held_frame_anchor_growth must be finite and at least 1, not {g}"
             ));
         }
         if self.max_held_peer_frames == 0 {
@@ -938,6 +957,12 @@ mod tests {
         );
         assert!(bad(|o| o.cooperation.held_frame_measurements_per_s = 0.0)
             .contains("held_frame_measurements_per_s"));
+        assert!(bad(|o| o.cooperation.held_frame_anchor_growth = 0.5)
+            .contains("held_frame_anchor_growth"));
+        assert!(
+            bad(|o| o.cooperation.held_frame_anchor_growth = f64::INFINITY)
+                .contains("held_frame_anchor_growth")
+        );
         assert!(bad(|o| o.cooperation.max_alignment_yaw_sigma_deg = 0.0).contains("yaw_sigma"));
         assert!(bad(|o| o.cooperation.max_ci_participants = 0).contains("max_ci_participants"));
         assert!(bad(|o| o.cooperation.max_peers_matched_per_frame = 0)

@@ -269,6 +269,7 @@ impl Cooperation {
                     PeerFrameMean {
                         yaw_rad: a.yaw_rad,
                         t_m: a.t_m,
+                        measurements: 0,
                     },
                 )
             });

@@ -117,6 +117,7 @@ mod tests {
             PeerFrameMean {
                 yaw_rad: 0.4,
                 t_m: Vector3::new(3.0, -1.0, 0.5),
+                measurements: 0,
             },
         );
         let mut rng = ChaCha8Rng::seed_from_u64(7);

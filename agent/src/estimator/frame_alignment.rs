@@ -333,6 +333,10 @@ pub struct AlignmentMeasurement {
     /// Covariance of `n`: the pixel noise and the triangulation and anchor
     /// errors (the covariance without our camera's share), rad², m².
     pub noise_cov: Matrix4<f64>,
+    /// The peer's anchor pose's share of `noise_cov`, `B_a P_a B_aᵀ`: the
+    /// part of the noise that the peer's other windows share (its anchor
+    /// poses drift together), rad², m².
+    pub anchor_cov: Matrix4<f64>,
 }
 
 /// Gate on a point's whitened squared residual: χ²(2) at 99 %.
@@ -627,6 +631,7 @@ pub fn estimate_alignment(
         // `δa = −B_o ξ + n`.
         our_pose_jacobian: -b_o,
         noise_cov,
+        anchor_cov: (p_anchor + p_anchor.transpose()) * 0.5,
     })
 }
 

@@ -73,6 +73,7 @@ pub fn augment(state: &mut State, seed: &FrameSeed) -> Result<(), StateError> {
         PeerFrameMean {
             yaw_rad: a.yaw_rad,
             t_m: a.t_m,
+            measurements: 0,
         },
     );
     Ok(())
@@ -209,6 +210,7 @@ pub(crate) mod tests {
                 rms_normalized: 0.0,
                 our_pose_jacobian: d,
                 noise_cov: Matrix4::from_diagonal(&nalgebra::Vector4::new(1e-5, 1e-4, 2e-4, 3e-4)),
+                anchor_cov: Matrix4::from_diagonal(&nalgebra::Vector4::new(4e-6, 4e-5, 8e-5, 1e-4)),
             },
         }
     }

@@ -149,6 +149,8 @@ pub struct PeerFrameMean {
     pub yaw_rad: f64,
     /// `t`, m.
     pub t_m: Vector3<f64>,
+    /// Later measurements of the frame used so far (`updater_frame`).
+    pub measurements: u32,
 }
 
 /// `yaw` wrapped into `(−π, π]`.

@@ -398,7 +398,7 @@ impl Estimator {
             c.match_frame(&ours, peers, key);
             peer_frame_states::take_from(state, c, &opts.cooperation);
             for m in c.take_held_frame_measurements() {
-                if let Err(e) = updater_frame::update(state, &m) {
+                if let Err(e) = updater_frame::update(state, &m, &opts.cooperation) {
                     tracing::warn!(peer = m.peer, "peer frame measurement not used: {e}");
                 }
             }
