@@ -580,6 +580,10 @@ pub struct EstimatorSection {
     /// frames, 1/s (`cooperation.held_frame_measurements_per_s`).
     #[serde(default)]
     pub held_frame_measurements_per_s: Option<f64>,
+    /// The k-th later measurement of a held frame counts the peer's anchor
+    /// pose `growth^k` times (`cooperation.held_frame_anchor_growth`).
+    #[serde(default)]
+    pub held_frame_anchor_growth: Option<f64>,
     /// While peer frames are held in the state, leave our covariance along
     /// our world's yaw and translation (which no peer measurement through
     /// them observes) out of CI's inflation
@@ -702,6 +706,9 @@ impl EstimatorSection {
         if let Some(r) = self.held_frame_measurements_per_s {
             c.held_frame_measurements_per_s = r;
         }
+        if let Some(g) = self.held_frame_anchor_growth {
+            c.held_frame_anchor_growth = g;
+        }
         if let Some(s) = self.split_unobservable {
             c.split_unobservable = s;
         }
@@ -781,6 +788,7 @@ impl Default for EstimatorSection {
             held_frame_measurement_period_s: None,
             held_frame_measurement_window_s: None,
             held_frame_measurements_per_s: None,
+            held_frame_anchor_growth: None,
             split_unobservable: None,
             split_calibration: None,
             vocabulary: None,
