@@ -24,7 +24,8 @@
 //! / 0.033, NEES 2.10 / 1.95, against 0.214 / 0.032, NEES 2.41 / 2.53 with
 //! one robot's position above the band at 22 % (README). On twelve robots'
 //! seeds 7-12 robot 11 is still above it, less (position 24 % -> 8 % of
-//! the frames); its tilt, at 9 % either way, is not these measurements'.
+//! the frames); its tilt, at 9 % either way, is one seed's and the
+//! single-robot filter's (the same excursion without peers).
 //!
 //! Tried and not kept:
 //! - (stop 62) the whole noise as a CI participant: every such update
