@@ -20,7 +20,7 @@
 //! pixels' and points' share stays whole. At the default 1.5, twelve robots
 //! in their own frames (seeds 1-6): 0.204 deg / 0.030 m, NEES 2.17 / 1.98,
 //! robot 11 no longer above the band (before: 0.205 / 0.030, NEES 2.43 /
-//! 2.42, its yaw above at 20 % of the frames); six robots (20 seeds): 0.226
+//! 2.42, its yaw above at 21 % of the frames); six robots (20 seeds): 0.226
 //! / 0.033, NEES 2.10 / 1.95, against 0.214 / 0.032, NEES 2.41 / 2.53 with
 //! one robot's position above the band at 22 % (README). On twelve robots'
 //! seeds 7-12 robot 11 is still above it, less (position 24 % -> 8 % of
