@@ -80,7 +80,12 @@ fn ms(t: Instant) -> f64 {
 impl CentralEstimator {
     /// A fleet of robots with options `opts` and each robot's initial calibration.
     pub fn new(opts: EstimatorOptions, calibs: Vec<CameraCalibration>) -> Self {
-        let tri = TriangulationOptions::with_limits(&opts.triangulation);
+        // One lens type for the fleet's rays (the first robot's): peers'
+        // rays are triangulated together with ours.
+        let tri = match calibs.first() {
+            Some(c) => TriangulationOptions::for_camera(&opts.triangulation, &c.camera),
+            None => TriangulationOptions::with_limits(&opts.triangulation),
+        };
         Self {
             robots: calibs
                 .into_iter()

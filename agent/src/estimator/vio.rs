@@ -110,7 +110,7 @@ fn ms(since: Instant) -> f64 {
 impl Estimator {
     /// A filter with options and the initial calibration guess.
     pub fn new(opts: EstimatorOptions, calib: CameraCalibration) -> Self {
-        let tri = TriangulationOptions::with_limits(&opts.triangulation);
+        let tri = TriangulationOptions::for_camera(&opts.triangulation, &calib.camera);
         Self {
             opts,
             calib,
