@@ -21,7 +21,9 @@ use crate::estimator::frame_alignment::{
     estimate_alignment, point_covariance, AlignmentMeasurement, AlignmentOptions, AlignmentPoint,
     CameraEstimate, FrameAlignment,
 };
-use crate::estimator::triangulation::{triangulate, CameraObservation, TriangulationOptions};
+use crate::estimator::triangulation::{
+    triangulate, CameraObservation, RayResidual, TriangulationOptions,
+};
 use crate::peer_history::KeyframeWindow;
 use common::estimator_options::CooperationOptions;
 use nalgebra::{Matrix3, SMatrix, Vector2};
@@ -218,14 +220,10 @@ pub fn measure(
 ) -> Option<AlignmentMeasurement> {
     let anchor = anchor_of(kf)?;
     // The peer's measurements are normalized with its own intrinsics; its
-    // pixel noise is taken to be ours, over its focal length.
-    let peer_focal = kf
-        .snapshot
-        .camera
-        .to_camera_model()
-        .ok()
-        .map(|m| (m.fx() * m.fy()).sqrt())
-        .filter(|f| *f > 0.0)?;
+    // pixel noise is taken to be ours, over its focal length, and its rays are
+    // triangulated as its lens spreads its pixels (`RayResidual::of`).
+    let peer_camera = kf.snapshot.camera.to_camera_model().ok()?;
+    let peer_focal = Some((peer_camera.fx() * peer_camera.fy()).sqrt()).filter(|f| *f > 0.0)?;
     let peer_sigma = opts.sigma_normalized * our_focal_px / peer_focal;
     let poses: Vec<(f64, Matrix3<f64>, nalgebra::Vector3<f64>)> = kf
         .snapshot
@@ -233,7 +231,10 @@ pub fn measure(
         .iter()
         .map(|c| (c.t_s, c.rot_c_to_g(), c.p_c_in_g()))
         .collect();
-    let tri = TriangulationOptions::default();
+    let tri = TriangulationOptions {
+        residual: RayResidual::of(&peer_camera),
+        ..TriangulationOptions::default()
+    };
     let ours: std::collections::HashMap<u64, Vector2<f64>> = frame
         .ids
         .iter()
