@@ -314,8 +314,19 @@ impl RobotStream<'_> {
                 .next_frame(self.truth, &self.fleet.world, biases);
         };
         let mut ev = self.camera.next_blank_frame(self.truth, biases)?;
-        let pose = camera_pose(self.truth, &self.fleet.true_calibration, ev.truth.t)?;
-        match renderer.render(&pose, &mut self.render_rng) {
+        let calib = &self.fleet.true_calibration;
+        camera_pose(self.truth, calib, ev.truth.t)?;
+        // The poses of the exposure, those on the spline (a frame at its very
+        // end blurs over the part it has).
+        let poses: Vec<_> = self
+            .fleet
+            .scenario
+            .render
+            .exposure_times(ev.truth.t)
+            .into_iter()
+            .filter_map(|t| camera_pose(self.truth, calib, t))
+            .collect();
+        match renderer.render_exposed(&poses, &mut self.render_rng) {
             Ok(img) => ev.image = Some(Arc::new(img)),
             // Only an image size GrayImage cannot hold fails, which
             // Renderer::new already refused.

@@ -57,6 +57,13 @@ pub struct RenderSpec {
     pub texture_px: usize,
     /// Standard deviation of the per-pixel intensity noise, gray levels.
     pub intensity_noise_gray: f64,
+    /// Exposure time, ms: each pixel averages the scene over this interval,
+    /// centred on the frame time, so the camera's motion blurs the image as a
+    /// real sensor's does. 0 (the default) takes an instantaneous picture.
+    pub exposure_ms: f64,
+    /// Camera poses the exposure is averaged over (spread evenly across it);
+    /// used when `exposure_ms` is above 0.
+    pub exposure_samples: usize,
 }
 
 impl Default for RenderSpec {
@@ -69,6 +76,8 @@ impl Default for RenderSpec {
             texel_m: 0.01,
             texture_px: 1024,
             intensity_noise_gray: 2.0,
+            exposure_ms: 0.0,
+            exposure_samples: 8,
         }
     }
 }
@@ -95,6 +104,18 @@ impl RenderSpec {
                 self.intensity_noise_gray
             )));
         }
+        if !(self.exposure_ms.is_finite() && (0.0..=MAX_EXPOSURE_MS).contains(&self.exposure_ms)) {
+            return Err(RenderError::Invalid(format!(
+                "exposure_ms must be within 0..={MAX_EXPOSURE_MS}, got {}",
+                self.exposure_ms
+            )));
+        }
+        if !(1..=MAX_EXPOSURE_SAMPLES).contains(&self.exposure_samples) {
+            return Err(RenderError::Invalid(format!(
+                "exposure_samples must be within 1..={MAX_EXPOSURE_SAMPLES}, got {}",
+                self.exposure_samples
+            )));
+        }
         if !self.texture_px.is_power_of_two() || !(8..=8192).contains(&self.texture_px) {
             return Err(RenderError::Invalid(format!(
                 "texture_px must be a power of two in 8..=8192, got {}",
@@ -103,7 +124,26 @@ impl RenderSpec {
         }
         Ok(())
     }
+
+    /// The times whose camera poses one exposure averages, for a frame at `t`:
+    /// `[t]` without exposure, else `exposure_samples` times spread evenly over
+    /// `[t - exposure / 2, t + exposure / 2]` (the centre of each slice).
+    pub fn exposure_times(&self, t: f64) -> Vec<f64> {
+        if self.exposure_ms <= 0.0 {
+            return vec![t];
+        }
+        let e = self.exposure_ms * 1e-3;
+        let n = self.exposure_samples.max(1);
+        (0..n)
+            .map(|i| t - 0.5 * e + (i as f64 + 0.5) * e / n as f64)
+            .collect()
+    }
 }
+
+/// Longest exposure a scenario may ask for, ms.
+pub const MAX_EXPOSURE_MS: f64 = 100.0;
+/// Most camera poses one exposure may average.
+pub const MAX_EXPOSURE_SAMPLES: usize = 64;
 
 /// One pixel's ray: normalized direction `[x, y, 1]` and its footprint (the
 /// pixel's width in normalized units); `fp` is NaN where undistortion fails.
@@ -189,15 +229,31 @@ impl Renderer {
     /// The image seen from camera pose `t_c_to_g`, with intensity noise from
     /// `rng`. Fails only for an image size [`GrayImage`] does not hold.
     pub fn render(&self, t_c_to_g: &Se3, rng: &mut ChaCha8Rng) -> Result<GrayImage, ImageError> {
+        self.render_exposed(std::slice::from_ref(t_c_to_g), rng)
+    }
+
+    /// The image of an exposure during which the camera took the poses
+    /// `t_c_to_g` (each pixel the mean of their intensities: motion blur), with
+    /// intensity noise from `rng`. One pose is [`Renderer::render`]; none gives
+    /// a black image.
+    pub fn render_exposed(
+        &self,
+        t_c_to_g: &[Se3],
+        rng: &mut ChaCha8Rng,
+    ) -> Result<GrayImage, ImageError> {
         let cam = &self.calib.camera;
         let (w, h) = (cam.width, cam.height);
-        let r = t_c_to_g.rot;
-        let o = t_c_to_g.trans;
+        let poses: Vec<_> = t_c_to_g.iter().map(|p| (p.rot, p.trans)).collect();
+        let n = poses.len().max(1) as f64;
         let data: Vec<u8> = self
             .rays
             .iter()
             .map(|ray| {
-                let value = self.shade(&r, &o, ray);
+                let value = poses
+                    .iter()
+                    .map(|(r, o)| self.shade(r, o, ray))
+                    .sum::<f64>()
+                    / n;
                 let noise: f64 = StandardNormal.sample(rng);
                 (value + self.noise * noise).round().clamp(0.0, 255.0) as u8
             })
@@ -280,6 +336,7 @@ mod tests {
     use super::*;
     use crate::world::camera_pose;
     use crate::{Fleet, Scenario, SimEvent};
+    use rand::SeedableRng;
     use std::path::PathBuf;
 
     fn rendered_v1_01() -> Fleet {
@@ -351,6 +408,64 @@ mod tests {
         assert_eq!(first(&a), first(&b));
     }
 
+    /// Mean absolute difference of horizontally neighbouring pixels.
+    fn sharpness(img: &GrayImage) -> f64 {
+        let (w, px) = (img.width() as usize, img.data());
+        let mut sum = 0.0;
+        let mut n = 0usize;
+        for row in px.chunks(w) {
+            for pair in row.windows(2) {
+                sum += (f64::from(pair[0]) - f64::from(pair[1])).abs();
+                n += 1;
+            }
+        }
+        sum / n as f64
+    }
+
+    #[test]
+    fn an_exposure_blurs_a_moving_camera_and_not_a_still_one() {
+        let fleet = rendered_v1_01();
+        let renderer = fleet.renderer.clone().expect("renderer");
+        let truth = &fleet.truths[0];
+        let cam = fleet.true_calibration.clone();
+        let spec = RenderSpec {
+            exposure_ms: 20.0,
+            exposure_samples: 8,
+            ..RenderSpec::default()
+        };
+        let times = spec.exposure_times(30.0);
+        assert_eq!(times.len(), 8);
+        assert!((times.iter().sum::<f64>() / 8.0 - 30.0).abs() < 1e-12);
+        assert!((times[7] - times[0] - 0.0175).abs() < 1e-12);
+        assert_eq!(RenderSpec::default().exposure_times(30.0), vec![30.0]);
+        let rng = || ChaCha8Rng::seed_from_u64(3);
+        let pose = |t| camera_pose(truth, &cam, t).expect("pose");
+        // V1_01 at 30 s moves; 20 ms of it smears the texture.
+        let sharp = renderer.render(&pose(30.0), &mut rng()).expect("image");
+        let poses: Vec<Se3> = times.iter().map(|&t| pose(t)).collect();
+        let blurred = renderer.render_exposed(&poses, &mut rng()).expect("image");
+        let (s, b) = (sharpness(&sharp), sharpness(&blurred));
+        println!("sharpness: {s:.2} sharp, {b:.2} over 20 ms");
+        assert!(b < 0.8 * s, "sharpness {b} blurred against {s}");
+        // A camera that does not move during the exposure takes the same picture.
+        let still = renderer
+            .render_exposed(&[pose(30.0), pose(30.0), pose(30.0)], &mut rng())
+            .expect("image");
+        let diff = still
+            .data()
+            .iter()
+            .zip(sharp.data())
+            .filter(|(a, b)| a != b)
+            .count();
+        assert!(diff * 1000 < sharp.data().len(), "{diff} pixels differ");
+        assert_eq!(
+            renderer
+                .render_exposed(&[pose(30.0)], &mut rng())
+                .expect("image"),
+            sharp
+        );
+    }
+
     #[test]
     fn bad_render_settings_are_refused() {
         let bad = RenderSpec {
@@ -367,5 +482,13 @@ mod tests {
             ..RenderSpec::default()
         };
         assert!(bad.validate().is_err());
+        for (exposure_ms, exposure_samples) in [(-1.0, 8), (f64::NAN, 8), (500.0, 8), (5.0, 0)] {
+            let bad = RenderSpec {
+                exposure_ms,
+                exposure_samples,
+                ..RenderSpec::default()
+            };
+            assert!(bad.validate().unwrap_err().to_string().contains("exposure"));
+        }
     }
 }
