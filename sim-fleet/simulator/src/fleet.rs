@@ -179,6 +179,8 @@ impl Fleet {
             ),
             camera_done: false,
             render_rng: stream_rng(self.seed, Stream::Render(robot)),
+            lighting_rng: stream_rng(self.seed, Stream::Lighting(robot)),
+            gain: 1.0,
         })
     }
 
@@ -302,6 +304,11 @@ pub struct RobotStream<'a> {
     camera: CameraGenerator,
     camera_done: bool,
     render_rng: ChaCha8Rng,
+    /// The auto-exposure's steps (their own stream, so the image noise does not
+    /// change with them).
+    lighting_rng: ChaCha8Rng,
+    /// Brightness of the last rendered image relative to the scene's.
+    gain: f64,
 }
 
 impl RobotStream<'_> {
@@ -326,7 +333,9 @@ impl RobotStream<'_> {
             .into_iter()
             .filter_map(|t| camera_pose(self.truth, calib, t))
             .collect();
-        match renderer.render_exposed(&poses, &mut self.render_rng) {
+        let spec = &self.fleet.scenario.render;
+        self.gain = spec.next_gain(self.gain, &mut self.lighting_rng);
+        match renderer.render_exposed(&poses, self.gain, &mut self.render_rng) {
             Ok(img) => ev.image = Some(Arc::new(img)),
             // Only an image size GrayImage cannot hold fails, which
             // Renderer::new already refused.

@@ -21,6 +21,8 @@ pub enum Stream {
     Render(usize),
     /// The error a robot's estimator starts with (`initial_error: sampled`).
     InitialState(usize),
+    /// A robot's rendered images' brightness steps (`render.gain_step_chance`).
+    Lighting(usize),
 }
 
 /// A ChaCha8 generator for `stream` of `seed`; streams never overlap.
@@ -34,6 +36,7 @@ pub fn stream_rng(seed: u64, stream: Stream) -> ChaCha8Rng {
         Stream::Render(r) => 4 + 4 * r as u64,
         // Above every 4r + k of any realistic fleet.
         Stream::InitialState(r) => (1 << 40) + r as u64,
+        Stream::Lighting(r) => (1 << 41) + r as u64,
         Stream::Texture => u64::MAX,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);

@@ -64,6 +64,18 @@ pub struct RenderSpec {
     /// Camera poses the exposure is averaged over (spread evenly across it);
     /// used when `exposure_ms` is above 0.
     pub exposure_samples: usize,
+    /// Chance per image (0..=1) that the camera's auto-exposure steps its
+    /// brightness, as real cameras do between images when the scene's light
+    /// changes. 0 (the default) keeps the brightness constant.
+    pub gain_step_chance: f64,
+    /// Largest relative change of one step: the brightness is multiplied by a
+    /// factor drawn log-uniformly within `[1 / (1 + max), 1 + max]`.
+    pub gain_step_max: f64,
+    /// Least brightness relative to the scene's (a darker image).
+    pub gain_min: f64,
+    /// Most brightness relative to the scene's (a brighter image; the
+    /// brightest texels then saturate at 255).
+    pub gain_max: f64,
 }
 
 impl Default for RenderSpec {
@@ -78,6 +90,10 @@ impl Default for RenderSpec {
             intensity_noise_gray: 2.0,
             exposure_ms: 0.0,
             exposure_samples: 8,
+            gain_step_chance: 0.0,
+            gain_step_max: 0.2,
+            gain_min: 0.6,
+            gain_max: 1.4,
         }
     }
 }
@@ -116,6 +132,30 @@ impl RenderSpec {
                 self.exposure_samples
             )));
         }
+        if !(self.gain_step_chance.is_finite() && (0.0..=1.0).contains(&self.gain_step_chance)) {
+            return Err(RenderError::Invalid(format!(
+                "gain_step_chance must be within 0..=1, got {}",
+                self.gain_step_chance
+            )));
+        }
+        if !(self.gain_step_max.is_finite() && (0.0..=1.0).contains(&self.gain_step_max)) {
+            return Err(RenderError::Invalid(format!(
+                "gain_step_max must be within 0..=1, got {}",
+                self.gain_step_max
+            )));
+        }
+        let gains = self.gain_min.is_finite()
+            && self.gain_max.is_finite()
+            && 0.1 <= self.gain_min
+            && self.gain_min <= 1.0
+            && 1.0 <= self.gain_max
+            && self.gain_max <= 10.0;
+        if !gains {
+            return Err(RenderError::Invalid(format!(
+                "gain_min must be within 0.1..=1 and gain_max within 1..=10, got {} and {}",
+                self.gain_min, self.gain_max
+            )));
+        }
         if !self.texture_px.is_power_of_two() || !(8..=8192).contains(&self.texture_px) {
             return Err(RenderError::Invalid(format!(
                 "texture_px must be a power of two in 8..=8192, got {}",
@@ -137,6 +177,22 @@ impl RenderSpec {
         (0..n)
             .map(|i| t - 0.5 * e + (i as f64 + 0.5) * e / n as f64)
             .collect()
+    }
+
+    /// The brightness of the next image, from that of the last one (1 for the
+    /// first): a step with probability `gain_step_chance`, else the same.
+    /// Draws nothing from `rng` when steps are off, so a scenario without them
+    /// renders byte for byte as before.
+    pub fn next_gain(&self, gain: f64, rng: &mut ChaCha8Rng) -> f64 {
+        if self.gain_step_chance <= 0.0 {
+            return gain;
+        }
+        if rng.random::<f64>() >= self.gain_step_chance {
+            return gain;
+        }
+        let span = (1.0 + self.gain_step_max).ln();
+        let factor = rng.random_range(-span..=span).exp();
+        (gain * factor).clamp(self.gain_min, self.gain_max)
     }
 }
 
@@ -229,16 +285,19 @@ impl Renderer {
     /// The image seen from camera pose `t_c_to_g`, with intensity noise from
     /// `rng`. Fails only for an image size [`GrayImage`] does not hold.
     pub fn render(&self, t_c_to_g: &Se3, rng: &mut ChaCha8Rng) -> Result<GrayImage, ImageError> {
-        self.render_exposed(std::slice::from_ref(t_c_to_g), rng)
+        self.render_exposed(std::slice::from_ref(t_c_to_g), 1.0, rng)
     }
 
     /// The image of an exposure during which the camera took the poses
-    /// `t_c_to_g` (each pixel the mean of their intensities: motion blur), with
-    /// intensity noise from `rng`. One pose is [`Renderer::render`]; none gives
-    /// a black image.
+    /// `t_c_to_g` (each pixel the mean of their intensities: motion blur),
+    /// brightened by `gain` (the auto-exposure's: the scene's light scaled
+    /// before the sensor's noise, saturating at 255), with intensity noise from
+    /// `rng`. One pose at gain 1 is [`Renderer::render`]; none gives a black
+    /// image.
     pub fn render_exposed(
         &self,
         t_c_to_g: &[Se3],
+        gain: f64,
         rng: &mut ChaCha8Rng,
     ) -> Result<GrayImage, ImageError> {
         let cam = &self.calib.camera;
@@ -253,6 +312,7 @@ impl Renderer {
                     .iter()
                     .map(|(r, o)| self.shade(r, o, ray))
                     .sum::<f64>()
+                    * gain
                     / n;
                 let noise: f64 = StandardNormal.sample(rng);
                 (value + self.noise * noise).round().clamp(0.0, 255.0) as u8
@@ -443,13 +503,15 @@ mod tests {
         // V1_01 at 30 s moves; 20 ms of it smears the texture.
         let sharp = renderer.render(&pose(30.0), &mut rng()).expect("image");
         let poses: Vec<Se3> = times.iter().map(|&t| pose(t)).collect();
-        let blurred = renderer.render_exposed(&poses, &mut rng()).expect("image");
+        let blurred = renderer
+            .render_exposed(&poses, 1.0, &mut rng())
+            .expect("image");
         let (s, b) = (sharpness(&sharp), sharpness(&blurred));
         println!("sharpness: {s:.2} sharp, {b:.2} over 20 ms");
         assert!(b < 0.8 * s, "sharpness {b} blurred against {s}");
         // A camera that does not move during the exposure takes the same picture.
         let still = renderer
-            .render_exposed(&[pose(30.0), pose(30.0), pose(30.0)], &mut rng())
+            .render_exposed(&[pose(30.0), pose(30.0), pose(30.0)], 1.0, &mut rng())
             .expect("image");
         let diff = still
             .data()
@@ -460,10 +522,61 @@ mod tests {
         assert!(diff * 1000 < sharp.data().len(), "{diff} pixels differ");
         assert_eq!(
             renderer
-                .render_exposed(&[pose(30.0)], &mut rng())
+                .render_exposed(&[pose(30.0)], 1.0, &mut rng())
                 .expect("image"),
             sharp
         );
+    }
+
+    #[test]
+    fn auto_exposure_steps_brighten_and_darken_within_their_bounds() {
+        let spec = RenderSpec {
+            gain_step_chance: 0.25,
+            gain_step_max: 0.2,
+            ..RenderSpec::default()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut gain = 1.0;
+        let (mut steps, mut largest) = (0usize, 0.0f64);
+        let (mut lo, mut hi) = (1.0f64, 1.0f64);
+        for _ in 0..4000 {
+            let next = spec.next_gain(gain, &mut rng);
+            if next != gain {
+                steps += 1;
+                largest = largest.max((next / gain).ln().abs());
+            }
+            (lo, hi) = (lo.min(next), hi.max(next));
+            gain = next;
+        }
+        // About a quarter of the images step, none by more than 20 %, and the
+        // brightness wanders over its whole range without leaving it.
+        assert!((800..1200).contains(&steps), "{steps} steps");
+        assert!(largest <= 1.2f64.ln() + 1e-12, "step {largest}");
+        assert!(lo >= 0.6 && hi <= 1.4, "{lo}..{hi}");
+        assert!(lo < 0.75 && hi > 1.25, "{lo}..{hi}");
+        // Off, nothing is drawn: the noise stream is untouched.
+        let mut a = ChaCha8Rng::seed_from_u64(5);
+        assert_eq!(RenderSpec::default().next_gain(0.9, &mut a), 0.9);
+        assert_eq!(a, ChaCha8Rng::seed_from_u64(5));
+        // The gain scales the scene before the noise and saturates at 255.
+        let fleet = rendered_v1_01();
+        let renderer = fleet.renderer.clone().expect("renderer");
+        let pose = camera_pose(&fleet.truths[0], &fleet.true_calibration, 30.0).expect("pose");
+        let quiet = Renderer {
+            noise: 0.0,
+            ..(*renderer).clone()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let base = quiet.render_exposed(&[pose], 1.0, &mut rng).expect("image");
+        let bright = quiet.render_exposed(&[pose], 1.3, &mut rng).expect("image");
+        let mean = |img: &GrayImage| {
+            img.data().iter().map(|&v| f64::from(v)).sum::<f64>() / img.data().len() as f64
+        };
+        let ratio = mean(&bright) / mean(&base);
+        let saturated = bright.data().iter().filter(|&&v| v == 255).count();
+        println!("gain 1.3: mean ratio {ratio:.3}, {saturated} pixels saturated");
+        assert!(ratio > 1.25 && ratio < 1.31, "ratio {ratio}");
+        assert!(saturated > 0);
     }
 
     #[test]
@@ -489,6 +602,22 @@ mod tests {
                 ..RenderSpec::default()
             };
             assert!(bad.validate().unwrap_err().to_string().contains("exposure"));
+        }
+        for (chance, max, lo, hi) in [
+            (-0.1, 0.2, 0.6, 1.4),
+            (f64::NAN, 0.2, 0.6, 1.4),
+            (0.1, 2.0, 0.6, 1.4),
+            (0.1, 0.2, 1.2, 1.4),
+            (0.1, 0.2, 0.6, 0.9),
+        ] {
+            let bad = RenderSpec {
+                gain_step_chance: chance,
+                gain_step_max: max,
+                gain_min: lo,
+                gain_max: hi,
+                ..RenderSpec::default()
+            };
+            assert!(bad.validate().unwrap_err().to_string().contains("gain"));
         }
     }
 }
