@@ -35,9 +35,12 @@ fn main() {
         .take(FRAMES)
         .collect();
     for (name, opts) in [
-        ("FAST, equalized", FrontendOptions::default()),
         (
-            "Shi-Tomasi, CLAHE",
+            "FAST, equalized, held (the default)",
+            FrontendOptions::default(),
+        ),
+        (
+            "Shi-Tomasi, CLAHE, held",
             FrontendOptions {
                 detector: agent::frontend::Detector::ShiTomasi,
                 histogram: agent::frontend::Histogram::Clahe,
@@ -45,9 +48,9 @@ fn main() {
             },
         ),
         (
-            "FAST, equalized, first patch (drop)",
+            "FAST, equalized, KLT alone (first_patch: off)",
             FrontendOptions {
-                first_patch: agent::frontend::FirstPatch::Drop,
+                first_patch: agent::frontend::FirstPatch::Off,
                 ..FrontendOptions::default()
             },
         ),

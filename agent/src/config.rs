@@ -488,10 +488,10 @@ pub struct EstimatorSection {
     pub zupt_max_disparity_px: Option<f64>,
     /// Pixel noise of the MSCKF updates and of SLAM initialization, px
     /// (OpenVINS's `up_msckf_sigma_px`; default 1 on camera images, the
-    /// scenario's in simulation). Tracks held to their first patch
-    /// (`images.frontend.first_patch: drop`) were measured on rendered images
-    /// at 0.5 with `up_slam_sigma_px` 1 (README, "Pixel noise for held
-    /// tracks").
+    /// scenario's in simulation). The default frontend's tracks, held to their
+    /// first patch (`images.frontend.first_patch: drop`), were measured on
+    /// rendered images at 0.5 with `up_slam_sigma_px` 1 too (README, "Pixel
+    /// noise for held tracks"); 1 keeps a margin for real images.
     #[serde(default)]
     pub up_msckf_sigma_px: Option<f64>,
     /// Pixel noise of the SLAM features' updates, px (OpenVINS's

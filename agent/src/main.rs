@@ -203,7 +203,7 @@ struct RunArgs {
     #[arg(long)]
     render: bool,
     /// With `--render`: image frontend settings (YAML), the keys of an agent
-    /// configuration's `images.frontend:` block (`first_patch: drop`, ...),
+    /// configuration's `images.frontend:` block (`first_patch: off`, ...),
     /// over the defaults.
     #[arg(long, value_name = "YAML", requires = "render")]
     frontend: Option<PathBuf>,

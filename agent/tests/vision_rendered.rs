@@ -23,7 +23,7 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
         .metrics();
     sc.render.enabled = true;
     let rendered_fleet = Fleet::build(&sc, seed).expect("rendered fleet");
-    // KLT tracks: the SLAM updates take 2 px, and are paced on a keyframe
+    // Camera images: the SLAM updates take 2 px, and are paced on a keyframe
     // window, unless the scenario says otherwise.
     let rendered_opts = options_for(&sc.estimator, &rendered_fleet, Variant::IndpSlam);
     assert_eq!(
@@ -64,7 +64,7 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
         rendered.nees_ori.unwrap(),
         rendered.nees_pos.unwrap(),
     );
-    println!("KLT tracks: {q:?}");
+    println!("tracks (held to their first patch, the default): {q:?}");
     assert!(rendered.frames.unwrap() > 1000);
     let (fa, ra) = (
         feature_level.ate_pos_m.unwrap(),
@@ -78,6 +78,9 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
     assert!(q.features_per_frame > 150.0, "{q:?}");
     assert!(q.reprojection_median_px < 1.0, "{q:?}");
     assert!(q.outlier_fraction < 0.1, "{q:?}");
+    // The default frontend holds each track to its first patch: 0.09 px off the
+    // truth on average here, against the KLT alone's 0.74.
+    assert!(q.reprojection_mean_px < 0.2, "{q:?}");
     // The per-image series adds up to the summary.
     let per = &r.per_frame;
     let n: usize = per.iter().map(|f| f.observations).sum();

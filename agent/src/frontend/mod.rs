@@ -10,9 +10,10 @@
 //!    lands within `max_forward_backward_px` of the start (forward-backward
 //!    check);
 //! 3. outlier rejection with a fundamental-matrix RANSAC on the undistorted
-//!    points (ideal pixels `K · n`, so the threshold is in pixels), then,
-//!    with `first_patch` set, each track refined against the patch it started
-//!    with ([`patch_refine`]), so frame-to-frame errors do not add up;
+//!    points (ideal pixels `K · n`, so the threshold is in pixels), then
+//!    each track refined against the patch it started with
+//!    ([`patch_refine`]; `first_patch: off` skips it), so frame-to-frame
+//!    errors do not add up;
 //! 4. new features on a grid (FAST or Shi-Tomasi), away from the image border
 //!    and at least `min_distance_px` from every feature, until
 //!    `num_features` are tracked;
@@ -66,14 +67,17 @@ pub enum Histogram {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FirstPatch {
-    /// No refinement: frame-to-frame KLT alone (the default, see the README's
-    /// "Tracks held to their first patch" for why).
+    /// No refinement: frame-to-frame KLT alone (OpenVINS's tracker, and the
+    /// default until stop 94).
     Off,
     /// Refined; when refused the track keeps its frame-to-frame pixel and
     /// takes the patch there as its new first patch.
     Reanchor,
-    /// Refined; when refused the track ends. A patch reaching
-    /// past the image border keeps the frame-to-frame pixel in both modes.
+    /// Refined; when refused the track ends (the default: on every rendered
+    /// setting measured its tracks are 0.09 px off the truth against the KLT
+    /// alone's 0.6, README "Tracks held to their first patch"). A patch
+    /// reaching past the image border keeps the frame-to-frame pixel in both
+    /// modes.
     Drop,
 }
 
@@ -109,7 +113,7 @@ pub struct FrontendOptions {
     /// Every this many frames is a keyframe: every track gets a fresh descriptor.
     pub keyframe_interval: u64,
     /// Refinement of each track against the patch it started with
-    /// (`patch_refine`): `off` (the default), `drop` or `reanchor`.
+    /// (`patch_refine`): `drop` (the default), `reanchor` or `off`.
     pub first_patch: FirstPatch,
 }
 
@@ -129,7 +133,7 @@ impl Default for FrontendOptions {
             max_forward_backward_px: 1.0,
             ransac_threshold_px: 1.0,
             keyframe_interval: 10,
-            first_patch: FirstPatch::Off,
+            first_patch: FirstPatch::Drop,
         }
     }
 }
