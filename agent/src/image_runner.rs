@@ -1,6 +1,6 @@
 //! One robot of a scenario that renders images, through the image frontend into
 //! the estimator (the rendered counterpart of [`crate::runner::run_robot`]),
-//! with the quality of the KLT tracks measured against the rendered truth.
+//! with the quality of the tracks measured against the rendered truth.
 //!
 //! Track accuracy: when a track starts, its pixel is cast into the rendered
 //! room from the true camera pose, which gives the true 3-D point behind it;
