@@ -73,8 +73,8 @@ pub enum FirstPatch {
     /// Refined; when refused the track keeps its frame-to-frame pixel and
     /// takes the patch there as its new first patch.
     Reanchor,
-    /// Refined; when refused the track ends (the default: on every rendered
-    /// setting measured its tracks are 0.09 px off the truth against the KLT
+    /// Refined; when refused the track ends (the default: on the rendered
+    /// reference flights its tracks are 0.09 px off the truth against the KLT
     /// alone's 0.6, README "Tracks held to their first patch"). A patch
     /// reaching past the image border keeps the frame-to-frame pixel in both
     /// modes.
