@@ -200,6 +200,10 @@ impl RenderSpec {
 pub const MAX_EXPOSURE_MS: f64 = 100.0;
 /// Most camera poses one exposure may average.
 pub const MAX_EXPOSURE_SAMPLES: usize = 64;
+/// Most threads shading one image (the machine's cores up to this).
+const MAX_RENDER_THREADS: usize = 8;
+/// Rows of an image one thread shades at a time.
+const RENDER_BAND_ROWS: usize = 16;
 
 /// One pixel's ray: normalized direction `[x, y, 1]` and its footprint (the
 /// pixel's width in normalized units); `fp` is NaN where undistortion fails.
@@ -222,6 +226,8 @@ pub struct Renderer {
     noise: f64,
     calib: CameraCalibration,
     rays: Vec<PixelRay>,
+    /// Threads that shade an image (their rows split evenly).
+    threads: usize,
 }
 
 impl std::fmt::Debug for Renderer {
@@ -274,6 +280,9 @@ impl Renderer {
             noise: spec.intensity_noise_gray,
             calib: calib.clone(),
             rays: pixel_rays(calib),
+            threads: std::thread::available_parallelism()
+                .map_or(1, std::num::NonZeroUsize::get)
+                .min(MAX_RENDER_THREADS),
         })
     }
 
@@ -303,22 +312,70 @@ impl Renderer {
         let cam = &self.calib.camera;
         let (w, h) = (cam.width, cam.height);
         let poses: Vec<_> = t_c_to_g.iter().map(|p| (p.rot, p.trans)).collect();
-        let n = poses.len().max(1) as f64;
-        let data: Vec<u8> = self
-            .rays
-            .iter()
-            .map(|ray| {
-                let value = poses
-                    .iter()
-                    .map(|(r, o)| self.shade(r, o, ray))
-                    .sum::<f64>()
-                    * gain
-                    / n;
-                let noise: f64 = StandardNormal.sample(rng);
-                (value + self.noise * noise).round().clamp(0.0, 255.0) as u8
-            })
+        // The noise is drawn first, in pixel order (the order it always had),
+        // so the image is the same however many threads shade it.
+        let noise: Vec<f64> = (0..self.rays.len())
+            .map(|_| StandardNormal.sample(rng))
             .collect();
+        let mut data = vec![0u8; self.rays.len()];
+        // Bands of rows, taken in turn by this thread and its helpers.
+        let band = (RENDER_BAND_ROWS * w as usize).max(1);
+        let bands = std::sync::Mutex::new(
+            data.chunks_mut(band)
+                .zip(self.rays.chunks(band).zip(noise.chunks(band))),
+        );
+        let work = || loop {
+            let next = match bands.lock() {
+                Ok(mut it) => it.next(),
+                Err(_) => None,
+            };
+            let Some((out, (rays, noise))) = next else {
+                break;
+            };
+            self.shade_pixels(&poses, gain, rays, noise, out);
+        };
+        std::thread::scope(|scope| {
+            for _ in 1..self.threads {
+                // A helper that cannot be started leaves its bands to the others.
+                if std::thread::Builder::new()
+                    .spawn_scoped(scope, work)
+                    .is_err()
+                {
+                    break;
+                }
+            }
+            work();
+        });
         GrayImage::new(w, h, data)
+    }
+
+    /// The same renderer shading each image on `threads` threads (at least
+    /// one); the images do not depend on it.
+    pub fn with_threads(mut self, threads: usize) -> Self {
+        self.threads = threads.max(1);
+        self
+    }
+
+    /// Gray levels of the pixels `rays`, with their noise draws `noise`: the
+    /// mean over `poses`, brightened by `gain`.
+    fn shade_pixels(
+        &self,
+        poses: &[(nalgebra::Matrix3<f64>, Vector3<f64>)],
+        gain: f64,
+        rays: &[PixelRay],
+        noise: &[f64],
+        out: &mut [u8],
+    ) {
+        let n = poses.len().max(1) as f64;
+        for ((px, ray), noise) in out.iter_mut().zip(rays).zip(noise) {
+            let value = poses
+                .iter()
+                .map(|(r, o)| self.shade(r, o, ray))
+                .sum::<f64>()
+                * gain
+                / n;
+            *px = gray_level(value + self.noise * noise);
+        }
     }
 
     /// Noise-free intensity of one pixel.
@@ -337,7 +394,15 @@ impl Renderer {
         // range), stretched on the surface by `|d| / |d_a|` along the slope and
         // not across it; the geometric mean of the two stretches is used.
         let footprint = hit.s * ray.fp / (d.norm() * d[a].abs()).sqrt();
-        let level = (footprint / self.texel_m).max(1e-6).log2() as f32;
+        // A footprint within one texel is the finest level: the texture clamps
+        // a negative level to 0, so the logarithm (a libm call for most pixels
+        // of a room seen from inside it) is only taken above 1.
+        let texels = footprint / self.texel_m;
+        let level = if texels > 1.0 {
+            texels.log2() as f32
+        } else {
+            0.0
+        };
         let u = (hit.point[i] / self.texel_m) as f32 + self.offsets[k][0];
         let v = (hit.point[j] / self.texel_m) as f32 + self.offsets[k][1];
         f64::from(self.textures[k].sample(u, v, level) * self.gains[k])
@@ -350,6 +415,21 @@ impl Renderer {
         let d = t_c_to_g.rot * Vector3::new(n.x, n.y, 1.0);
         self.room.exit(&t_c_to_g.trans, &d).map(|h| h.point)
     }
+}
+
+/// `x.round().clamp(0.0, 255.0) as u8`, exactly, without libm's `round`
+/// (baseline x86-64 has no rounding instruction; it was 4 % of a rendered
+/// run): negative and NaN give 0, and below 255 the fraction after the
+/// truncation is exact, so halves round up as `round` rounds them.
+fn gray_level(x: f64) -> u8 {
+    if x.is_nan() || x <= 0.0 {
+        return 0;
+    }
+    if x >= 255.0 {
+        return 255;
+    }
+    let whole = x as u8;
+    whole + u8::from(x - f64::from(whole) >= 0.5)
 }
 
 /// The ray of every pixel centre (row-major), with its footprint.
@@ -453,6 +533,39 @@ mod tests {
     }
 
     #[test]
+    fn gray_levels_round_and_saturate_as_libm_round_does() {
+        let libm = |x: f64| x.round().clamp(0.0, 255.0) as u8;
+        let mut xs = vec![
+            f64::NAN,
+            f64::NEG_INFINITY,
+            f64::INFINITY,
+            -0.0,
+            0.0,
+            -0.5,
+            -0.4999999999999999,
+            0.49999999999999994,
+            0.5,
+            254.49999999999997,
+            254.5,
+            254.99999999999997,
+            255.0,
+            255.49999999999997,
+            255.5,
+            1e300,
+            f64::MIN_POSITIVE,
+        ];
+        // Every half step and its neighbours on either side.
+        for k in -20..=540 {
+            let x = f64::from(k) * 0.5;
+            xs.extend([x, x.next_up(), x.next_down()]);
+        }
+        xs.extend((0..100_000).map(|i| -10.0 + f64::from(i) * 0.002_777_7));
+        for x in xs {
+            assert_eq!(gray_level(x), libm(x), "{x:e}");
+        }
+    }
+
+    #[test]
     fn rendering_is_a_pure_function_of_the_seed() {
         let a = rendered_v1_01();
         let b = rendered_v1_01();
@@ -466,6 +579,28 @@ mod tests {
                 .expect("image")
         };
         assert_eq!(first(&a), first(&b));
+    }
+
+    #[test]
+    fn images_do_not_depend_on_the_threads_that_shade_them() {
+        let fleet = rendered_v1_01();
+        let renderer = fleet.renderer.clone().expect("renderer");
+        let (truth, cam) = (&fleet.truths[0], &fleet.true_calibration);
+        let poses: Vec<Se3> = [30.0, 30.004, 30.008]
+            .iter()
+            .map(|&t| camera_pose(truth, cam, t).expect("pose"))
+            .collect();
+        let image = |threads: usize| {
+            let mut rng = ChaCha8Rng::seed_from_u64(5);
+            let r = Renderer::clone(&renderer).with_threads(threads);
+            let img = r.render_exposed(&poses, 1.3, &mut rng).expect("image");
+            // The next draw too: each image takes as many as it has pixels.
+            (img, rng.random::<u64>())
+        };
+        let one = image(1);
+        for threads in [0, 2, 3, 7] {
+            assert!(image(threads) == one, "{threads} threads");
+        }
     }
 
     /// Mean absolute difference of horizontally neighbouring pixels.
