@@ -38,7 +38,7 @@ fn main() -> anyhow::Result<()> {
     let mut frames: Vec<Vec<agent::estimator::FrameRecord>> = vec![Vec::new(); variants.len()];
     for _ in 0..rounds {
         for (i, (_, v, tweak)) in variants.iter().enumerate() {
-            let mut opts = options_for(&scenario.estimator, &fleet, *v);
+            let mut opts = options_for(&scenario.estimator, &fleet, 0, *v);
             tweak(&mut opts);
             let run = run_robot(&fleet, 0, opts)?;
             frames[i].extend(run.frames);

@@ -101,7 +101,7 @@ pub fn run_robot_rendered(
     frontend: FrontendOptions,
     mut on_image: impl FnMut(&CameraEvent, &FrontendOutput),
 ) -> Result<ImageRun, RunError> {
-    if fleet.renderer.is_none() {
+    if !fleet.renders() {
         return Err(RunError::Frames {
             t: f64::NAN,
             reason: "the scenario does not render images (render.enabled: false)".into(),
@@ -151,9 +151,9 @@ impl<'a> TrackScorer<'a> {
     /// render or has no such robot.
     pub fn new(fleet: &'a Fleet, robot: usize) -> Option<Self> {
         Some(Self {
-            renderer: fleet.renderer.as_deref()?,
+            renderer: fleet.renderer(robot)?,
             truth: fleet.truths.get(robot)?,
-            calib: &fleet.true_calibration,
+            calib: fleet.true_calibration(robot)?,
             landmarks: HashMap::new(),
             errors: Vec::new(),
             frames: 0,

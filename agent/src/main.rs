@@ -730,7 +730,7 @@ fn run(args: &RunArgs) -> Result<()> {
     let seed = args.seed.unwrap_or(scenario.seed);
     let variant: Variant = args.variant.parse()?;
     let fleet = Fleet::build(&scenario, seed)?;
-    let opts = options_for(&scenario.estimator, &fleet, variant);
+    let opts = options_for(&scenario.estimator, &fleet, args.robot, variant);
     let out = &args.out;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let mut log = AgentLog::create(&out.join("agent.mcap"))?;
@@ -740,7 +740,7 @@ fn run(args: &RunArgs) -> Result<()> {
             .filter(|p| p.extension().is_some_and(|e| e == "csv"));
         let biases = args.real_imu_biases.clone().or(default_biases);
         agent::hybrid::run_robot_hybrid(&fleet, args.robot, opts, imu, biases.as_deref())?
-    } else if fleet.renderer.is_some() {
+    } else if fleet.renders() {
         rendered(
             &fleet,
             args.robot,

@@ -1214,7 +1214,7 @@ pub fn run_node(
     let start_t = fleet
         .estimator_start_time(robot)
         .ok_or(simulator::SimError::NoSuchRobot(robot))?;
-    let mut opts = options_for(spec, fleet, setup.variant);
+    let mut opts = options_for(spec, fleet, robot, setup.variant);
     cfg.estimator.apply(&mut opts);
     // E.g. robots in their own frames with a variant that closes no loops:
     // it could never find its peers' frames.

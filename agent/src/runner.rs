@@ -127,6 +127,9 @@ pub enum RunError {
     /// The scenario renders images, and this run takes simulated features.
     #[error("the scenario renders images (render.enabled), and {0} takes simulated features: {1}")]
     RendersImages(&'static str, &'static str),
+    /// Robots whose cameras have different pixel noise, in one joint filter.
+    #[error("{0} weighs every robot's pixels alike, and robot {1}'s camera has another pixel_noise_px than robot 0's")]
+    MixedPixelNoise(&'static str, usize),
     /// The robot never moved enough to start.
     #[error("robot {0} has no camera frame after its start time")]
     NeverStarted(usize),
@@ -151,12 +154,20 @@ pub enum RunError {
 /// camera-image default ([`TRACKED_SLAM_SIGMA_PX`]), and unless it sets
 /// `slam_keyframe_updates` they are paced on a keyframe window, as `agent
 /// dataset` and live sensors do ([`EstimatorOptions::for_tracked_images`]).
-pub fn options_for(spec: &EstimatorSpec, fleet: &Fleet, variant: Variant) -> EstimatorOptions {
-    let mut o = spec.options(&fleet.scenario.sensors);
-    if fleet.renderer.is_some() && o.slam_pixel_sigma_px.is_none() {
+///
+/// The pixel noise the filter expects is robot `robot`'s camera's (a fleet
+/// may mix cameras, `robots[i].camera`).
+pub fn options_for(
+    spec: &EstimatorSpec,
+    fleet: &Fleet,
+    robot: usize,
+    variant: Variant,
+) -> EstimatorOptions {
+    let mut o = spec.options(&fleet.scenario.sensors_of(robot));
+    if fleet.renders() && o.slam_pixel_sigma_px.is_none() {
         o.slam_pixel_sigma_px = Some(TRACKED_SLAM_SIGMA_PX);
     }
-    if fleet.renderer.is_some() && spec.slam_keyframe_updates.is_none() {
+    if fleet.renders() && spec.slam_keyframe_updates.is_none() {
         o.slam_keyframe_updates = true;
     }
     variant.apply(&mut o);
@@ -282,7 +293,7 @@ pub fn run_robot(
 /// rendered frames carry images, and without the image frontend every frame
 /// would be empty.
 pub fn require_features(fleet: &Fleet) -> Result<(), RunError> {
-    if fleet.renderer.is_some() {
+    if fleet.renders() {
         return Err(RunError::RendersImages(
             "this run",
             "run it through the image frontend (`agent run --render`, cargo feature `vision`)",

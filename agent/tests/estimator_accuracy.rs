@@ -107,7 +107,7 @@ fn scenario_with_camera(dir: &Path, camera: &str, estimator: &str) -> Scenario {
 /// One run of robot 0 with `seed` and `variant`.
 fn run(scenario: &Scenario, seed: u64, variant: Variant) -> RobotRun {
     let fleet = Fleet::build(scenario, seed).expect("build fleet");
-    let opts = options_for(&scenario.estimator, &fleet, variant);
+    let opts = options_for(&scenario.estimator, &fleet, 0, variant);
     run_robot(&fleet, 0, opts).expect("run robot")
 }
 
@@ -296,7 +296,7 @@ fn the_body_twist_is_consistent_with_the_truth() {
     let (mut lin, mut ang, mut n) = (0.0, 0.0, 0usize);
     for seed in SEEDS {
         let fleet = Fleet::build(&sc, seed).expect("fleet");
-        let opts = options_for(&sc.estimator, &fleet, Variant::IndpSlam);
+        let opts = options_for(&sc.estimator, &fleet, 0, Variant::IndpSlam);
         let (mut seed_lin, mut seed_ang, mut seed_n) = (0.0, 0.0, 0usize);
         drive_robot0(&fleet, opts, |_, o| {
             let Some(truth) = fleet.truths[0].state(o.t()) else {
@@ -469,7 +469,7 @@ fn a_run_without_first_estimates_jacobians_completes() {
     let sc = scenario(dir.path(), "{ use_fej: false }");
     assert!(!sc.estimator.use_fej);
     let fleet = Fleet::build(&sc, 1).expect("build fleet");
-    let opts = options_for(&sc.estimator, &fleet, Variant::IndpSlam);
+    let opts = options_for(&sc.estimator, &fleet, 0, Variant::IndpSlam);
     assert!(!opts.use_fej);
     let r = run_robot(&fleet, 0, opts).expect("run robot");
     let m = r.metrics();

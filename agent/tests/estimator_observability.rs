@@ -115,7 +115,7 @@ fn largest_growth(use_fej: bool) -> f64 {
     .expect("write scenario");
     let sc = Scenario::load(&path).expect("scenario");
     let fleet = Fleet::build(&sc, 1).expect("fleet");
-    let opts = options_for(&sc.estimator, &fleet, Variant::IndpSlam);
+    let opts = options_for(&sc.estimator, &fleet, 0, Variant::IndpSlam);
     let mut prev: Option<Matrix4<f64>> = None;
     let mut frames = 0;
     let mut worst = f64::NEG_INFINITY;

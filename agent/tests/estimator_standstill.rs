@@ -45,7 +45,12 @@ fn run_walk(dir: &Path, name: &str, zupt: bool, variant: Variant) -> RobotRun {
     .expect("write scenario");
     let scenario = Scenario::load(&path).expect("scenario");
     let fleet = Fleet::build(&scenario, 1).expect("fleet");
-    run_robot(&fleet, 0, options_for(&scenario.estimator, &fleet, variant)).expect("run")
+    run_robot(
+        &fleet,
+        0,
+        options_for(&scenario.estimator, &fleet, 0, variant),
+    )
+    .expect("run")
 }
 
 /// Frames in `span` (s) taken for standstills, and all frames in it.

@@ -19,7 +19,7 @@ fn real_v1_01_imu_with_simulated_camera_stays_on_the_flight() {
     let sc =
         Scenario::load(&root().join("sim-fleet/scenarios/v1_01_hybrid.yaml")).expect("scenario");
     let fleet = Fleet::build(&sc, 1).expect("fleet");
-    let opts = options_for(&sc.estimator, &fleet, Variant::IndpSlam);
+    let opts = options_for(&sc.estimator, &fleet, 0, Variant::IndpSlam);
     let imu = root().join("../shared/data/euroc_v1_01_micro/mav0/imu0/data.csv");
     let gt = sc.trajectory_path(0).unwrap();
     let run = run_robot_hybrid(&fleet, 0, opts, &imu, Some(&gt)).expect("hybrid run");
@@ -58,7 +58,7 @@ fn feature_level_runs_refuse_a_scenario_that_renders_images() {
         Scenario::load(&root().join("sim-fleet/scenarios/v1_01_easy.yaml")).expect("scenario");
     sc.render.enabled = true;
     let fleet = Fleet::build(&sc, 1).expect("fleet");
-    let opts = options_for(&sc.estimator, &fleet, Variant::Indp);
+    let opts = options_for(&sc.estimator, &fleet, 0, Variant::Indp);
     let err = agent::runner::run_robot(&fleet, 0, opts)
         .unwrap_err()
         .to_string();

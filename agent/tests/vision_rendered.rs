@@ -17,7 +17,7 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
     let mut sc = Scenario::load(&path).expect("scenario");
     let seed = 1;
     let features = Fleet::build(&sc, seed).expect("fleet");
-    let opts = options_for(&sc.estimator, &features, Variant::IndpSlam);
+    let opts = options_for(&sc.estimator, &features, 0, Variant::IndpSlam);
     let feature_level = run_robot(&features, 0, opts.clone())
         .expect("feature run")
         .metrics();
@@ -25,7 +25,7 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
     let rendered_fleet = Fleet::build(&sc, seed).expect("rendered fleet");
     // Camera images: the SLAM updates take 2 px, and are paced on a keyframe
     // window, unless the scenario says otherwise.
-    let rendered_opts = options_for(&sc.estimator, &rendered_fleet, Variant::IndpSlam);
+    let rendered_opts = options_for(&sc.estimator, &rendered_fleet, 0, Variant::IndpSlam);
     assert_eq!(
         (opts.slam_sigma_px(), rendered_opts.slam_sigma_px()),
         (1.0, 2.0)
@@ -40,7 +40,7 @@ fn rendered_v1_01_stays_within_twice_the_feature_level_ate_of_the_same_seed() {
     let mut set = sc.estimator.clone();
     set.slam_pixel_sigma_px = Some(1.5);
     set.slam_keyframe_updates = Some(false);
-    let set_opts = options_for(&set, &rendered_fleet, Variant::IndpSlam);
+    let set_opts = options_for(&set, &rendered_fleet, 0, Variant::IndpSlam);
     assert_eq!(set_opts.slam_sigma_px(), 1.5);
     assert!(!set_opts.slam_keyframe_updates);
     let r = run_robot_rendered(

@@ -60,7 +60,7 @@ fn run(dir: &Path, shake: f64, disparity_px: f64) -> Outcome {
     .expect("write scenario");
     let scenario = Scenario::load(&path).expect("scenario");
     let fleet = Fleet::build(&scenario, 1).expect("fleet");
-    let mut opts = options_for(&scenario.estimator, &fleet, Variant::IndpSlam);
+    let mut opts = options_for(&scenario.estimator, &fleet, 0, Variant::IndpSlam);
     // The filter keeps the datasheet's noise whatever the IMU does.
     opts.imu.gyro_noise_density = 1.6968e-4;
     opts.imu.accel_noise_density = 2.0e-3;

@@ -230,7 +230,7 @@ impl Study<'_> {
             Err(e) => return JobResult::Failed(e),
         };
         let variant = self.variants[job.variant];
-        let opts = options_for(&fleet.scenario.estimator, &fleet, variant);
+        let opts = options_for(&fleet.scenario.estimator, &fleet, robot, variant);
         let run = match run_robot(&fleet, robot, opts) {
             Ok(run) => run,
             Err(e) => return JobResult::Failed(e.to_string()),

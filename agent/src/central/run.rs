@@ -30,13 +30,19 @@ pub fn run_central(fleet: &Fleet, variant: Variant) -> Result<Vec<RobotRun>, Run
     }
     // Rendered frames carry images and no features: the joint filter would
     // fly on the IMUs alone, and say nothing.
-    if fleet.renderer.is_some() {
+    if fleet.renders() {
         return Err(RunError::RendersImages(
             variant.name(),
             "it has no image frontend; run the agents' variants, or set render.enabled: false",
         ));
     }
-    let opts = options_for(spec, fleet, variant);
+    // One filter weighs every robot's pixels alike.
+    if let Some(r) = (1..n).find(|&r| {
+        fleet.scenario.camera(r).pixel_noise_px != fleet.scenario.camera(0).pixel_noise_px
+    }) {
+        return Err(RunError::MixedPixelNoise(variant.name(), r));
+    }
+    let opts = options_for(spec, fleet, 0, variant);
     let calibs = (0..n).map(|r| fleet.initial_calibration(r)).collect();
     let mut est = CentralEstimator::new(opts, calibs);
     let mut streams = Vec::with_capacity(n);

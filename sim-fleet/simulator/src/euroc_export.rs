@@ -109,14 +109,14 @@ pub fn export_euroc(
     dir: &Path,
     origin: &str,
 ) -> Result<Exported, ExportError> {
-    if fleet.renderer.is_none() {
+    if !fleet.renders() {
         return Err(ExportError::NoImages);
     }
     let files = Files {
         root: dir.join("mav0"),
     };
     let scenario = &fleet.scenario;
-    let cam = &scenario.sensors.camera;
+    let cam = &scenario.camera(robot);
     let imu = &scenario.sensors.imu;
     let model = match cam.model {
         common::camera::Distortion::RadTan => "radial-tangential",

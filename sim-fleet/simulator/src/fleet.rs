@@ -67,10 +67,12 @@ pub struct Fleet {
     pub truths: Vec<RobotTruth>,
     /// The shared landmarks.
     pub world: World,
-    /// The true camera calibration (the same for every robot).
-    pub true_calibration: CameraCalibration,
-    /// The rendered world, when the scenario renders images.
-    pub renderer: Option<Arc<Renderer>>,
+    /// Each robot's true camera calibration, in robot order (the fleet's
+    /// camera unless a robot has its own).
+    pub true_calibrations: Vec<CameraCalibration>,
+    /// The rendered world through each robot's camera (robots with the same
+    /// camera share one), when the scenario renders images; empty otherwise.
+    pub renderers: Vec<Arc<Renderer>>,
 }
 
 impl Fleet {
@@ -91,13 +93,14 @@ impl Fleet {
                 })?;
             truths.push(truth);
         }
-        let cam = &scenario.sensors.camera;
-        let true_calibration = cam.calibration();
-        let bounds = ViewBounds::new(&true_calibration, cam.min_depth_m, cam.max_depth_m);
+        let cameras: Vec<_> = (0..truths.len()).map(|i| scenario.camera(i)).collect();
+        let true_calibrations: Vec<_> = cameras.iter().map(|c| c.calibration()).collect();
         let mut world = World::default();
         let mut rng = stream_rng(seed, Stream::World);
-        for truth in &truths {
-            world.grow_along(truth, &true_calibration, &bounds, &scenario.world, &mut rng);
+        // Each robot's camera sees enough points along its own path.
+        for ((truth, cam), calib) in truths.iter().zip(&cameras).zip(&true_calibrations) {
+            let bounds = ViewBounds::new(calib, cam.min_depth_m, cam.max_depth_m);
+            world.grow_along(truth, calib, &bounds, &scenario.world, &mut rng);
         }
         world.alias_places(
             scenario.world.aliased_places,
@@ -105,26 +108,49 @@ impl Fleet {
             &mut rng,
         );
         world.set_selection_order(scenario.world.selection_order);
-        let renderer = if scenario.render.enabled {
+        let mut renderers: Vec<Arc<Renderer>> = Vec::new();
+        if scenario.render.enabled {
+            // One room and its textures; another camera only casts other rays.
             let mut rng = stream_rng(seed, Stream::Texture);
-            let r = Renderer::new(
-                &scenario.render,
-                &true_calibration,
-                truths.iter().flat_map(trajectory_points),
-                &mut rng,
-            )?;
-            Some(Arc::new(r))
-        } else {
-            None
-        };
+            for (i, calib) in true_calibrations.iter().enumerate() {
+                let same = (0..i).find(|&j| true_calibrations[j] == *calib);
+                let r = match (same, renderers.first()) {
+                    (Some(j), _) => renderers[j].clone(),
+                    (None, Some(first)) => Arc::new(first.with_camera(calib)?),
+                    (None, None) => Arc::new(Renderer::new(
+                        &scenario.render,
+                        calib,
+                        truths.iter().flat_map(trajectory_points),
+                        &mut rng,
+                    )?),
+                };
+                renderers.push(r);
+            }
+        }
         Ok(Self {
             scenario: scenario.clone(),
             seed,
             truths,
             world,
-            true_calibration,
-            renderer,
+            true_calibrations,
+            renderers,
         })
+    }
+
+    /// Robot `robot`'s true camera calibration.
+    pub fn true_calibration(&self, robot: usize) -> Option<&CameraCalibration> {
+        self.true_calibrations.get(robot)
+    }
+
+    /// Whether the scenario renders images.
+    pub fn renders(&self) -> bool {
+        !self.renderers.is_empty()
+    }
+
+    /// The rendered world through robot `robot`'s camera, when the scenario
+    /// renders images.
+    pub fn renderer(&self, robot: usize) -> Option<&Arc<Renderer>> {
+        self.renderers.get(robot)
     }
 
     /// Number of robots.
@@ -165,17 +191,22 @@ impl Fleet {
 
     fn stream_from(&self, robot: usize, imu: ImuSource) -> Result<RobotStream<'_>, SimError> {
         let truth = self.truths.get(robot).ok_or(SimError::NoSuchRobot(robot))?;
-        let sensors = &self.scenario.sensors;
+        let calib = self
+            .true_calibrations
+            .get(robot)
+            .ok_or(SimError::NoSuchRobot(robot))?;
         let t0 = truth.start_time();
         Ok(RobotStream {
             fleet: self,
             truth,
+            calib,
+            renderer: self.renderers.get(robot).map(Arc::as_ref),
             imu,
             camera: CameraGenerator::new(
-                sensors.camera.clone(),
+                self.scenario.camera(robot),
                 self.scenario.world.clone(),
                 stream_rng(self.seed, Stream::Camera(robot)),
-                t0 - self.true_calibration.time_offset_s,
+                t0 - calib.time_offset_s,
             ),
             camera_done: false,
             render_rng: stream_rng(self.seed, Stream::Render(robot)),
@@ -189,7 +220,7 @@ impl Fleet {
     pub fn initial_calibration(&self, robot: usize) -> CameraCalibration {
         let mut rng = stream_rng(self.seed, Stream::Calibration(robot));
         perturb_calibration(
-            &self.true_calibration,
+            &self.scenario.camera(robot).calibration(),
             &self.scenario.sensors.calibration_perturbation,
             &mut rng,
         )
@@ -300,6 +331,10 @@ impl ImuSource {
 pub struct RobotStream<'a> {
     fleet: &'a Fleet,
     truth: &'a RobotTruth,
+    /// The robot's true camera calibration.
+    calib: &'a CameraCalibration,
+    /// The rendered world through its camera, when the scenario renders.
+    renderer: Option<&'a Renderer>,
     imu: ImuSource,
     camera: CameraGenerator,
     camera_done: bool,
@@ -315,13 +350,13 @@ impl RobotStream<'_> {
     /// The next camera event: simulated features, or a rendered image.
     fn next_camera(&mut self) -> Option<CameraEvent> {
         let biases = self.imu.biases();
-        let Some(renderer) = &self.fleet.renderer else {
+        let Some(renderer) = self.renderer else {
             return self
                 .camera
                 .next_frame(self.truth, &self.fleet.world, biases);
         };
         let mut ev = self.camera.next_blank_frame(self.truth, biases)?;
-        let calib = &self.fleet.true_calibration;
+        let calib = self.calib;
         camera_pose(self.truth, calib, ev.truth.t)?;
         // The poses of the exposure, those on the spline (a frame at its very
         // end blurs over the part it has).

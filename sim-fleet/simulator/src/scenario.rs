@@ -109,6 +109,75 @@ pub struct RobotSpec {
     /// when unset.
     #[serde(default = "one_lap")]
     pub laps: u32,
+    /// This robot's camera where it differs from the fleet's
+    /// (`sensors.camera`): a fleet of different lenses. The keys given replace
+    /// the fleet camera's; the frame rate must stay the fleet's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<CameraOverride>,
+}
+
+/// The keys of a robot's camera that differ from the fleet's
+/// (`robots[i].camera`); each is a [`CameraSpec`] key, with its units.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraOverride {
+    /// Frame rate in Hz (must equal the fleet's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rate_hz: Option<f64>,
+    /// Distortion model: `radtan` or `equidistant`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model: Option<Distortion>,
+    /// Image width in pixels.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub width_px: Option<u32>,
+    /// Image height in pixels.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub height_px: Option<u32>,
+    /// `[fx, fy, cx, cy]` in pixels.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub intrinsics_px: Option<[f64; 4]>,
+    /// radtan `[k1, k2, p1, p2]` or equidistant `[k1, k2, k3, k4]` (unitless).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub distortion: Option<[f64; 4]>,
+    /// `T_imu_cam` = `[R_CtoI | p_CinI]`, 3 rows of 4 (rotation, metres).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub t_imu_cam: Option<[[f64; 4]; 3]>,
+    /// True camera-IMU time offset `t_d` in seconds.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub time_offset_s: Option<f64>,
+    /// Standard deviation of the pixel noise, in pixels.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pixel_noise_px: Option<f64>,
+    /// At most this many features per frame.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_features: Option<usize>,
+    /// Landmarks nearer than this are not seen, metres.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub min_depth_m: Option<f64>,
+    /// Landmarks farther than this are not seen, metres.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_depth_m: Option<f64>,
+}
+
+impl CameraOverride {
+    /// `base` with the keys this override gives replaced.
+    pub fn apply(&self, base: &CameraSpec) -> CameraSpec {
+        let b = base.clone();
+        CameraSpec {
+            rate_hz: self.rate_hz.unwrap_or(b.rate_hz),
+            model: self.model.unwrap_or(b.model),
+            width_px: self.width_px.unwrap_or(b.width_px),
+            height_px: self.height_px.unwrap_or(b.height_px),
+            intrinsics_px: self.intrinsics_px.unwrap_or(b.intrinsics_px),
+            distortion: self.distortion.unwrap_or(b.distortion),
+            t_imu_cam: self.t_imu_cam.unwrap_or(b.t_imu_cam),
+            time_offset_s: self.time_offset_s.unwrap_or(b.time_offset_s),
+            pixel_noise_px: self.pixel_noise_px.unwrap_or(b.pixel_noise_px),
+            max_features: self.max_features.unwrap_or(b.max_features),
+            min_depth_m: self.min_depth_m.unwrap_or(b.min_depth_m),
+            max_depth_m: self.max_depth_m.unwrap_or(b.max_depth_m),
+        }
+    }
 }
 
 fn one_lap() -> u32 {
@@ -561,6 +630,28 @@ impl Default for EstimatorSpec {
     }
 }
 
+/// Checks the ranges of camera `cam`, named `at` in the messages.
+fn check_camera(at: &str, cam: &CameraSpec, imu_rate_hz: f64) -> Result<(), String> {
+    for (k, v) in [("rate_hz", cam.rate_hz), ("max_depth_m", cam.max_depth_m)] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(format!("{at}.{k} must be positive, got {v}"));
+        }
+    }
+    let noise = cam.pixel_noise_px;
+    if !(noise.is_finite() && noise >= 0.0) {
+        return Err(format!(
+            "{at}.pixel_noise_px must be at least 0, got {noise}"
+        ));
+    }
+    if cam.rate_hz > imu_rate_hz {
+        return Err(format!("{at}: camera rate above IMU rate"));
+    }
+    cam.calibration()
+        .camera
+        .validate()
+        .map_err(|e| format!("{at}: {e}"))
+}
+
 impl Scenario {
     /// Reads and validates a scenario file; trajectory paths become absolute.
     pub fn load(path: &Path) -> Result<Self, ScenarioError> {
@@ -590,6 +681,28 @@ impl Scenario {
                 self.base_dir.join(&r.trajectory)
             }
         })
+    }
+
+    /// Robot `robot`'s camera: the fleet's (`sensors.camera`) with the keys of
+    /// its own `camera:` replaced.
+    pub fn camera(&self, robot: usize) -> CameraSpec {
+        match self.robots.get(robot).and_then(|r| r.camera.as_ref()) {
+            Some(own) => own.apply(&self.sensors.camera),
+            None => self.sensors.camera.clone(),
+        }
+    }
+
+    /// The sensors of robot `robot`: the fleet's, with its own camera.
+    pub fn sensors_of(&self, robot: usize) -> SensorSpec {
+        SensorSpec {
+            camera: self.camera(robot),
+            ..self.sensors.clone()
+        }
+    }
+
+    /// Whether every robot has the fleet's camera.
+    pub fn one_camera(&self) -> bool {
+        self.robots.iter().all(|r| r.camera.is_none())
     }
 
     /// Display name of robot `i`.
@@ -631,8 +744,6 @@ impl Scenario {
         let s = &self.sensors;
         let positive = [
             ("sensors.imu.rate_hz", s.imu.rate_hz),
-            ("sensors.camera.rate_hz", s.camera.rate_hz),
-            ("sensors.camera.max_depth_m", s.camera.max_depth_m),
             ("world.check_interval_s", self.world.check_interval_s),
         ];
         for (k, v) in positive {
@@ -640,14 +751,18 @@ impl Scenario {
                 return Err(invalid(format!("{k} must be positive, got {v}")));
             }
         }
-        let noise = s.camera.pixel_noise_px;
-        if !(noise.is_finite() && noise >= 0.0) {
-            return Err(invalid(format!(
-                "sensors.camera.pixel_noise_px must be at least 0, got {noise}"
-            )));
-        }
-        if s.camera.rate_hz > s.imu.rate_hz {
-            return Err(invalid("camera rate above IMU rate".into()));
+        check_camera("sensors.camera", &s.camera, s.imu.rate_hz).map_err(invalid)?;
+        for (i, robot) in self.robots.iter().enumerate() {
+            let Some(own) = &robot.camera else { continue };
+            let cam = own.apply(&s.camera);
+            check_camera(&format!("robots[{i}].camera"), &cam, s.imu.rate_hz).map_err(invalid)?;
+            // Fleet runs step every robot on one camera clock.
+            if cam.rate_hz != s.camera.rate_hz {
+                return Err(invalid(format!(
+                    "robots[{i}].camera.rate_hz must be the fleet's ({} Hz), got {}",
+                    s.camera.rate_hz, cam.rate_hz
+                )));
+            }
         }
         let [dmin, dmax] = self.world.new_point_depth_m;
         if !(dmin > 0.0 && dmax >= dmin) {
@@ -670,17 +785,13 @@ impl Scenario {
                 return Err(invalid(format!("world.{k} must be in [0, 1], got {p}")));
             }
         }
-        self.sensors
-            .camera
-            .calibration()
-            .camera
-            .validate()
-            .map_err(|e| invalid(format!("sensors.camera: {e}")))?;
         self.render.validate().map_err(|e| invalid(e.to_string()))?;
         let e = &self.estimator;
-        e.options(s)
-            .validate()
-            .map_err(|what| invalid(format!("estimator.{what}")))?;
+        for robot in 0..self.robots.len() {
+            e.options(&self.sensors_of(robot))
+                .validate()
+                .map_err(|what| invalid(format!("estimator.{what}")))?;
+        }
         for (k, v) in [
             ("init_sigma_ori_rad", e.init_sigma_ori_rad),
             ("init_sigma_pos_m", e.init_sigma_pos_m),

@@ -93,7 +93,7 @@ fn robots_on_the_same_path_see_the_same_landmarks() {
 fn features_are_noisy_projections_of_their_landmarks_within_the_image() {
     let dir = tempfile::tempdir().unwrap();
     let fleet = Fleet::build(&scenario(dir.path(), ""), 2).unwrap();
-    let calib = &fleet.true_calibration;
+    let calib = &fleet.true_calibrations[0];
     let (mut sum2, mut n, mut frames) = (0.0, 0usize, 0usize);
     for ev in fleet.stream(0).unwrap() {
         let SimEvent::Camera(c) = ev else { continue };
@@ -216,7 +216,7 @@ fn unknown_keys_and_missing_files_are_clear_errors() {
 fn perturbed_calibration_differs_from_the_truth_by_the_configured_spread() {
     let dir = tempfile::tempdir().unwrap();
     let fleet = Fleet::build(&scenario(dir.path(), ""), 1).unwrap();
-    let truth = &fleet.true_calibration;
+    let truth = &fleet.true_calibrations[0];
     let mut s2 = 0.0;
     for r in 0..2 {
         for seed in 0..200 {
@@ -462,4 +462,129 @@ fn robots_in_their_own_frames_start_at_their_origins_and_keep_their_motion() {
     assert!((f.transform_point(&p1) - p0).norm() < 1e-9);
     assert!(a.state(t).is_some());
     assert!(f.rot[(2, 2)] > 1.0 - 1e-12, "a yaw only");
+}
+
+/// A two-robot loop whose robot 1 has TUM-VI's 512x512 fisheye instead of
+/// the fleet's EuRoC cam0, written into the robot list (`robots[1].camera`).
+fn mixed_lens_scenario(dir: &Path, extra: &str) -> Result<Scenario, ScenarioError> {
+    write_loop(&dir.join("loop.txt"), 30.0);
+    let text = format!(
+        "name: mixed\nseed: 7\nrobots:\n  - trajectory: loop.txt\n  - trajectory: loop.txt\n    \
+         start_time_s: 5.0\n    camera:\n      model: equidistant\n      width_px: 512\n      \
+         height_px: 512\n      intrinsics_px: [190.978, 190.973, 254.932, 256.897]\n      \
+         distortion: [0.0035, 0.0007, -0.0021, 0.0002]\n      pixel_noise_px: 0.5\n{extra}"
+    );
+    let path = dir.join("mixed.yaml");
+    std::fs::write(&path, text).unwrap();
+    Scenario::load(&path)
+}
+
+#[test]
+fn a_robot_with_its_own_lens_sees_the_world_through_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc =
+        mixed_lens_scenario(dir.path(), "sensors:\n  camera:\n    max_features: 80\n").unwrap();
+    assert!(!sc.one_camera());
+    // Keys it does not give are the fleet camera's.
+    let (fleet_cam, own) = (sc.camera(0), sc.camera(1));
+    assert_eq!(own.max_features, 80);
+    assert_eq!(own.t_imu_cam, fleet_cam.t_imu_cam);
+    assert_eq!(own.model, common::camera::Distortion::Equidistant);
+    assert_eq!(sc.sensors_of(1).camera.pixel_noise_px, 0.5);
+    let fleet = Fleet::build(&sc, 2).unwrap();
+    let calib = fleet.true_calibration(1).unwrap();
+    assert_eq!((calib.camera.width, calib.camera.height), (512, 512));
+    assert_eq!(fleet.true_calibration(0).unwrap().camera.width, 752);
+    assert_eq!(fleet.initial_calibration(1).camera.width, 512);
+    // Its features are its fisheye's projections of the shared landmarks,
+    // with its own pixel noise.
+    let (mut sum2, mut n) = (0.0, 0usize);
+    for ev in fleet.stream(1).unwrap() {
+        let SimEvent::Camera(c) = ev else { continue };
+        assert!(c.frame.features.len() <= 80);
+        let t_c_to_g = common::so3::Se3::new(c.truth.rot, c.truth.pos).compose(&calib.t_c_to_i());
+        for (f, lm) in c.frame.features.iter().zip(&c.landmark_ids) {
+            let p_c = t_c_to_g
+                .inverse()
+                .transform_point(&fleet.world.landmarks[*lm as usize].p_in_g);
+            let uv = calib.camera.project(&p_c).unwrap();
+            assert!(uv.x >= -3.0 && uv.x < 515.0 && uv.y >= -3.0 && uv.y < 515.0);
+            sum2 += (f.uv - uv).norm_squared();
+            n += 2;
+        }
+    }
+    let sigma = (sum2 / n as f64).sqrt();
+    assert!(
+        n > 10_000 && (sigma - 0.5).abs() < 0.02,
+        "{n} rows, sigma {sigma}"
+    );
+    let uniform = scenario(dir.path(), "");
+    assert!(uniform.one_camera());
+    assert_eq!(uniform.camera(1).width_px, 752);
+}
+
+#[test]
+fn a_robot_camera_at_another_rate_or_out_of_range_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let e = mixed_lens_scenario(dir.path(), "")
+        .map(|_| ())
+        .and_then(|()| {
+            let text = std::fs::read_to_string(dir.path().join("mixed.yaml")).unwrap();
+            let path = dir.path().join("rate.yaml");
+            std::fs::write(&path, text.replace("pixel_noise_px: 0.5", "rate_hz: 20")).unwrap();
+            Scenario::load(&path).map(|_| ())
+        })
+        .unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("robots[1].camera.rate_hz must be the fleet's"),
+        "{e}"
+    );
+    let text = std::fs::read_to_string(dir.path().join("mixed.yaml")).unwrap();
+    let path = dir.path().join("noise.yaml");
+    std::fs::write(
+        &path,
+        text.replace("pixel_noise_px: 0.5", "pixel_noise_px: -1"),
+    )
+    .unwrap();
+    let e = Scenario::load(&path).unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("robots[1].camera.pixel_noise_px must be at least 0"),
+        "{e}"
+    );
+    std::fs::write(&path, text.replace("pixel_noise_px: 0.5", "lens: big")).unwrap();
+    let e = Scenario::load(&path).unwrap_err();
+    assert!(e.to_string().contains("unknown field `lens`"), "{e}");
+}
+
+#[test]
+fn a_rendered_fleet_shows_each_robot_the_one_room_through_its_own_lens() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = mixed_lens_scenario(dir.path(), "render:\n  enabled: true\n").unwrap();
+    let fleet = Fleet::build(&sc, 3).unwrap();
+    let (r0, r1) = (fleet.renderer(0).unwrap(), fleet.renderer(1).unwrap());
+    assert_eq!(r0.room(), r1.room());
+    let image = |robot: usize| {
+        fleet
+            .stream(robot)
+            .unwrap()
+            .find_map(|e| match e {
+                SimEvent::Camera(c) => c.image.clone(),
+                SimEvent::Imu(_) => None,
+            })
+            .unwrap()
+    };
+    assert_eq!((image(0).width(), image(0).height()), (752, 480));
+    assert_eq!((image(1).width(), image(1).height()), (512, 512));
+    // The same pose looks at the same room point through either lens: the
+    // optical axis hits one spot whatever the lens.
+    let t = fleet.truths[0].start_time() + 10.0;
+    let pose = crate::world::camera_pose(&fleet.truths[0], &fleet.true_calibrations[0], t).unwrap();
+    let centre = |robot: usize| {
+        let cam = &fleet.true_calibrations[robot].camera;
+        let uv = cam.distort(&Vector2::zeros());
+        fleet.renderer(robot).unwrap().raycast(&pose, &uv).unwrap()
+    };
+    assert!((centre(0) - centre(1)).norm() < 1e-9);
 }

@@ -249,14 +249,7 @@ impl Renderer {
         rng: &mut ChaCha8Rng,
     ) -> Result<Self, RenderError> {
         spec.validate()?;
-        let cam = &calib.camera;
-        let side = 1..=common::image::MAX_IMAGE_SIDE;
-        if !side.contains(&cam.width) || !side.contains(&cam.height) {
-            return Err(RenderError::Invalid(format!(
-                "image size {}x{} is out of range",
-                cam.width, cam.height
-            )));
-        }
+        check_image_size(calib)?;
         let room = Room::around(
             positions,
             spec.wall_margin_m,
@@ -283,6 +276,17 @@ impl Renderer {
             threads: std::thread::available_parallelism()
                 .map_or(1, std::num::NonZeroUsize::get)
                 .min(MAX_RENDER_THREADS),
+        })
+    }
+
+    /// The same room and textures seen through another camera `calib` (a
+    /// robot of the fleet with its own lens).
+    pub fn with_camera(&self, calib: &CameraCalibration) -> Result<Self, RenderError> {
+        check_image_size(calib)?;
+        Ok(Self {
+            calib: calib.clone(),
+            rays: pixel_rays(calib),
+            ..self.clone()
         })
     }
 
@@ -417,6 +421,19 @@ impl Renderer {
     }
 }
 
+/// Refuses an image size [`GrayImage`] cannot hold.
+fn check_image_size(calib: &CameraCalibration) -> Result<(), RenderError> {
+    let cam = &calib.camera;
+    let side = 1..=common::image::MAX_IMAGE_SIDE;
+    if !side.contains(&cam.width) || !side.contains(&cam.height) {
+        return Err(RenderError::Invalid(format!(
+            "image size {}x{} is out of range",
+            cam.width, cam.height
+        )));
+    }
+    Ok(())
+}
+
 /// `x.round().clamp(0.0, 255.0) as u8`, exactly, without libm's `round`
 /// (baseline x86-64 has no rounding instruction; it was 4 % of a rendered
 /// run): negative and NaN give 0, and below 255 the fraction after the
@@ -489,9 +506,9 @@ mod tests {
     #[test]
     fn rendered_frames_are_textured_and_pixels_cast_back_onto_their_points() {
         let fleet = rendered_v1_01();
-        let renderer = fleet.renderer.clone().expect("renderer");
+        let renderer = Renderer::clone(fleet.renderer(0).expect("renderer"));
         let truth = &fleet.truths[0];
-        let cam = fleet.true_calibration.clone();
+        let cam = fleet.true_calibrations[0].clone();
         let mut checked = 0;
         for ev in fleet.stream(0).expect("stream").take(4000) {
             let SimEvent::Camera(c) = ev else { continue };
@@ -584,8 +601,8 @@ mod tests {
     #[test]
     fn images_do_not_depend_on_the_threads_that_shade_them() {
         let fleet = rendered_v1_01();
-        let renderer = fleet.renderer.clone().expect("renderer");
-        let (truth, cam) = (&fleet.truths[0], &fleet.true_calibration);
+        let renderer = Renderer::clone(fleet.renderer(0).expect("renderer"));
+        let (truth, cam) = (&fleet.truths[0], &fleet.true_calibrations[0]);
         let poses: Vec<Se3> = [30.0, 30.004, 30.008]
             .iter()
             .map(|&t| camera_pose(truth, cam, t).expect("pose"))
@@ -620,9 +637,9 @@ mod tests {
     #[test]
     fn an_exposure_blurs_a_moving_camera_and_not_a_still_one() {
         let fleet = rendered_v1_01();
-        let renderer = fleet.renderer.clone().expect("renderer");
+        let renderer = Renderer::clone(fleet.renderer(0).expect("renderer"));
         let truth = &fleet.truths[0];
-        let cam = fleet.true_calibration.clone();
+        let cam = fleet.true_calibrations[0].clone();
         let spec = RenderSpec {
             exposure_ms: 20.0,
             exposure_samples: 8,
@@ -695,11 +712,11 @@ mod tests {
         assert_eq!(a, ChaCha8Rng::seed_from_u64(5));
         // The gain scales the scene before the noise and saturates at 255.
         let fleet = rendered_v1_01();
-        let renderer = fleet.renderer.clone().expect("renderer");
-        let pose = camera_pose(&fleet.truths[0], &fleet.true_calibration, 30.0).expect("pose");
+        let renderer = Renderer::clone(fleet.renderer(0).expect("renderer"));
+        let pose = camera_pose(&fleet.truths[0], &fleet.true_calibrations[0], 30.0).expect("pose");
         let quiet = Renderer {
             noise: 0.0,
-            ..(*renderer).clone()
+            ..renderer.clone()
         };
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let base = quiet.render_exposed(&[pose], 1.0, &mut rng).expect("image");
