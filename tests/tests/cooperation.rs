@@ -84,6 +84,32 @@ fn agents_over_iceoryx2_share_features_and_close_loops_on_peer_histories() {
     assert_cooperates(&summary);
 }
 
+/// The same fleet with three lenses (`robots[i].camera`): EuRoC cam0, TUM-VI's
+/// 512x512 fisheye and a 640x480 pinhole. Each agent runs its own camera model
+/// and weighs its peers' measurements through theirs, carried in their windows.
+#[test]
+fn agents_with_different_lenses_cooperate_over_zenoh() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(scenario(dir.path())).unwrap();
+    let lenses = text
+        .replace(
+            "    start_time_s: 4.0\n",
+            "    start_time_s: 4.0\n    camera:\n      model: equidistant\n      width_px: 512\n      \
+             height_px: 512\n      intrinsics_px: [190.978, 190.973, 254.932, 256.897]\n      \
+             distortion: [0.0035, 0.0007, -0.0021, 0.0002]\n",
+        )
+        .replace(
+            "    start_time_s: 30.0\n",
+            "    start_time_s: 30.0\n    camera:\n      width_px: 640\n      height_px: 480\n      \
+             intrinsics_px: [385.0, 385.0, 320.0, 240.0]\n      distortion: [0.0, 0.0, 0.0, 0.0]\n",
+        );
+    assert_ne!(lenses, text);
+    let sc = dir.path().join("lenses.yaml");
+    std::fs::write(&sc, lenses).unwrap();
+    let summary = sim_fleet_run(&sc, &dir.path().join("zenoh"), &OVER_ZENOH);
+    assert_cooperates(&summary);
+}
+
 /// The same fleet, each robot in its own frame (`start_frame: own`): no robot
 /// knows where the others started, and each finds their frames from its loop
 /// closures to their keyframe windows before it uses them.
