@@ -226,7 +226,7 @@ pub struct Renderer {
     noise: f64,
     calib: CameraCalibration,
     rays: Vec<PixelRay>,
-    /// Threads that shade an image (their rows split evenly).
+    /// Threads that shade an image (bands of rows taken in turn).
     threads: usize,
 }
 
