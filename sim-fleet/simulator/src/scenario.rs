@@ -162,7 +162,7 @@ pub struct CameraOverride {
 impl CameraOverride {
     /// `base` with the keys this override gives replaced.
     pub fn apply(&self, base: &CameraSpec) -> CameraSpec {
-        let b = base.clone();
+        let b = base;
         CameraSpec {
             rate_hz: self.rate_hz.unwrap_or(b.rate_hz),
             model: self.model.unwrap_or(b.model),
