@@ -48,8 +48,10 @@ const FILE_MAGIC: [u8; 4] = *b"FVHS";
 /// mission after the version (version 1 had none). Version 3: the records are
 /// of wire version 6, whose snapshots name their world frame; older files
 /// hold records this build cannot decode, so they are set aside whole
-/// (renamed, kept) rather than read as empty and overwritten.
-const FILE_VERSION: u16 = 3;
+/// (renamed, kept) rather than read as empty and overwritten. Version 4: the
+/// records are of wire version 7, whose snapshots carry their sender's pixel
+/// noise (set aside the same way).
+const FILE_VERSION: u16 = 4;
 
 /// The format versions this build reads.
 const READABLE_VERSIONS: [u16; 1] = [FILE_VERSION];

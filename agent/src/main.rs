@@ -653,6 +653,7 @@ fn flood_round(k: u64) -> Vec<(common::messages::MessageKind, common::messages::
                 keyframe: true,
                 frame_epoch: 0,
                 camera: CameraModelWire::default(),
+                pixel_sigma_px: 1.0,
                 covariance,
                 clones,
                 landmarks: Vec::new(),

@@ -1123,6 +1123,7 @@ impl Node {
                 cfg.robot_id,
                 cfg.publish.clone(),
                 frame_epoch(est.options().cooperation.align_peer_frames, cfg.clock.mode),
+                est.options().pixel_sigma_px,
             ),
             lockstep: Lockstep::new(&cfg.clock.peers, 0.0),
             pending: Vec::new(),

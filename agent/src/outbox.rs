@@ -30,6 +30,8 @@ pub struct Outbox {
     last_snapshot_frame: Option<u64>,
     /// The world frame our snapshots are in ([`StateSnapshot::frame_epoch`]).
     frame_epoch: u64,
+    /// Our pixel noise, pixels ([`StateSnapshot::pixel_sigma_px`]).
+    pixel_sigma_px: f64,
 }
 
 /// What snapshot a frame sends.
@@ -43,8 +45,15 @@ pub struct SnapshotPlan {
 
 impl Outbox {
     /// An outbox for robot `robot_id` of fleet `fleet_id`, whose snapshots
-    /// are in world frame `frame_epoch` ([`StateSnapshot::frame_epoch`]).
-    pub fn new(fleet_id: &str, robot_id: u32, cfg: PublishConfig, frame_epoch: u64) -> Self {
+    /// are in world frame `frame_epoch` ([`StateSnapshot::frame_epoch`]) and
+    /// declare pixel noise `pixel_sigma_px` (the estimator's).
+    pub fn new(
+        fleet_id: &str,
+        robot_id: u32,
+        cfg: PublishConfig,
+        frame_epoch: u64,
+        pixel_sigma_px: f64,
+    ) -> Self {
         Self {
             fleet_id: fleet_id.to_string(),
             robot_id,
@@ -55,6 +64,7 @@ impl Outbox {
             last_keyframe_s: None,
             last_snapshot_frame: None,
             frame_epoch,
+            pixel_sigma_px,
         }
     }
 
@@ -163,8 +173,14 @@ impl Outbox {
     ) -> Vec<Envelope> {
         let t = frame.t;
         let mut out = Vec::new();
-        let Some(mut snapshot) = snapshot_of(frame_index, t, plan.keyframe, window, plan.landmarks)
-        else {
+        let Some(mut snapshot) = snapshot_of(
+            frame_index,
+            t,
+            plan.keyframe,
+            window,
+            self.pixel_sigma_px,
+            plan.landmarks,
+        ) else {
             return out;
         };
         snapshot.frame_epoch = self.frame_epoch;
@@ -231,6 +247,7 @@ pub fn snapshot_of(
     t_s: f64,
     keyframe: bool,
     window: &CameraWindow,
+    pixel_sigma_px: f64,
     with_landmarks: bool,
 ) -> Option<StateSnapshot> {
     let covariance = PackedCovariance::from_dmatrix(&window.cov).ok()?;
@@ -240,6 +257,7 @@ pub fn snapshot_of(
         keyframe,
         frame_epoch: 0,
         camera: CameraModelWire::from(&window.calib.camera),
+        pixel_sigma_px,
         clones: window
             .poses
             .iter()
@@ -299,10 +317,31 @@ mod tests {
         }
     }
 
+    /// Every snapshot declares the estimator's pixel noise, so peers weigh
+    /// our tracks at it.
+    #[test]
+    fn snapshots_carry_our_pixel_noise() {
+        let mut ob = Outbox::new("f", 2, PublishConfig::default(), 0, 2.5);
+        let (f, w) = (frame(1.0, 0..20), window(1.0, 11));
+        let plan = SnapshotPlan {
+            keyframe: true,
+            landmarks: false,
+        };
+        let sent: Vec<f64> = ob
+            .snapshot(0, &f, plan, &w)
+            .iter()
+            .filter_map(|e| match &e.body {
+                Body::Snapshot(s) => Some(s.pixel_sigma_px),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(sent, vec![2.5]);
+    }
+
     #[test]
     fn new_tracks_get_descriptors_once_and_keyframes_do_not_overlap() {
         let cfg = PublishConfig::default();
-        let mut ob = Outbox::new("f", 2, cfg, 0);
+        let mut ob = Outbox::new("f", 2, cfg, 0, 1.0);
         let calib = CameraCalibration::euroc_cam0();
         let mut keyframes = Vec::new();
         let mut snapshots = 0;

@@ -676,6 +676,7 @@ pub(crate) mod test_support {
                 width: 752,
                 height: 480,
             },
+            pixel_sigma_px: 1.0,
             covariance: PackedCovariance::from_dmatrix(cov).expect("a square covariance"),
             clones,
             landmarks: Vec::new(),

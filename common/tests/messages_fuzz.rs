@@ -164,6 +164,8 @@ fn state_snapshot() -> impl Strategy<Value = StateSnapshot> {
                 // Any epoch, the full range of the varint.
                 frame_epoch: t_s.to_bits(),
                 camera,
+                // A valid noise, from 0.25 to 2 px.
+                pixel_sigma_px: 0.25 * (1 + frame_index % 8) as f64,
                 clones,
                 covariance: PackedCovariance {
                     dim: dim as u32,

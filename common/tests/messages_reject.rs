@@ -172,6 +172,16 @@ fn nan_elsewhere_is_refused() {
         invalid(&raw_encode(&env)),
         ValidationError::NonFinite { field, .. } if field == "snapshot.covariance[2][1]"
     ));
+    for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, 101.0] {
+        let mut env = samples::snapshot(20, 2, 3, false);
+        snapshot_body(&mut env).pixel_sigma_px = bad;
+        let err = invalid(&raw_encode(&env));
+        assert!(
+            matches!(err, ValidationError::PixelSigma(v) if v.to_bits() == bad.to_bits()),
+            "{err}"
+        );
+        assert!(err.to_string().contains("snapshot.pixel_sigma_px"), "{err}");
+    }
     let mut env = samples::snapshot(20, 2, 3, false);
     snapshot_body(&mut env).camera.intrinsics[0] = f64::NAN;
     assert!(matches!(

@@ -47,7 +47,7 @@ fn header_is_magic_version_then_bincode_standard() {
     assert_eq!(&bytes[..4], b"FVIO");
     assert_eq!(bytes[..4], MAGIC);
     assert_eq!(u16::from_le_bytes([bytes[4], bytes[5]]), WIRE_VERSION);
-    assert_eq!(WIRE_VERSION, 6);
+    assert_eq!(WIRE_VERSION, 7);
     let payload = bincode::serde::encode_to_vec(&env, bincode::config::standard()).unwrap();
     assert_eq!(&bytes[6..], &payload[..]);
 }
@@ -141,6 +141,7 @@ fn snapshot_round_trip_is_bit_exact() {
         keyframe: false,
         frame_epoch: u64::MAX,
         camera,
+        pixel_sigma_px: AWKWARD[0],
         clones: clones.clone(),
         covariance: covariance.clone(),
         landmarks: landmarks.clone(),
@@ -150,6 +151,7 @@ fn snapshot_round_trip_is_bit_exact() {
     let Body::Snapshot(s) = round_trip(&env).body else {
         panic!("not a snapshot")
     };
+    assert_eq!(s.pixel_sigma_px.to_bits(), AWKWARD[0].to_bits());
     for (a, b) in s.clones.iter().zip(&clones) {
         assert_eq!(a.t_s.to_bits(), b.t_s.to_bits());
         assert_eq!(a.q_xyzw.map(f64::to_bits), b.q_xyzw.map(f64::to_bits));

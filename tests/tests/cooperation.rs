@@ -85,8 +85,9 @@ fn agents_over_iceoryx2_share_features_and_close_loops_on_peer_histories() {
 }
 
 /// The same fleet with three lenses (`robots[i].camera`): EuRoC cam0, TUM-VI's
-/// 512x512 fisheye and a 640x480 pinhole. Each agent runs its own camera model
-/// and weighs its peers' measurements through theirs, carried in their windows.
+/// 512x512 fisheye and a 640x480 pinhole of 2 px noise. Each agent runs its own
+/// camera model and weighs its peers' measurements through theirs at their
+/// noise, both carried in their windows.
 #[test]
 fn agents_with_different_lenses_cooperate_over_zenoh() {
     let dir = tempfile::tempdir().unwrap();
@@ -101,7 +102,8 @@ fn agents_with_different_lenses_cooperate_over_zenoh() {
         .replace(
             "    start_time_s: 30.0\n",
             "    start_time_s: 30.0\n    camera:\n      width_px: 640\n      height_px: 480\n      \
-             intrinsics_px: [385.0, 385.0, 320.0, 240.0]\n      distortion: [0.0, 0.0, 0.0, 0.0]\n",
+             intrinsics_px: [385.0, 385.0, 320.0, 240.0]\n      distortion: [0.0, 0.0, 0.0, 0.0]\n      \
+             pixel_noise_px: 2.0\n",
         );
     assert_ne!(lenses, text);
     let sc = dir.path().join("lenses.yaml");

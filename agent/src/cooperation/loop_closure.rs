@@ -72,6 +72,9 @@ pub struct FrameFeatures {
     pub camera: Option<CameraEstimate>,
     /// Our pixel noise over our focal length (normalized units).
     pub sigma_normalized: f64,
+    /// Our pixel noise, pixels (0 when unset: a peer's is then taken to be
+    /// ours).
+    pub pixel_sigma_px: f64,
 }
 
 /// A verified loop closure: our tracks matched to the peer's tracks of one

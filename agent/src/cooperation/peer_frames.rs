@@ -220,11 +220,17 @@ pub fn measure(
 ) -> Option<AlignmentMeasurement> {
     let anchor = anchor_of(kf)?;
     // The peer's measurements are normalized with its own intrinsics; its
-    // pixel noise is taken to be ours, over its focal length, and its rays are
-    // triangulated as its lens spreads its pixels (`RayResidual::of`).
+    // pixel noise is ours scaled to the noise its window declares, over its
+    // focal length, and its rays are triangulated as its lens spreads its
+    // pixels (`RayResidual::of`).
     let peer_camera = kf.snapshot.camera.to_camera_model().ok()?;
     let peer_focal = Some((peer_camera.fx() * peer_camera.fy()).sqrt()).filter(|f| *f > 0.0)?;
-    let peer_sigma = opts.sigma_normalized * our_focal_px / peer_focal;
+    let noise_ratio = if frame.pixel_sigma_px > 0.0 {
+        kf.snapshot.pixel_sigma_px / frame.pixel_sigma_px
+    } else {
+        1.0
+    };
+    let peer_sigma = opts.sigma_normalized * our_focal_px * noise_ratio / peer_focal;
     let poses: Vec<(f64, Matrix3<f64>, nalgebra::Vector3<f64>)> = kf
         .snapshot
         .clones

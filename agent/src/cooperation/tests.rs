@@ -127,6 +127,7 @@ fn peer_history_in(w: &World, rng: &mut ChaCha8Rng, epoch: u64) -> PeerHistory {
         keyframe: true,
         frame_epoch: epoch,
         camera: CameraModelWire::default(),
+        pixel_sigma_px: 1.0,
         covariance: PackedCovariance::from_dmatrix(&(DMatrix::identity(66, 66) * 1e-4))
             .unwrap_or_default(),
         clones,
@@ -550,6 +551,7 @@ fn one_clone_keyframe(k: u64) -> StateSnapshot {
         keyframe: true,
         frame_epoch: 0,
         camera: CameraModelWire::default(),
+        pixel_sigma_px: 1.0,
         covariance: PackedCovariance::from_dmatrix(&(DMatrix::identity(6, 6) * 1e-4))
             .unwrap_or_default(),
         clones: vec![CameraPose::new(t, &Matrix3::identity(), &Vector3::zeros())],

@@ -226,6 +226,7 @@ fn transformed(
         poses,
         cov: Arc::new(cov),
         camera: w.camera.clone(),
+        pixel_sigma_px: w.pixel_sigma_px,
         landmarks,
         frame: None,
     };

@@ -56,6 +56,8 @@ pub struct PeerWindow {
     /// The peer's camera model as it estimated it (its normalized coordinates
     /// were undistorted with it).
     pub camera: CameraModel,
+    /// The peer's pixel noise, pixels: its measurements are weighed at it.
+    pub pixel_sigma_px: f64,
     /// SLAM landmarks of the window (keyframe snapshots carry them).
     pub landmarks: Vec<PeerLandmark>,
     /// The peer frame in our state this window was taken into our frame
@@ -118,6 +120,7 @@ impl PeerWindow {
             poses,
             cov: Arc::new(cov),
             camera,
+            pixel_sigma_px: snap.pixel_sigma_px,
             landmarks: snap
                 .landmarks
                 .iter()
@@ -325,6 +328,7 @@ mod tests {
             }],
             cov: Arc::new(DMatrix::identity(14, 14)),
             camera,
+            pixel_sigma_px: 1.0,
             landmarks: Vec::new(),
             frame: None,
         }
@@ -409,6 +413,11 @@ mod tests {
         let w = PeerWindow::from_snapshot(2, 7, &snap).expect("a valid window");
         assert_eq!(w.poses.len(), 11);
         assert_eq!(w.landmarks.len(), 3);
+        // The sender's pixel noise comes with its window.
+        let mut noisy = snap.clone();
+        noisy.pixel_sigma_px = 2.5;
+        let n = PeerWindow::from_snapshot(2, 7, &noisy).expect("a valid window");
+        assert_eq!((w.pixel_sigma_px, n.pixel_sigma_px), (1.0, 2.5));
         // At least what was sent: each variance is raised, none lowered.
         let sent = snap.covariance.to_dmatrix();
         assert!((0..sent.nrows()).all(|i| w.cov[(i, i)] > sent[(i, i)]));

@@ -115,6 +115,7 @@ pub fn scene(n: usize, n_landmarks: usize, clone_var: f64, peer_var: f64) -> Sce
         cov: std::sync::Arc::new(DMatrix::identity(6 * n, 6 * n) * peer_var),
         poses,
         camera: calib.camera.clone(),
+        pixel_sigma_px: 1.0,
         landmarks: Vec::new(),
         frame: None,
     };

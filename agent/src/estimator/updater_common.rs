@@ -136,14 +136,13 @@ fn our_block(
     ))
 }
 
-/// Participant `j`'s block: its measurements of the feature at `p_f`, whitened,
-/// over its items: the poses that saw it (sorted), then its intrinsics when its
-/// covariance has them.
+/// Participant `j`'s block: its measurements of the feature at `p_f`, whitened
+/// at its own pixel noise, over its items: the poses that saw it (sorted),
+/// then its intrinsics when its covariance has them.
 fn peer_block(
     w: &PeerWindow,
     obs: &[&PeerObservation],
     p_f: &nalgebra::Vector3<f64>,
-    pixel_sigma: f64,
 ) -> Option<(Vec<usize>, Block)> {
     let mut items: Vec<usize> = obs.iter().map(|o| o.pose).collect();
     items.sort_unstable();
@@ -159,7 +158,7 @@ fn peer_block(
         res: DVector::zeros(rows),
     };
     for (i, o) in obs.iter().enumerate() {
-        let m = peer_measurement(w, o.pose, &o.xy, p_f, p_f, pixel_sigma)?;
+        let m = peer_measurement(w, o.pose, &o.xy, p_f, p_f, w.pixel_sigma_px)?;
         let col = 6 * items[..n_poses].binary_search(&o.pose).ok()?;
         let r = 2 * i;
         b.h_x.fixed_view_mut::<2, 6>(r, col).copy_from(&m.h_pose);
@@ -258,8 +257,7 @@ fn feature_rows(
     let mut metas = Vec::with_capacity(by_participant.len());
     let mut peer_blocks = Vec::with_capacity(by_participant.len());
     for (p, list) in &by_participant {
-        let (poses, b) =
-            peer_block(&participants[*p], list, &p_f, opts.pixel_sigma_px).ok_or(false)?;
+        let (poses, b) = peer_block(&participants[*p], list, &p_f).ok_or(false)?;
         metas.push((*p, poses));
         peer_blocks.push(b);
     }

@@ -105,8 +105,10 @@ fn measurement_rows(
     for (i, o) in track.peer_obs.iter().enumerate() {
         let w = participants.get(o.participant)?;
         // A peer's newest observation each frame, of a track that drifts as
-        // ours do: the SLAM updates' noise (`up_slam_sigma_px`).
-        let pm = peer_measurement(w, o.pose, &o.xy, &p_lin, &p_cur, opts.slam_sigma_px())?;
+        // ours do: the SLAM updates' noise (`up_slam_sigma_px`), scaled from
+        // our pixel noise to the peer's.
+        let sigma = opts.slam_sigma_px() * (w.pixel_sigma_px / opts.pixel_sigma_px);
+        let pm = peer_measurement(w, o.pose, &o.xy, &p_lin, &p_cur, sigma)?;
         let r = 2 * i;
         res[r] = pm.res.x;
         res[r + 1] = pm.res.y;

@@ -98,6 +98,30 @@ mod cases {
         }
     }
 
+    /// A peer's measurements are weighed at the pixel noise its window
+    /// declares, not at ours: a noisier peer tells us less, a cleaner one more.
+    #[test]
+    fn a_peer_is_weighed_at_its_own_pixel_noise() {
+        let trace_after = |peer_sigma_px: f64| {
+            let mut sc = scene(6, 12, 1e-4, 1e-5);
+            sc.peer.pixel_sigma_px = peer_sigma_px;
+            let tracks: Vec<CommonTrack> = (0..12)
+                .map(|l| CommonTrack {
+                    id: l as u64,
+                    peer_obs: sc.peer_obs(l),
+                })
+                .collect();
+            let before = sc.state.cov().trace();
+            let out = sc.common_update(&tracks, &EstimatorOptions::default());
+            assert_eq!(out.stats.used, 12, "{peer_sigma_px} px: {:?}", out.stats);
+            let after = sc.state.cov().trace();
+            assert!(after < before);
+            after
+        };
+        let (clean, same, noisy) = (trace_after(0.5), trace_after(1.0), trace_after(3.0));
+        assert!(clean < same && same < noisy, "{clean} {same} {noisy}");
+    }
+
     /// A wrong loop closure: the peer's window saw a rigid copy of our scene
     /// 2 m away (perceptual aliasing), so every match is consistent with one
     /// epipolar geometry but not with the two robots' poses: all are rejected.

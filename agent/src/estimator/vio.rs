@@ -394,6 +394,7 @@ impl Estimator {
             if c.aligns_peer_frames() {
                 ours.camera = camera_estimate(state, key);
                 ours.sigma_normalized = updater_msckf::ray_noise_rad(state, &opts);
+                ours.pixel_sigma_px = opts.pixel_sigma_px;
             }
             c.match_frame(&ours, peers, key);
             peer_frame_states::take_from(state, c, &opts.cooperation);

@@ -200,6 +200,10 @@ pub struct StateSnapshot {
     pub frame_epoch: u64,
     /// The sender's current camera model, to interpret its pixel tracks.
     pub camera: CameraModelWire,
+    /// The sender's pixel noise (standard deviation), pixels: a receiver
+    /// weighs the sender's tracks at it, through `camera`, so robots whose
+    /// cameras are noisier or cleaner than its own are taken as they are.
+    pub pixel_sigma_px: f64,
     /// Camera poses of the clones in the window, oldest first.
     #[serde(deserialize_with = "bounded_vec::deserialize")]
     pub clones: Vec<CameraPose>,

@@ -22,8 +22,9 @@ pub const MAGIC: [u8; 4] = *b"FVIO";
 /// requester can tell which replays it lost. Version 5: a request lists the
 /// windows held short of some parts, and a replay may carry only those parts;
 /// heartbeats may say `Settled`. Version 6: a snapshot names the world frame
-/// its poses are in (`frame_epoch`).
-pub const WIRE_VERSION: u16 = 6;
+/// its poses are in (`frame_epoch`). Version 7: a snapshot carries its
+/// sender's pixel noise (`pixel_sigma_px`).
+pub const WIRE_VERSION: u16 = 7;
 
 /// The wire versions this build reads.
 pub const SUPPORTED_VERSIONS: &[u16] = &[WIRE_VERSION];

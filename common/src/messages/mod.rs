@@ -69,8 +69,8 @@ pub use history::{
 pub use packed_cov::{cover_f32_rounding, PackedCovariance};
 pub use validate::{
     Limits, ValidationError, FLEET_ID_FORBIDDEN_CHARS, INTRINSICS_DIM, MAX_ANSWERED_WINDOWS,
-    MAX_FLEET_ID_BYTES, MAX_HELD_WINDOWS, MAX_REPLAY_ROBOTS, MAX_REQUEST_RANGES,
-    QUATERNION_NORM_TOLERANCE,
+    MAX_FLEET_ID_BYTES, MAX_HELD_WINDOWS, MAX_PIXEL_SIGMA_PX, MAX_REPLAY_ROBOTS,
+    MAX_REQUEST_RANGES, QUATERNION_NORM_TOLERANCE,
 };
 
 use serde::{Deserialize, Serialize};

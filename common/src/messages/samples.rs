@@ -182,6 +182,7 @@ fn snapshot_body(
         // clock in ns: the largest varint a snapshot's epoch takes.
         frame_epoch: 1_764_460_800_000_000_000,
         camera: CameraModelWire::from(&CameraModel::euroc_cam0()),
+        pixel_sigma_px: 1.0,
         clones: poses,
         covariance,
         landmarks: lms,

@@ -149,6 +149,12 @@ pub enum ValidationError {
         /// The timestamp of the clone before it.
         previous_t_s: f64,
     },
+    /// The snapshot's pixel noise is not a positive number of pixels up to
+    /// [`MAX_PIXEL_SIGMA_PX`].
+    #[error(
+        "snapshot.pixel_sigma_px must be positive and at most {MAX_PIXEL_SIGMA_PX} px, got {0}"
+    )]
+    PixelSigma(f64),
     /// The snapshot's camera model is unusable.
     #[error("snapshot.camera: {0}")]
     Camera(#[from] CameraError),
@@ -191,6 +197,10 @@ pub enum ValidationError {
         t_s: f64,
     },
 }
+
+/// Largest pixel noise a snapshot may declare, pixels (a camera that bad
+/// tracks nothing; a larger value is a corrupt message).
+pub const MAX_PIXEL_SIGMA_PX: f64 = 100.0;
 
 /// Most ranges in one [`HistoryRequest`].
 pub const MAX_REQUEST_RANGES: usize = 64;
@@ -352,6 +362,9 @@ pub const INTRINSICS_DIM: usize = 8;
 
 fn validate_snapshot(s: &StateSnapshot, limits: &Limits) -> Result<(), ValidationError> {
     finite(s.t_s, || "snapshot.t_s".into())?;
+    if !(s.pixel_sigma_px > 0.0 && s.pixel_sigma_px <= MAX_PIXEL_SIGMA_PX) {
+        return Err(ValidationError::PixelSigma(s.pixel_sigma_px));
+    }
     CameraModel::from(&s.camera).validate()?;
     count("snapshot.clones", s.clones.len(), limits.max_clones)?;
     count(

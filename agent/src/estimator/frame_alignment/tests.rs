@@ -65,6 +65,7 @@ fn the_window_in_our_frame_has_the_jacobians_of_numerical_differentiation() {
         ],
         cov: Arc::new(cov.clone()),
         camera: CameraModel::default(),
+        pixel_sigma_px: 1.0,
         landmarks: vec![PeerLandmark {
             id: 4,
             pos: Vector3::new(3.0, 1.0, 2.0),
