@@ -127,9 +127,6 @@ pub enum RunError {
     /// The scenario renders images, and this run takes simulated features.
     #[error("the scenario renders images (render.enabled), and {0} takes simulated features: {1}")]
     RendersImages(&'static str, &'static str),
-    /// Robots whose cameras have different pixel noise, in one joint filter.
-    #[error("{0} weighs every robot's pixels alike, and robot {1}'s camera has another pixel_noise_px than robot 0's")]
-    MixedPixelNoise(&'static str, usize),
     /// The robot never moved enough to start.
     #[error("robot {0} has no camera frame after its start time")]
     NeverStarted(usize),

@@ -70,7 +70,12 @@ fn common_rows(ce: &CentralEstimator, r: u16, id: u64) -> Option<(JointRows, Vec
         let f = ce.robots.get(usize::from(q))?.features.get(u)?;
         let vars = robot_vars(ce, q, f.measurements.iter().map(|m| m.clone_key));
         let cols = Columns::of(vars);
-        let sys = build_at(ce.joint.means(q)?, f, &cols, ce.opts.use_fej, &p_f)?;
+        let mut sys = build_at(ce.joint.means(q)?, f, &cols, ce.opts.use_fej, &p_f)?;
+        // Rows at the fleet's noise: robot q's scaled to its own.
+        let (ratio, _) = ce.whitening_ratios(q);
+        sys.h_x *= ratio;
+        sys.h_f *= ratio;
+        sys.res *= ratio;
         blocks.push((q, cols, sys));
     }
     let rows: usize = blocks.iter().map(|(_, _, s)| s.res.len()).sum();
@@ -283,7 +288,10 @@ pub fn common_slam(ce: &mut CentralEstimator, r: usize, coop: &mut CoopFrameStat
                 h.view_mut((0, c), (2, p.ncols())).copy_from(p);
                 c += p.ncols();
             }
-            let e = m.uv - z_hat;
+            // At the fleet's SLAM noise: robot q's view scaled to its own.
+            let (_, ratio) = ce.whitening_ratios(q);
+            h *= ratio;
+            let e = (m.uv - z_hat) * ratio;
             let res = DVector::from_vec(vec![e.x, e.y]);
             let noise = DMatrix::identity(2, 2) * sigma2;
             match ce.joint.cov.mahalanobis(&vars, &h, &res, &noise) {

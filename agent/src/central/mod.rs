@@ -56,6 +56,27 @@ struct Robot {
     slow_start: SlowStart,
     /// Which SLAM features take a view on a keyframe window (`slam_pacing`).
     slam_pacing: SlamPacing,
+    /// Its camera's pixel noise and its SLAM updates' noise, pixels.
+    noise: PixelNoise,
+}
+
+/// A robot's measurement noise, pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelNoise {
+    /// Its tracks' noise (`pixel_sigma_px`).
+    pub pixel_sigma_px: f64,
+    /// Its SLAM updates' noise (`EstimatorOptions::slam_sigma_px`).
+    pub slam_sigma_px: f64,
+}
+
+impl PixelNoise {
+    /// The noise `opts` weigh pixels with.
+    pub fn of(opts: &EstimatorOptions) -> Self {
+        Self {
+            pixel_sigma_px: opts.pixel_sigma_px,
+            slam_sigma_px: opts.slam_sigma_px(),
+        }
+    }
 }
 
 /// A track of a robot: `(robot, track id)`.
@@ -78,8 +99,11 @@ fn ms(t: Instant) -> f64 {
 }
 
 impl CentralEstimator {
-    /// A fleet of robots with options `opts` and each robot's initial calibration.
+    /// A fleet of robots with options `opts` and each robot's initial
+    /// calibration; every robot's pixels weigh as `opts` say until
+    /// [`CentralEstimator::set_pixel_noise`].
     pub fn new(opts: EstimatorOptions, calibs: Vec<CameraCalibration>) -> Self {
+        let noise = PixelNoise::of(&opts);
         // One lens type for the fleet's rays (the first robot's): peers'
         // rays are triangulated together with ours.
         let tri = match calibs.first() {
@@ -101,6 +125,7 @@ impl CentralEstimator {
                     updated_once: false,
                     slow_start: SlowStart::default(),
                     slam_pacing: SlamPacing::default(),
+                    noise,
                 })
                 .collect(),
             opts,
@@ -114,6 +139,28 @@ impl CentralEstimator {
     /// The joint state.
     pub fn joint(&self) -> &JointState {
         &self.joint
+    }
+
+    /// Robot `r`'s pixels weigh at `noise` (its camera's), in its own
+    /// updates and in the joint ones.
+    pub fn set_pixel_noise(&mut self, r: usize, noise: PixelNoise) {
+        if let Some(robot) = self.robots.get_mut(r) {
+            robot.noise = noise;
+        }
+    }
+
+    /// What robot `q`'s rows are multiplied by so that the joint updates,
+    /// which weigh every row at the fleet's noise (`opts`), weigh them at
+    /// its own: fleet noise over its noise, for its tracks and for its SLAM
+    /// views (exactly 1 when they are the fleet's).
+    fn whitening_ratios(&self, q: u16) -> (f64, f64) {
+        match self.robots.get(usize::from(q)) {
+            Some(rb) => (
+                self.opts.pixel_sigma_px / rb.noise.pixel_sigma_px,
+                self.opts.slam_sigma_px() / rb.noise.slam_sigma_px,
+            ),
+            None => (1.0, 1.0),
+        }
     }
 
     /// Starts robot `r` at `init` (its variables join the joint state,
@@ -235,6 +282,13 @@ impl CentralEstimator {
         let cpu_start = cpu_time::ThreadTime::try_now().ok();
         let mut opts = self.opts.clone();
         let rid = r as u16;
+        // Its own updates weigh its pixels at its camera's noise.
+        if let Some(robot) = self.robots.get(r) {
+            opts.pixel_sigma_px = robot.noise.pixel_sigma_px;
+            if opts.slam_pixel_sigma_px.is_some() {
+                opts.slam_pixel_sigma_px = Some(robot.noise.slam_sigma_px);
+            }
+        }
         // After a slow start the robot's window keeps keyframes, and the
         // settings for slow platforms hold (`slow_start`).
         if let Some(robot) = self.robots.get(r) {
@@ -536,5 +590,36 @@ impl CentralEstimator {
                 zero_velocity,
             ),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_robot_rows_are_scaled_from_the_fleet_noise_to_its_own() {
+        let opts = EstimatorOptions {
+            pixel_sigma_px: 1.0,
+            slam_pixel_sigma_px: Some(2.0),
+            ..EstimatorOptions::default()
+        };
+        let calib = CameraCalibration::euroc_cam0();
+        let mut ce = CentralEstimator::new(opts, vec![calib.clone(), calib]);
+        // Every robot at the fleet's noise: exactly 1, so such fleets do not
+        // change.
+        assert_eq!(ce.whitening_ratios(0), (1.0, 1.0));
+        assert_eq!(ce.whitening_ratios(1), (1.0, 1.0));
+        ce.set_pixel_noise(
+            1,
+            PixelNoise {
+                pixel_sigma_px: 4.0,
+                slam_sigma_px: 8.0,
+            },
+        );
+        assert_eq!(ce.whitening_ratios(0), (1.0, 1.0));
+        assert_eq!(ce.whitening_ratios(1), (0.25, 0.25));
+        // A robot the fleet does not have: left as it is.
+        assert_eq!(ce.whitening_ratios(7), (1.0, 1.0));
     }
 }

@@ -3,7 +3,7 @@
 //! true state once it has moved (as the standalone runs), its estimate scored
 //! against its own truth.
 
-use super::CentralEstimator;
+use super::{CentralEstimator, PixelNoise};
 use crate::runner::{
     initial_state, options_for, record, thread_cpu_s, RobotRun, RunError, Variant,
 };
@@ -36,15 +36,13 @@ pub fn run_central(fleet: &Fleet, variant: Variant) -> Result<Vec<RobotRun>, Run
             "it has no image frontend; run the agents' variants, or set render.enabled: false",
         ));
     }
-    // One filter weighs every robot's pixels alike.
-    if let Some(r) = (1..n).find(|&r| {
-        fleet.scenario.camera(r).pixel_noise_px != fleet.scenario.camera(0).pixel_noise_px
-    }) {
-        return Err(RunError::MixedPixelNoise(variant.name(), r));
-    }
     let opts = options_for(spec, fleet, 0, variant);
     let calibs = (0..n).map(|r| fleet.initial_calibration(r)).collect();
     let mut est = CentralEstimator::new(opts, calibs);
+    // Each robot's pixels weigh at its camera's noise.
+    for r in 0..n {
+        est.set_pixel_noise(r, PixelNoise::of(&options_for(spec, fleet, r, variant)));
+    }
     let mut streams = Vec::with_capacity(n);
     let mut starts = Vec::with_capacity(n);
     for r in 0..n {
