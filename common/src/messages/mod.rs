@@ -25,7 +25,9 @@
 //! cross-covariance, which would otherwise have to be sent and kept consistent.
 //! The intrinsics do travel ([`CameraModelWire`], point values), but only to
 //! interpret the raw pixels of [`TrackPoint::uv_px`]; the undistorted
-//! [`TrackPoint::xy_norm`] already applies them.
+//! [`TrackPoint::xy_norm`] already applies them. So does the sender's pixel
+//! noise ([`StateSnapshot::pixel_sigma_px`]): a peer weighs the sender's
+//! tracks at it, through the sender's lens.
 //!
 //! # Covariance in `f32`
 //! [`PackedCovariance`] stores the lower triangle in `f32`: for the usual
