@@ -822,6 +822,14 @@ impl EstimatorOptions {
                 return Err(format!("{name} must be finite and positive, not {v}"));
             }
         }
+        // Every snapshot declares it, and peers refuse a snapshot above this.
+        let most = crate::messages::MAX_PIXEL_SIGMA_PX;
+        if self.pixel_sigma_px > most {
+            return Err(format!(
+                "pixel_sigma_px must be at most {most} px (what a snapshot may declare), not {}",
+                self.pixel_sigma_px
+            ));
+        }
         let non_negative = [
             ("slam_delay_s", self.slam_delay_s),
             ("keyframe_parallax_px", self.keyframe_parallax_px),
@@ -920,6 +928,7 @@ mod tests {
         assert!(bad(|o| o.max_clones = 0).contains("max_clones"));
         assert!(bad(|o| o.max_clones = 1).contains("two views"));
         assert!(bad(|o| o.pixel_sigma_px = 0.0).contains("pixel_sigma_px"));
+        assert!(bad(|o| o.pixel_sigma_px = 101.0).contains("at most 100 px"));
         assert!(bad(|o| o.slam_pixel_sigma_px = Some(-1.0)).contains("slam_pixel_sigma_px"));
         assert!(bad(|o| o.chi2_multiplier = f64::NAN).contains("chi2_multiplier"));
         assert!(bad(|o| o.slam_delay_s = -1.0).contains("slam_delay_s"));

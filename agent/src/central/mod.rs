@@ -282,16 +282,14 @@ impl CentralEstimator {
         let cpu_start = cpu_time::ThreadTime::try_now().ok();
         let mut opts = self.opts.clone();
         let rid = r as u16;
-        // Its own updates weigh its pixels at its camera's noise.
         if let Some(robot) = self.robots.get(r) {
+            // Its own updates weigh its pixels at its camera's noise.
             opts.pixel_sigma_px = robot.noise.pixel_sigma_px;
             if opts.slam_pixel_sigma_px.is_some() {
                 opts.slam_pixel_sigma_px = Some(robot.noise.slam_sigma_px);
             }
-        }
-        // After a slow start the robot's window keeps keyframes, and the
-        // settings for slow platforms hold (`slow_start`).
-        if let Some(robot) = self.robots.get(r) {
+            // After a slow start the robot's window keeps keyframes, and the
+            // settings for slow platforms hold (`slow_start`).
             robot.slow_start.apply(&mut opts);
         }
         let mut timing = crate::estimator::vio::FrameTiming::default();
