@@ -6,8 +6,8 @@ use crate::frontend::FrontendOptions;
 use crate::runner::Variant;
 use crate::transport::{Iceoryx2Settings, TransportKind, TransportSettings, ZenohSettings};
 use common::estimator_options::{
-    CiWeighting, CommonProjection, EstimatorOptions, FeatureRepresentation, MsckfJacobians,
-    TriangulationLimits,
+    CiWeighting, CommonProjection, CooperationOptions, EstimatorOptions, FeatureRepresentation,
+    MsckfJacobians, TriangulationLimits,
 };
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -593,6 +593,34 @@ pub struct EstimatorSection {
     /// Split CI over our own calibration (`cooperation.split_calibration`).
     #[serde(default)]
     pub split_calibration: Option<bool>,
+    /// Largest Hamming distance of a descriptor match, bits of 256
+    /// (`cooperation.max_descriptor_distance_bits`).
+    #[serde(default)]
+    pub max_descriptor_distance_bits: Option<u32>,
+    /// Ratio test of a descriptor match: best distance below this fraction
+    /// of the second best (`cooperation.match_ratio`).
+    #[serde(default)]
+    pub match_ratio: Option<f64>,
+    /// Fewest epipolar inliers of the matches to a peer's current frame
+    /// (`cooperation.min_window_inliers`).
+    #[serde(default)]
+    pub min_window_inliers: Option<usize>,
+    /// Fewest epipolar inliers of a loop closure to a peer keyframe
+    /// (`cooperation.min_loop_inliers`).
+    #[serde(default)]
+    pub min_loop_inliers: Option<usize>,
+    /// Sampson threshold of the fundamental-matrix RANSAC, px
+    /// (`cooperation.epipolar_threshold_px`).
+    #[serde(default)]
+    pub epipolar_threshold_px: Option<f64>,
+    /// Smallest bag-of-words score of a loop-closure candidate, in [0, 1]
+    /// (`cooperation.loop_min_score`).
+    #[serde(default)]
+    pub loop_min_score: Option<f64>,
+    /// Loop-closure candidates checked per peer and frame
+    /// (`cooperation.loop_candidates`).
+    #[serde(default)]
+    pub loop_candidates: Option<usize>,
     /// Vocabulary file for historical loop closures (`vocab train` output);
     /// without it, a vocabulary for random binary descriptors (the simulator's)
     /// is built in memory.
@@ -721,6 +749,32 @@ impl EstimatorSection {
         if let Some(g) = self.window_gate {
             c.window_gate = g;
         }
+        self.apply_matching(c);
+    }
+
+    /// Applies the descriptor-matching and loop-closure overrides that are set.
+    fn apply_matching(&self, c: &mut CooperationOptions) {
+        if let Some(v) = self.max_descriptor_distance_bits {
+            c.max_descriptor_distance_bits = v;
+        }
+        for (field, value) in [
+            (&mut c.match_ratio, self.match_ratio),
+            (&mut c.epipolar_threshold_px, self.epipolar_threshold_px),
+            (&mut c.loop_min_score, self.loop_min_score),
+        ] {
+            if let Some(v) = value {
+                *field = v;
+            }
+        }
+        for (field, value) in [
+            (&mut c.min_window_inliers, self.min_window_inliers),
+            (&mut c.min_loop_inliers, self.min_loop_inliers),
+            (&mut c.loop_candidates, self.loop_candidates),
+        ] {
+            if let Some(v) = value {
+                *field = v;
+            }
+        }
     }
 }
 
@@ -791,6 +845,13 @@ impl Default for EstimatorSection {
             held_frame_anchor_growth: None,
             split_unobservable: None,
             split_calibration: None,
+            max_descriptor_distance_bits: None,
+            match_ratio: None,
+            min_window_inliers: None,
+            min_loop_inliers: None,
+            epipolar_threshold_px: None,
+            loop_min_score: None,
+            loop_candidates: None,
             vocabulary: None,
         }
     }
@@ -1444,6 +1505,49 @@ mod tests {
         std::fs::write(&p, with("  ci_weighting: best\n")).unwrap();
         let e = AgentConfig::load(&p).unwrap_err().to_string();
         assert!(e.contains("best") && e.contains("min_pose_trace"), "{e}");
+    }
+
+    #[test]
+    fn matching_and_loop_closure_keys_apply_and_bad_ones_are_reported() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.yaml");
+        let with = dc_full_history_with;
+        std::fs::write(
+            &p,
+            with(
+                "  max_descriptor_distance_bits: 50\n  match_ratio: 0.7\n  \
+                 min_window_inliers: 12\n  min_loop_inliers: 10\n  \
+                 epipolar_threshold_px: 1.5\n  loop_min_score: 0.05\n  loop_candidates: 4\n",
+            ),
+        )
+        .unwrap();
+        let mut o = EstimatorOptions::default();
+        AgentConfig::load(&p).unwrap().estimator.apply(&mut o);
+        let c = &o.cooperation;
+        assert_eq!(c.max_descriptor_distance_bits, 50);
+        assert_eq!(c.match_ratio, 0.7);
+        assert_eq!((c.min_window_inliers, c.min_loop_inliers), (12, 10));
+        assert_eq!(c.epipolar_threshold_px, 1.5);
+        assert_eq!((c.loop_min_score, c.loop_candidates), (0.05, 4));
+        // Unset keys keep the defaults.
+        std::fs::write(&p, with("  min_loop_inliers: 20\n")).unwrap();
+        let mut o = EstimatorOptions::default();
+        AgentConfig::load(&p).unwrap().estimator.apply(&mut o);
+        let d = EstimatorOptions::default().cooperation;
+        assert_eq!(o.cooperation.min_loop_inliers, 20);
+        assert_eq!(o.cooperation.min_window_inliers, d.min_window_inliers);
+        assert_eq!(o.cooperation.loop_candidates, d.loop_candidates);
+        for (key, value) in [
+            ("min_loop_inliers", "8"),
+            ("min_window_inliers", "3"),
+            ("loop_candidates", "0"),
+            ("match_ratio", "1.5"),
+            ("max_descriptor_distance_bits", "300"),
+        ] {
+            std::fs::write(&p, with(&format!("  {key}: {value}\n"))).unwrap();
+            let e = AgentConfig::load(&p).unwrap_err().to_string();
+            assert!(e.contains(key), "{key}: {e}");
+        }
     }
 
     #[test]

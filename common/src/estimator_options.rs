@@ -512,7 +512,30 @@ impl CooperationOptions {
                 self.loop_min_score
             ));
         }
+        let bits = crate::descriptor::Descriptor::BITS;
+        if self.max_descriptor_distance_bits as usize > bits {
+            return Err(format!(
+                "cooperation.max_descriptor_distance_bits must be at most {bits} \
+                 (a descriptor's length), not {}",
+                self.max_descriptor_distance_bits
+            ));
+        }
+        // The eight-point solver fits any eight pairs exactly: a floor at or
+        // below it would accept matches that agree on nothing.
         for (name, v) in [
+            ("min_window_inliers", self.min_window_inliers),
+            ("min_loop_inliers", self.min_loop_inliers),
+        ] {
+            if v <= crate::epipolar::MIN_POINTS {
+                return Err(format!(
+                    "cooperation.{name} must be above {} (the eight-point solver fits any {0} \
+                     pairs), not {v}",
+                    crate::epipolar::MIN_POINTS
+                ));
+            }
+        }
+        for (name, v) in [
+            ("loop_candidates", self.loop_candidates),
             ("max_ci_participants", self.max_ci_participants),
             (
                 "max_peers_matched_per_frame",
@@ -944,6 +967,11 @@ mod tests {
         assert!(bad(|o| o.cooperation.max_window_age_s = f64::INFINITY).contains("window_age"));
         assert!(bad(|o| o.cooperation.match_ratio = 0.0).contains("match_ratio"));
         assert!(bad(|o| o.cooperation.loop_min_score = 1.5).contains("loop_min_score"));
+        assert!(bad(|o| o.cooperation.max_descriptor_distance_bits = 257)
+            .contains("max_descriptor_distance_bits"));
+        assert!(bad(|o| o.cooperation.min_loop_inliers = 8).contains("min_loop_inliers"));
+        assert!(bad(|o| o.cooperation.min_window_inliers = 0).contains("min_window_inliers"));
+        assert!(bad(|o| o.cooperation.loop_candidates = 0).contains("loop_candidates"));
         assert!(bad(|o| {
             o.cooperation.align_peer_frames = true;
             o.cooperation.common_vio = true;
