@@ -226,19 +226,23 @@ impl Template {
     /// Refines `guess`, the frame-to-frame pixel, against the template in
     /// `img`, by inverse-compositional Gauss-Newton (the system is the
     /// template's, fixed). On success the template keeps the warp as the next
-    /// frame's start.
+    /// frame's start. `scratch` holds the warped patch: one buffer lent to
+    /// every track's refinement keeps the frame's loop free of allocation.
     pub fn refine(
         &mut self,
         img: &ImageView,
         guess: Vector2<f64>,
         limits: &RefineLimits,
+        scratch: &mut Vec<f32>,
     ) -> Result<Vector2<f64>, Refusal> {
         let mut m = self.warp;
         let mut b = guess;
         let mut converged = false;
-        let mut warped = vec![0.0_f32; self.values.len()];
+        scratch.clear();
+        scratch.resize(self.values.len(), 0.0);
+        let warped = scratch.as_mut_slice();
         for _ in 0..limits.max_iterations {
-            self.sample_warped(img, &m, b, &mut warped)?;
+            self.sample_warped(img, &m, b, warped)?;
             let mut g = [0.0_f32; 6];
             for ((i, t), sd) in warped.iter().zip(&self.values).zip(&self.steepest) {
                 let e = i - t;
@@ -272,8 +276,8 @@ impl Template {
         if !(sv.max() <= limits.max_scale && sv.min() >= 1.0 / limits.max_scale) {
             return Err(Refusal::Warped);
         }
-        self.sample_warped(img, &m, b, &mut warped)?;
-        let (rms, gain) = self.residual(&warped);
+        self.sample_warped(img, &m, b, warped)?;
+        let (rms, gain) = self.residual(warped);
         let contrast = gain * f64::from(self.contrast);
         if !(gain > 0.0
             && (rms <= limits.max_residual * contrast || rms <= limits.residual_floor_gray))
@@ -383,7 +387,7 @@ mod tests {
         let img1 = ImageView::new(&second, w, h).expect("image");
         let guess = target + Vector2::new(0.8, -0.6);
         let found = tpl
-            .refine(&img1, guess, &RefineLimits::default())
+            .refine(&img1, guess, &RefineLimits::default(), &mut Vec::new())
             .expect("refined");
         assert!(
             (found - target).norm() < 0.15,
@@ -394,7 +398,7 @@ mod tests {
         let mut at = found;
         for _ in 0..8 {
             at = tpl
-                .refine(&img1, at, &RefineLimits::default())
+                .refine(&img1, at, &RefineLimits::default(), &mut Vec::new())
                 .expect("refined");
         }
         assert!((at - target).norm() < 0.15, "{at} vs {target}");
@@ -416,11 +420,11 @@ mod tests {
         let img1 = ImageView::new(&other, w, h).expect("image");
         let limits = RefineLimits::default();
         assert!(tpl
-            .refine(&img1, Vector2::new(60.0, 50.0), &limits)
+            .refine(&img1, Vector2::new(60.0, 50.0), &limits, &mut Vec::new())
             .is_err());
         // Half the patch outside the image.
         assert_eq!(
-            tpl.refine(&img1, Vector2::new(3.0, 50.0), &limits),
+            tpl.refine(&img1, Vector2::new(3.0, 50.0), &limits, &mut Vec::new()),
             Err(Refusal::Outside)
         );
         // A flat image has no template.

@@ -337,13 +337,14 @@ impl Frontend {
         let limits = RefineLimits::default();
         let drop = self.opts.first_patch == FirstPatch::Drop;
         let mut refused = 0;
+        let mut scratch = Vec::new();
         tracks.retain_mut(|tr| {
             let Some(tpl) = self.templates.get_mut(&tr.id) else {
                 // No first patch (it started too near the border or on a
                 // flat patch): the frame-to-frame pixel.
                 return true;
             };
-            let why = match tpl.refine(&view, tr.uv, &limits) {
+            let why = match tpl.refine(&view, tr.uv, &limits, &mut scratch) {
                 Ok(uv) => {
                     tr.uv = uv;
                     return true;
