@@ -61,13 +61,7 @@ fn read_block<T: serde::de::DeserializeOwned>(path: &Path, block: &str) -> Resul
 /// file with the keys of an agent configuration's `images.frontend:` block;
 /// an unknown key or a value out of range is an error naming it).
 pub fn frontend_options(frontend: Option<&Path>) -> Result<FrontendOptions> {
-    let Some(path) = frontend else {
-        return Ok(FrontendOptions::default());
-    };
-    let o: FrontendOptions = read_block(path, "images.frontend")?;
-    o.validate()
-        .map_err(|e| anyhow!("{}: frontend settings: {e}", path.display()))?;
-    Ok(o)
+    crate::rendered_run::frontend_options(frontend).map_err(|e| anyhow!(e))
 }
 
 /// The estimator's options for a sequence and its variant: the defaults for

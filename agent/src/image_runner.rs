@@ -92,6 +92,17 @@ pub struct ImageRun {
     pub per_frame: Vec<FrameTrackError>,
 }
 
+/// `track_errors.csv`: [`FrameTrackError::CSV_HEADER`], then a row per image.
+pub fn track_errors_csv(per_frame: &[FrameTrackError]) -> String {
+    let mut text = String::from(FrameTrackError::CSV_HEADER);
+    for f in per_frame {
+        text.push('\n');
+        text.push_str(&f.csv_row());
+    }
+    text.push('\n');
+    text
+}
+
 /// Runs robot `robot` of a fleet that renders images (`render.enabled`);
 /// `on_image` sees every image with the frontend's output (e.g. to log it).
 pub fn run_robot_rendered(

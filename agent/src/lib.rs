@@ -37,6 +37,7 @@ pub mod node_images;
 pub mod outbox;
 pub mod peer_events;
 pub mod peer_history;
+pub mod rendered_run;
 pub mod ros_input;
 pub mod run_files;
 pub mod runner;

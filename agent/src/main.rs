@@ -677,7 +677,7 @@ fn rendered(
     frontend: Option<&std::path::Path>,
     log: &mut AgentLog,
     out: &std::path::Path,
-) -> Result<agent::runner::RobotRun> {
+) -> Result<(agent::runner::RobotRun, Option<f64>)> {
     let frontend = agent::dataset_cli::frontend_options(frontend)?;
     let mut k = 0usize;
     let r = agent::image_runner::run_robot_rendered(fleet, robot, opts, frontend, |c, out| {
@@ -702,14 +702,10 @@ fn rendered(
         q.observations
     );
     let csv = out.join("track_errors.csv");
-    let mut text = String::from(agent::image_runner::FrameTrackError::CSV_HEADER);
-    for f in &r.per_frame {
-        text.push('\n');
-        text.push_str(&f.csv_row());
-    }
-    text.push('\n');
+    let text = agent::image_runner::track_errors_csv(&r.per_frame);
     std::fs::write(&csv, text).with_context(|| format!("writing {}", csv.display()))?;
-    Ok(r.run)
+    let scored = q.observations > 0 && q.reprojection_mean_px.is_finite();
+    Ok((r.run, scored.then_some(q.reprojection_mean_px)))
 }
 
 #[cfg(not(feature = "vision"))]
@@ -720,8 +716,8 @@ fn rendered(
     _: Option<&std::path::Path>,
     _: &mut AgentLog,
     _: &std::path::Path,
-) -> Result<agent::runner::RobotRun> {
-    anyhow::bail!("rendered images need the image frontend: build with `--features agent/vision`")
+) -> Result<(agent::runner::RobotRun, Option<f64>)> {
+    Err(agent::runner::RunError::NoImageFrontend.into())
 }
 
 fn run(args: &RunArgs) -> Result<()> {
@@ -735,12 +731,14 @@ fn run(args: &RunArgs) -> Result<()> {
     let out = &args.out;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let mut log = AgentLog::create(&out.join("agent.mcap"))?;
-    let run = if let Some(imu) = &args.real_imu {
+    let (run, track_error_px) = if let Some(imu) = &args.real_imu {
         let default_biases = scenario
             .trajectory_path(args.robot)
             .filter(|p| p.extension().is_some_and(|e| e == "csv"));
         let biases = args.real_imu_biases.clone().or(default_biases);
-        agent::hybrid::run_robot_hybrid(&fleet, args.robot, opts, imu, biases.as_deref())?
+        let run =
+            agent::hybrid::run_robot_hybrid(&fleet, args.robot, opts, imu, biases.as_deref())?;
+        (run, None)
     } else if fleet.renders() {
         rendered(
             &fleet,
@@ -751,7 +749,7 @@ fn run(args: &RunArgs) -> Result<()> {
             out,
         )?
     } else {
-        run_robot(&fleet, args.robot, opts)?
+        (run_robot(&fleet, args.robot, opts)?, None)
     };
     let truth_twists: Vec<_> = run
         .twists
@@ -773,7 +771,10 @@ fn run(args: &RunArgs) -> Result<()> {
         tracing::warn!("rejected: {r}");
     }
     write_run_outputs(&run, out).with_context(|| format!("writing {}", out.display()))?;
-    let metrics = run.metrics();
+    let metrics = MetricSet {
+        track_error_px,
+        ..run.metrics()
+    };
     println!(
         "robot {} ({}), {}, seed {seed}: ATE {:.3} deg / {:.3} m, NEES ori {:.2} pos {:.2}, {:.2} ms/frame (p95 {:.2}), {} frames",
         args.robot,

@@ -127,6 +127,12 @@ pub enum RunError {
     /// The scenario renders images, and this run takes simulated features.
     #[error("the scenario renders images (render.enabled), and {0} takes simulated features: {1}")]
     RendersImages(&'static str, &'static str),
+    /// The scenario renders images, and this build has no image frontend.
+    #[error(
+        "the scenario renders images (render.enabled), and this build has no image frontend: \
+         build with `--features agent/vision` (OpenCV)"
+    )]
+    NoImageFrontend,
     /// The robot never moved enough to start.
     #[error("robot {0} has no camera frame after its start time")]
     NeverStarted(usize),

@@ -131,6 +131,9 @@ pub struct MetricSet {
     /// estimator's thread divided by the robots. It includes simulating the
     /// robots' sensors.
     pub cpu_s: Option<f64>,
+    /// Mean error of the image frontend's tracks against the rendered truth,
+    /// px (a run through rendered images; `null` otherwise).
+    pub track_error_px: Option<f64>,
 }
 
 /// Why a summary could not be written or read.
@@ -229,6 +232,7 @@ impl MetricSet {
             peer_frame_nees: f(|s| s.peer_frame_nees),
             first_peer_frame_s: f(|s| s.first_peer_frame_s),
             cpu_s: f(|s| s.cpu_s),
+            track_error_px: f(|s| s.track_error_px),
         }
     }
 }

@@ -19,6 +19,7 @@ mod fleet_job;
 pub mod stats;
 pub mod table;
 
+use agent::frontend::FrontendOptions;
 use agent::runner::{options_for, run_robot, Variant};
 use aggregate::{aggregate_variant, RobotOutcome, RunFailure, StudySummary, DIVERGED_ATE_POS_M};
 use common::summary::{MetricSet, RobotSummary, RunSummary, SummaryError};
@@ -62,6 +63,11 @@ pub struct MontecarloArgs {
     /// What the cooperative variants' agents keep of their peers.
     #[command(flatten)]
     pub history: crate::fleet_run::HistoryArgs,
+    /// A scenario that renders images (`render: {enabled: true}`): the image
+    /// frontend's settings for every agent (YAML, the keys of
+    /// an agent configuration's `images.frontend:` block) over the defaults.
+    #[arg(long, value_name = "YAML")]
+    pub frontend: Option<PathBuf>,
 }
 
 /// Why a Monte-Carlo study could not run or write its results.
@@ -163,6 +169,8 @@ struct Study<'a> {
     seeds: &'a [u64],
     variants: &'a [Variant],
     history: crate::fleet_run::HistoryArgs,
+    /// The image frontend's settings, for a scenario that renders images.
+    frontend: FrontendOptions,
     out: &'a Path,
     slots: Vec<SeedSlot>,
     abort: AtomicBool,
@@ -231,8 +239,16 @@ impl Study<'_> {
         };
         let variant = self.variants[job.variant];
         let opts = options_for(&fleet.scenario.estimator, &fleet, robot, variant);
-        let run = match run_robot(&fleet, robot, opts) {
-            Ok(run) => run,
+        // Rendered images go through the image frontend; its tracks are
+        // scored against the rendered truth.
+        let ran = if fleet.renders() {
+            agent::rendered_run::run(&fleet, robot, opts, self.frontend.clone())
+                .map(|r| (r.run, r.track_error_mean_px, Some(r.track_errors_csv)))
+        } else {
+            run_robot(&fleet, robot, opts).map(|run| (run, None, None))
+        };
+        let (run, track_error_px, track_errors_csv) = match ran {
+            Ok(ran) => ran,
             Err(e) => return JobResult::Failed(e.to_string()),
         };
         drop(fleet);
@@ -256,6 +272,11 @@ impl Study<'_> {
             if !run.imu_states.is_empty() {
                 write_imu_states(dir.join("imu_state.txt"), &run.imu_states)?;
             }
+            if let Some(csv) = &track_errors_csv {
+                let path = dir.join("track_errors.csv");
+                std::fs::write(&path, csv)
+                    .map_err(|source| MontecarloError::Io { path, source })?;
+            }
             Ok(())
         });
         if let Err(e) = written {
@@ -265,8 +286,12 @@ impl Study<'_> {
             (Some(a), Some(b)) => b.t - a.t,
             _ => 0.0,
         };
+        let metrics = MetricSet {
+            track_error_px,
+            ..run.metrics()
+        };
         JobResult::Done {
-            robots: vec![(robot, run.metrics())],
+            robots: vec![(robot, metrics)],
             sim_s,
         }
     }
@@ -284,6 +309,7 @@ impl Study<'_> {
             self.scenario,
             seed,
             (variant, self.history),
+            &self.frontend,
             &dir,
         ) {
             Ok((robots, sim_s)) => JobResult::Done { robots, sim_s },
@@ -334,6 +360,41 @@ fn anees_of(
 }
 
 /// `DIR/runs/<variant>/seed<k>`.
+/// The image frontend's settings of `frontend` (the defaults without it).
+/// Refuses, before any run, what a scenario that renders images cannot do
+/// here: a build without the image frontend (the agents of the cooperative
+/// variants need it too), a centralized variant (no image frontend), or
+/// frontend settings for a scenario that renders nothing.
+fn check_rendering(
+    scenario: &Scenario,
+    variants: &[Variant],
+    frontend: Option<&Path>,
+) -> Result<FrontendOptions, MontecarloError> {
+    if !scenario.render.enabled {
+        return match frontend {
+            Some(f) => Err(MontecarloError::Args(format!(
+                "--frontend {} needs a scenario that renders images (render: {{enabled: true}})",
+                f.display()
+            ))),
+            None => Ok(FrontendOptions::default()),
+        };
+    }
+    let settings =
+        agent::rendered_run::frontend_options(frontend).map_err(MontecarloError::Args)?;
+    if let Some(v) = variants.iter().find(|v| v.centralized()) {
+        return Err(MontecarloError::Args(format!(
+            "{} has no image frontend and the scenario renders images (render.enabled)",
+            v.name()
+        )));
+    }
+    if !agent::rendered_run::AVAILABLE {
+        return Err(MontecarloError::Args(
+            agent::runner::RunError::NoImageFrontend.to_string(),
+        ));
+    }
+    Ok(settings)
+}
+
 fn seed_dir(out: &Path, variant: Variant, seed: u64) -> PathBuf {
     out.join("runs")
         .join(variant.name())
@@ -446,6 +507,7 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<(StudySummary, String), Monte
             b.name()
         )));
     }
+    let frontend = check_rendering(&scenario, variants, args.frontend.as_deref())?;
     let robots = scenario.robots.len();
     let jobs: Vec<Job> = (0..seeds.len())
         .flat_map(|seed| {
@@ -486,6 +548,7 @@ pub fn montecarlo(args: &MontecarloArgs) -> Result<(StudySummary, String), Monte
         seeds: &seeds,
         variants,
         history: args.history,
+        frontend,
         out: &args.out,
         slots: seeds
             .iter()

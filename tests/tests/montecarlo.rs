@@ -448,3 +448,100 @@ fn a_history_bound_given_to_a_study_bounds_every_agents_history() -> Result<()> 
     );
     Ok(())
 }
+
+/// A scenario that renders images: each run goes through the image frontend
+/// (with the settings `--frontend` gives), writes its tracks' error against
+/// the rendered truth, and the study reports it. A build without the image
+/// frontend refuses the study by name before anything runs, and so does any
+/// build for what cannot run on images.
+#[test]
+fn a_rendered_study_runs_its_images_through_the_frontend() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    write_loop_trajectory(&dir.path().join("loop.txt"), 14.0)?;
+    let scenario = dir.path().join("rendered.yaml");
+    std::fs::write(
+        &scenario,
+        "name: rendered\nrobots:\n  - trajectory: loop.txt\nrender:\n  enabled: true\n",
+    )?;
+    let frontend = dir.path().join("frontend.yaml");
+    std::fs::write(&frontend, "num_features: 120\n")?;
+    let study = |extra: &[&str], out: &Path| -> Result<std::process::Output> {
+        Ok(Command::new(bin("sim-fleet"))
+            .arg("montecarlo")
+            .arg(&scenario)
+            .args(["--runs", "2", "--jobs", "2"])
+            .args(extra)
+            .arg("--out")
+            .arg(out)
+            .output()?)
+    };
+
+    let out = dir.path().join("mc");
+    let fe = frontend.to_str().ok_or("path")?;
+    let output = study(&["--variants", "indp-slam", "--frontend", fe], &out)?;
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    if stderr.contains("this build has no image frontend") {
+        assert!(!output.status.success());
+        assert!(stderr.contains("--features agent/vision"), "{stderr}");
+        assert!(!out.join("summary.json").exists());
+    } else {
+        assert!(output.status.success(), "{stderr}");
+        let stdout = String::from_utf8_lossy(&output.stdout);
+        assert!(stdout.contains("against the rendered truth"), "{stdout}");
+        for seed in [1, 2] {
+            let csv = out.join(format!("runs/indp-slam/seed{seed}/robot0/track_errors.csv"));
+            let text = std::fs::read_to_string(&csv)?;
+            assert!(text.starts_with("t_s,observations,mean_px"), "{text}");
+            assert!(text.lines().count() > 50, "a row per image: {text}");
+        }
+        let summary = read_json(&out.join("summary.json"));
+        let v = &summary["variants"]["indp-slam"];
+        assert_eq!(v["diverged"], 0, "{v}");
+        let px = v["mean"]["track_error_px"]
+            .as_f64()
+            .ok_or("track_error_px")?;
+        assert!(px > 0.0 && px < 1.0, "tracks within a pixel: {px}");
+        let deg = v["mean"]["ate_ori_deg"].as_f64().ok_or("ate_ori_deg")?;
+        assert!(deg < 2.0, "{deg}");
+    }
+
+    // Refused before anything runs, whatever the build.
+    let refused = |extra: &[&str], what: &str| -> Result<()> {
+        let out = dir.path().join("refused");
+        let output = study(extra, &out)?;
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(
+            !output.status.success() && stderr.contains(what),
+            "{stderr}"
+        );
+        assert!(!out.join("summary.json").exists());
+        Ok(())
+    };
+    refused(
+        &["--variants", "ce-cmsckf"],
+        "ce-cmsckf has no image frontend",
+    )?;
+    std::fs::write(&frontend, "num_feature: 120\n")?;
+    refused(&["--variants", "indp", "--frontend", fe], "num_feature")?;
+    let plain = loop_scenario(dir.path())?;
+    let output = Command::new(bin("sim-fleet"))
+        .arg("montecarlo")
+        .arg(&plain)
+        .args([
+            "--runs",
+            "1",
+            "--variants",
+            "indp",
+            "--frontend",
+            fe,
+            "--out",
+        ])
+        .arg(dir.path().join("plain"))
+        .output()?;
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        !output.status.success() && stderr.contains("needs a scenario that renders images"),
+        "{stderr}"
+    );
+    Ok(())
+}

@@ -5,6 +5,7 @@
 //! `DIR/robot<i>/`.
 
 use crate::fleet_run::{agent_configs, run_inproc, HistoryArgs, RunArgs};
+use agent::frontend::FrontendOptions;
 use agent::runner::Variant;
 use common::summary::{fill_peer_windows_published, MetricSet};
 use simulator::Scenario;
@@ -13,12 +14,14 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 /// Runs `variant` on the fleet of `seed` (the agents' histories as `history`
-/// says); each robot's metrics and the simulated seconds, or why it failed.
+/// says, their image frontends with `frontend` when the scenario renders);
+/// each robot's metrics and the simulated seconds, or why it failed.
 pub fn run(
     scenario_path: &Path,
     scenario: &Scenario,
     seed: u64,
     (variant, history): (Variant, HistoryArgs),
+    frontend: &FrontendOptions,
     dir: &Path,
 ) -> Result<(Vec<(usize, MetricSet)>, f64), String> {
     if variant.centralized() {
@@ -51,6 +54,7 @@ pub fn run(
         // lines are for one run.
         c.mcap_log = false;
         c.status_period_s = 0.0;
+        c.images.frontend = frontend.clone();
     }
     let stop = Arc::new(AtomicBool::new(false));
     let reports = run_inproc(&configs, &stop, None).map_err(|e| format!("{e:#}"))?;

@@ -53,6 +53,7 @@ pub fn render_table(study: &StudySummary) -> String {
         );
     }
     traffic_table(&mut out, study);
+    tracks_table(&mut out, study);
     frames_table(&mut out, study);
     anees_table(&mut out, study);
     out
@@ -84,6 +85,34 @@ fn anees_table(out: &mut String, study: &StudySummary) {
             r.trajectory,
             a.runs,
             cells.join(" | ")
+        );
+    }
+}
+
+/// For runs through rendered images: the image frontend's tracks against the
+/// rendered truth, the mean error of each robot's tracks averaged over the
+/// runs.
+fn tracks_table(out: &mut String, study: &StudySummary) {
+    let rows: Vec<_> = study
+        .variants
+        .iter()
+        .flat_map(|(name, v)| v.robots.iter().map(move |r| (name, r)))
+        .filter(|(_, r)| r.metrics.track_error_px.is_some())
+        .collect();
+    if rows.is_empty() {
+        return;
+    }
+    out.push_str(
+        "\nImage frontend's tracks against the rendered truth (`track_errors.csv` per run):\n\n",
+    );
+    out.push_str("| variant | robot | mean track error px |\n| --- | --- | ---: |\n");
+    for (name, r) in rows {
+        let _ = writeln!(
+            out,
+            "| {name} | {} {} | {} |",
+            r.id,
+            r.trajectory,
+            num(r.metrics.track_error_px, 3)
         );
     }
 }
