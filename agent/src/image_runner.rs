@@ -42,6 +42,14 @@ pub struct TrackQuality {
     pub outlier_fraction: f64,
 }
 
+impl TrackQuality {
+    /// The tracks' mean error, px, or `None` when no track was scored.
+    pub fn mean_error_px(&self) -> Option<f64> {
+        let m = self.reprojection_mean_px;
+        (self.observations > 0 && m.is_finite()).then_some(m)
+    }
+}
+
 /// The tracks' error against the rendered truth in one image.
 ///
 /// The common part, the mean of the error vectors, is a shift every track

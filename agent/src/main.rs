@@ -704,8 +704,7 @@ fn rendered(
     let csv = out.join("track_errors.csv");
     let text = agent::image_runner::track_errors_csv(&r.per_frame);
     std::fs::write(&csv, text).with_context(|| format!("writing {}", csv.display()))?;
-    let scored = q.observations > 0 && q.reprojection_mean_px.is_finite();
-    Ok((r.run, scored.then_some(q.reprojection_mean_px)))
+    Ok((r.run, q.mean_error_px()))
 }
 
 #[cfg(not(feature = "vision"))]

@@ -34,10 +34,9 @@ pub fn run(
     frontend: FrontendOptions,
 ) -> Result<RenderedRun, RunError> {
     let r = crate::image_runner::run_robot_rendered(fleet, robot, opts, frontend, |_, _| {})?;
-    let mean = r.tracks.reprojection_mean_px;
     Ok(RenderedRun {
+        track_error_mean_px: r.tracks.mean_error_px(),
         run: r.run,
-        track_error_mean_px: (r.tracks.observations > 0 && mean.is_finite()).then_some(mean),
         track_errors_csv: crate::image_runner::track_errors_csv(&r.per_frame),
     })
 }
